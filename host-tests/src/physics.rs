@@ -1,0 +1,401 @@
+//! Component laws of `physics.md` §2 in SI units (pressures gauge, Pa).
+//!
+//! Pure functions of the bench parameters: the plant's right-hand side is assembled from them.
+
+use crate::bench::{Accumulator, Bench, CheckValve, Geometry, Oil, P_ATM};
+
+/// Equation of state of oil with trapped air.
+///
+/// Per unit of reference volume (the volume the oil-air mixture takes at 0 bar gauge), the mixture
+/// occupies `v(p) = [e^(−p/E_l) + α·r(p)] / (1 + α)`, `r(p) = (p_a/(p_a+p))^(1/n)`: liquid with
+/// constant modulus E_l plus air compressed polytropically. Its bulk modulus
+///
+/// `E(p) = −v/v' = [e^(−p/E_l) + α·r] / [e^(−p/E_l)/E_l + α·r/(n·(p_a+p))]`
+///
+/// is the SimHydraulics trapped-air formula of physics.md with `e^(−p/E_l)` kept where the
+/// formula rounds it to 1 (they differ by < 0.15 % up to 130 bar, see the tests). We keep the
+/// exact form because mass and energy are then state functions in closed form (`content`,
+/// [`Fluid::exergy`]): a volumetric (constant-density) flow balance loses ≈2 % of the pumped
+/// volume per stroke through the chambers, which drains LP over a long run.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fluid {
+    el: f64,
+    alpha: f64,
+    n: f64,
+}
+
+impl Fluid {
+    /// The fluid of a bench's oil.
+    pub fn new(oil: &Oil) -> Self {
+        Fluid {
+            el: oil.liquid_modulus,
+            alpha: oil.air_fraction,
+            n: oil.air_index,
+        }
+    }
+
+    /// Absolute pressure floored at 1 Pa so Newton iterates below vacuum stay finite (the
+    /// simulation rejects accepted states below vacuum).
+    fn pabs(p: f64) -> f64 {
+        (P_ATM + p).max(1.0)
+    }
+
+    /// Specific volume relative to 0 bar gauge, v(p) (m³ per m³ of reference volume).
+    pub fn volume_ratio(&self, p: f64) -> f64 {
+        let r = (P_ATM / Self::pabs(p)).powf(1.0 / self.n);
+        ((-p / self.el).exp() + self.alpha * r) / (1.0 + self.alpha)
+    }
+
+    /// v(p) and the bulk modulus E(p), Pa, in one evaluation.
+    pub fn state(&self, p: f64) -> (f64, f64) {
+        let pabs = Self::pabs(p);
+        let r = (P_ATM / pabs).powf(1.0 / self.n);
+        let liq = (-p / self.el).exp();
+        let num = liq + self.alpha * r;
+        let den = liq / self.el + self.alpha * r / (self.n * pabs);
+        (num / (1.0 + self.alpha), num / den)
+    }
+
+    /// Bulk modulus E(p), Pa.
+    pub fn bulk_modulus(&self, p: f64) -> f64 {
+        self.state(p).1
+    }
+
+    /// Flow exergy per reference volume, G(p) = ∫_0^p v dp', J/m³: a mass flow from a to b
+    /// dissipates `ṁ_ref·(G(p_a) − G(p_b))`.
+    pub fn exergy(&self, p: f64) -> f64 {
+        let k = 1.0 - 1.0 / self.n;
+        let liquid = self.el * (1.0 - (-p / self.el).exp());
+        let air = self.alpha * P_ATM.powf(1.0 / self.n) * (Self::pabs(p).powf(k) - P_ATM.powf(k)) / k;
+        (liquid + air) / (1.0 + self.alpha)
+    }
+
+    /// Free energy stored in `volume` m³ of oil at pressure p (gauge frame), J:
+    /// content·(G − p·v) with content = volume/v.
+    pub fn stored_energy(&self, volume: f64, p: f64) -> f64 {
+        volume * self.exergy(p) / self.volume_ratio(p) - p * volume
+    }
+}
+
+/// Bulk modulus of oil with trapped air, Pa (see [`Fluid`]).
+pub fn bulk_modulus(oil: &Oil, p: f64) -> f64 {
+    Fluid::new(oil).bulk_modulus(p)
+}
+
+/// The physics.md (SimHydraulics) form of the trapped-air modulus, kept for comparison:
+/// `E_l·[1 + α·(p_a/(p_a+p))^(1/n)] / [1 + α·p_a^(1/n)/(n·(p_a+p)^((n+1)/n))·E_l]`.
+pub fn bulk_modulus_simhydraulics(oil: &Oil, p: f64) -> f64 {
+    let pabs = (P_ATM + p).max(1.0);
+    let n = oil.air_index;
+    let a = oil.air_fraction;
+    let ratio = (P_ATM / pabs).powf(1.0 / n);
+    oil.liquid_modulus * (1.0 + a * ratio) / (1.0 + a * ratio / (n * pabs) * oil.liquid_modulus)
+}
+
+/// Orifice flow with laminar transition, m³/s (positive from high to low for `dp > 0`).
+///
+/// `q = Cd·A·sqrt(2/ρ)·Δp/(Δp² + p_cr²)^(1/4)`, `p_cr = (ρ/2)·(Re_cr·ν/(Cd·D_H))²`,
+/// `D_H = sqrt(4A/π)`, so `p_cr = (ρ/2)·(Re_cr·ν/Cd)²·π/(4A)`.
+pub fn orifice(oil: &Oil, cd: f64, area: f64, dp: f64) -> f64 {
+    if area <= 0.0 {
+        return 0.0;
+    }
+    let k = oil.re_crit * oil.viscosity / cd;
+    let p_cr = 0.5 * oil.density * k * k * std::f64::consts::PI / (4.0 * area);
+    let root = (dp * dp + p_cr * p_cr).sqrt().sqrt();
+    cd * area * (2.0 / oil.density).sqrt() * dp / root
+}
+
+/// C¹ smoothstep of u on [0, 1] (clamped).
+fn smoothstep(u: f64) -> f64 {
+    let u = u.clamp(0.0, 1.0);
+    u * u * (3.0 - 2.0 * u)
+}
+
+/// Opening area of a check valve at pressure drop `dp` across it, m².
+///
+/// Leakage area below cracking, full area at the full-open pressure; in between SimHydraulics is
+/// linear. We blend with a C¹ smoothstep instead so the Jacobian has no jump at the two corners
+/// (the BDF solver would otherwise cut its step at each of the hundreds of valve switches).
+pub fn check_area(v: &CheckValve, leak: f64, dp: f64) -> f64 {
+    let u = (dp - v.cracking) / (v.full_open - v.cracking);
+    leak + (v.max_area - leak) * smoothstep(u)
+}
+
+/// Check valve flow for a pressure drop `dp` = upstream − downstream, m³/s.
+pub fn check_flow(oil: &Oil, v: &CheckValve, dp: f64) -> f64 {
+    orifice(oil, v.cd, check_area(v, oil.leak_area, dp), dp)
+}
+
+/// Relief valve flow HP -> LP, m³/s. The valve opens on its inlet gauge pressure `p_in` (pilot
+/// referenced to the drain/atmosphere), from leakage at the setting to the full area at
+/// setting + regulation range; the flow is driven by `p_in − p_out`.
+pub fn relief_flow(bench: &Bench, p_in: f64, p_out: f64) -> f64 {
+    let u = (p_in - bench.relief_setting) / bench.relief_range;
+    let leak = bench.oil.leak_area;
+    let area = leak + (bench.relief_area - leak) * smoothstep(u);
+    orifice(&bench.oil, bench.relief_cd, area, p_in - p_out)
+}
+
+/// Control valve area at aperture `a` (fraction 0..1): linear interpolation of the table, with the
+/// leakage area as a floor so the closed valve leaks like every other closed valve.
+pub fn valve_area(bench: &Bench, a: f64) -> f64 {
+    let xs = &bench.valve_aperture;
+    let ys = &bench.valve_area;
+    let a = a.clamp(0.0, 1.0);
+    let i = xs.partition_point(|&x| x <= a).clamp(1, xs.len() - 1);
+    let (x0, x1, y0, y1) = (xs[i - 1], xs[i], ys[i - 1], ys[i]);
+    let area = y0 + (y1 - y0) * (a - x0) / (x1 - x0);
+    area.max(bench.oil.leak_area)
+}
+
+/// Control valve flow at aperture `a`, m³/s.
+pub fn valve_flow(bench: &Bench, a: f64, dp: f64) -> f64 {
+    orifice(&bench.oil, bench.valve_cd, valve_area(bench, a), dp)
+}
+
+/// Pressure band over which the bladder lifts off its stop, Pa.
+///
+/// A real bladder does not leave its poppet at one exact pressure. More to the point for the
+/// solver: with an ideal stop, dV/dp jumps from 0 to V_T/(k·p_abs) at the precharge, and a run
+/// that hovers at the precharge (Test I with one cylinder) forces the BDF solver through that
+/// corner every stroke; restarting it at every crossing proved fragile. Over this band the
+/// capacitance rises linearly from 0 to the gas law's; above it the gas law holds exactly (with
+/// the fluid volume offset by the band's small deficit, < 0.3 cm³ per litre of gas).
+pub const BLADDER_BAND: f64 = 0.5e5;
+
+impl Accumulator {
+    /// Gas volume of the ideal polytropic gas law at gauge pressure `p`, m³.
+    pub fn gas_volume(&self, p: f64) -> f64 {
+        if p <= self.precharge {
+            self.volume
+        } else {
+            self.volume * ((self.precharge + P_ATM) / (p + P_ATM)).powf(1.0 / self.index)
+        }
+    }
+
+    fn exact_capacitance(&self, p: f64) -> f64 {
+        self.gas_volume(p) / (self.index * (p + P_ATM))
+    }
+
+    /// ∫ p dV of the exact gas law from the precharge to p (gauge frame), J.
+    fn exact_energy(&self, p: f64) -> f64 {
+        let (p0, p1) = (self.precharge + P_ATM, p + P_ATM);
+        let v1 = self.gas_volume(p);
+        // −∫ p_abs dV = (p1·V1 − p0·V0)/(k − 1); the atmosphere's share p_a·(V0 − V1) is not
+        // stored in the gauge frame.
+        (p1 * v1 - p0 * self.volume) / (self.index - 1.0) - P_ATM * (self.volume - v1)
+    }
+
+    /// Values at the top of the lift-off band: (p1, C(p1), fluid volume, energy).
+    fn band_top(&self) -> (f64, f64, f64, f64) {
+        let p0 = self.precharge;
+        let p1 = p0 + BLADDER_BAND;
+        let c1 = self.exact_capacitance(p1);
+        let vf = c1 * BLADDER_BAND / 2.0;
+        let e = c1 / BLADDER_BAND * ((p1.powi(3) - p0.powi(3)) / 3.0 - p0 * (p1 * p1 - p0 * p0) / 2.0);
+        (p1, c1, vf, e)
+    }
+
+    /// Oil volume inside, m³.
+    pub fn fluid_volume(&self, p: f64) -> f64 {
+        let p0 = self.precharge;
+        if p <= p0 {
+            return 0.0;
+        }
+        let (p1, c1, vf1, _) = self.band_top();
+        if p <= p1 {
+            c1 * (p - p0).powi(2) / (2.0 * BLADDER_BAND)
+        } else {
+            vf1 + self.gas_volume(p1) - self.gas_volume(p)
+        }
+    }
+
+    /// dV_fluid/dp, m³/Pa (0 below precharge: the bladder rests on its stop).
+    pub fn capacitance(&self, p: f64) -> f64 {
+        let p0 = self.precharge;
+        if p <= p0 {
+            return 0.0;
+        }
+        let (p1, c1, _, _) = self.band_top();
+        if p <= p1 {
+            c1 * (p - p0) / BLADDER_BAND
+        } else {
+            self.exact_capacitance(p)
+        }
+    }
+
+    /// Work done on the gas by the oil, with gauge pressures: ∫ p dV_fluid, J.
+    pub fn stored_energy(&self, p: f64) -> f64 {
+        let p0 = self.precharge;
+        if p <= p0 {
+            return 0.0;
+        }
+        let (p1, c1, _, e1) = self.band_top();
+        if p <= p1 {
+            c1 / BLADDER_BAND * ((p.powi(3) - p0.powi(3)) / 3.0 - p0 * (p * p - p0 * p0) / 2.0)
+        } else {
+            e1 + self.exact_energy(p) - self.exact_energy(p1)
+        }
+    }
+}
+
+/// Lever geometry of one cylinder (Eq. 1): rod-eye extension and effective arm versus shaft angle.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Lever {
+    r: f64,
+    oc: f64,
+    l: f64,
+    phi0: f64,
+    side: f64,
+}
+
+impl Lever {
+    /// Lever of a cylinder with stroke `stroke` and side `side`, mounted in geometry `g` so that
+    /// the eye sits at mid-stroke at shaft angle 0.
+    pub fn new(g: &Geometry, stroke: f64, side: f64) -> Self {
+        let mid = g.ac + 0.5 * stroke;
+        let cos_phi0 = (g.ob * g.ob + g.oc * g.oc - mid * mid) / (2.0 * g.ob * g.oc);
+        Lever {
+            r: g.ob,
+            oc: g.oc,
+            l: g.ac,
+            phi0: cos_phi0.clamp(-1.0, 1.0).acos(),
+            side,
+        }
+    }
+
+    /// Eye extension x = CB − L (m), its rate dx/dθ·θ̇ (m/s) and the arm d (m) at angle `theta`.
+    pub fn eye(&self, theta: f64, theta_dot: f64) -> (f64, f64, f64) {
+        let phi = self.phi0 + self.side * theta;
+        let (s, c) = phi.sin_cos();
+        let cb = (self.r * self.r + self.oc * self.oc - 2.0 * self.r * self.oc * c).sqrt();
+        let d = self.r * self.oc * s / cb;
+        (cb - self.l, self.side * d * theta_dot, d)
+    }
+
+    /// Side of the shaft, ±1.
+    pub fn side(&self) -> f64 {
+        self.side
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::bench::{BAR, Bench};
+
+    #[test]
+    fn bulk_modulus_matches_hand_values() {
+        let b = Bench::reference();
+        // With no air the modulus is the liquid's.
+        let mut pure = b.oil.clone();
+        pure.air_fraction = 0.0;
+        assert!((bulk_modulus(&pure, 100.0 * BAR) / 1.6e9 - 1.0).abs() < 1e-12);
+        // 6 % air: ≈1.28 GPa at 100 bar, a few MPa near 0 bar gauge.
+        let e100 = bulk_modulus_simhydraulics(&b.oil, 100.0 * BAR);
+        assert!((e100 / 1e9 - 1.28).abs() < 0.01, "{e100}");
+        assert_eq!(bulk_modulus_simhydraulics(&pure, 100.0 * BAR), 1.6e9);
+        let e0 = bulk_modulus(&b.oil, 0.0);
+        assert!(e0 > 1e6 && e0 < 1e7, "{e0}");
+    }
+
+    #[test]
+    fn exact_modulus_stays_within_0_15_pct_of_the_physics_md_formula() {
+        let oil = Bench::reference().oil;
+        let mut worst = 0.0f64;
+        for k in 0..=130 {
+            let p = k as f64 * BAR;
+            let rel = (bulk_modulus(&oil, p) / bulk_modulus_simhydraulics(&oil, p) - 1.0).abs();
+            worst = worst.max(rel);
+        }
+        println!("max |E/E_simhydraulics − 1| over 0..130 bar: {worst:.2e}");
+        assert!(worst < 1.5e-3);
+    }
+
+    #[test]
+    fn equation_of_state_is_self_consistent() {
+        // E = −v/v' and G' = v, checked by central differences.
+        let f = Fluid::new(&Bench::reference().oil);
+        for p_bar in [-0.5, 0.0, 3.0, 8.0, 50.0, 100.0, 130.0, 300.0] {
+            let p = p_bar * BAR;
+            let h = 10.0;
+            let dv = (f.volume_ratio(p + h) - f.volume_ratio(p - h)) / (2.0 * h);
+            let e = -f.volume_ratio(p) / dv;
+            let rel_e = (e / f.bulk_modulus(p) - 1.0).abs();
+            let dg = (f.exergy(p + h) - f.exergy(p - h)) / (2.0 * h);
+            let rel_g = (dg / f.volume_ratio(p) - 1.0).abs();
+            assert!(rel_e < 1e-6 && rel_g < 1e-8, "{p_bar} bar: {rel_e:e} {rel_g:e}");
+        }
+    }
+
+    #[test]
+    fn valve_flow_reproduces_the_arithmetic_check_of_physics_md() {
+        // 10 % at 92 bar: ≈1.53 L/min; 15 %: ≈2.61 L/min (turbulent regime).
+        let b = Bench::reference();
+        let q10 = valve_flow(&b, 0.10, 92.0 * BAR) * 60_000.0;
+        let q15 = valve_flow(&b, 0.15, 92.0 * BAR) * 60_000.0;
+        println!("q10 {q10:.3} L/min, q15 {q15:.3} L/min");
+        assert!((q10 - 1.53).abs() < 0.01);
+        assert!((q15 - 2.61).abs() < 0.015);
+    }
+
+    #[test]
+    fn hp_accumulator_gas_volume_at_102_bar() {
+        let b = Bench::reference();
+        let v = b.hp_acc.gas_volume(102.0 * BAR) * 1e3;
+        assert!((v - 3.74).abs() < 0.01, "{v}");
+        // Stored energy is ∫ p dV and capacitance is dV/dp: compare with fine sums.
+        let (p0, p1) = (b.hp_acc.precharge, 102.0 * BAR);
+        for p in [p0 + 0.2e5, p0 + 0.5e5, p0 + 3e5, p1] {
+            let h = 1.0;
+            let dv = (b.hp_acc.fluid_volume(p + h) - b.hp_acc.fluid_volume(p - h)) / (2.0 * h);
+            assert!((dv / b.hp_acc.capacitance(p) - 1.0).abs() < 1e-6, "{p}");
+        }
+        let n = 100_000;
+        let mut e = 0.0;
+        for k in 0..n {
+            let pa = p0 + (p1 - p0) * k as f64 / n as f64;
+            let pb = p0 + (p1 - p0) * (k + 1) as f64 / n as f64;
+            e += 0.5 * (pa + pb) * (b.hp_acc.fluid_volume(pb) - b.hp_acc.fluid_volume(pa));
+        }
+        let rel = (b.hp_acc.stored_energy(p1) - e).abs() / e;
+        assert!(rel < 1e-8, "{rel}");
+    }
+
+    #[test]
+    fn config_rod_travel_orders_as_the_paper() {
+        // ±40 mm rack on a 96 mm pinion; travel of the eye of HC3.1 per config.
+        let b = Bench::reference();
+        let amp = 0.040 / b.pinion_radius;
+        let travel: Vec<f64> = b
+            .configs
+            .iter()
+            .map(|g| {
+                let lever = Lever::new(g, 0.2, 1.0);
+                (lever.eye(amp, 0.0).0 - lever.eye(-amp, 0.0).0) * 1e3
+            })
+            .collect();
+        println!("eye travel per config (mm): {travel:?}");
+        // physics.md: rod travel ≈ 101 / 97 / 65 / 81 mm (eye travel minus nothing here).
+        for (t, want) in travel.iter().zip([101.0, 97.0, 65.0, 81.0]) {
+            assert!((t - want).abs() < 2.0, "{t} vs {want}");
+        }
+        // Arm at neutral = R.
+        let lever = Lever::new(&b.configs[0], 0.2, 1.0);
+        assert!((lever.eye(0.0, 0.0).2 - 0.125).abs() < 1e-4);
+    }
+
+    #[test]
+    fn check_area_is_continuous_and_monotone() {
+        let b = Bench::reference();
+        let mut prev = 0.0;
+        for k in -100..400 {
+            let dp = k as f64 * 0.01 * BAR;
+            let a = check_area(&b.check, b.oil.leak_area, dp);
+            assert!(a >= prev);
+            prev = a;
+        }
+        assert_eq!(prev, b.check.max_area);
+    }
+}

@@ -1,0 +1,507 @@
+//! The bench as an ODE: state layout, right-hand side, and every derived flow, force and power.
+//!
+//! States are scaled so one absolute tolerance means the same everywhere: pressures in bar, rod
+//! positions in mm, motor speed in rad/s, spool aperture in %. Chambers of idle cylinders are
+//! bypassed to LP and carry no state.
+
+use crate::bench::{BAR, Bench, Load};
+use crate::motion::Motion;
+use crate::physics::{self, Fluid, Lever, check_flow};
+use std::cell::Cell;
+
+/// Number of cylinders on the bench.
+pub const N_CYL: usize = 4;
+
+/// Names of the integrated balance terms (the diffsol output vector), with units.
+/// Volumes are litres of reference volume (oil at 0 bar gauge), i.e. mass.
+pub const QUAD_NAMES: [&str; N_QUAD] = [
+    "into_hp_l",
+    "valve_l",
+    "relief_l",
+    "makeup_l",
+    "motor_l",
+    "lp_to_chambers_l",
+    "input_work_kj",
+    "mechanical_loss_kj",
+    "check_valve_loss_kj",
+    "control_valve_loss_kj",
+    "relief_loss_kj",
+    "motor_loss_kj",
+    "load_work_kj",
+];
+/// Length of the integrated balance vector.
+pub const N_QUAD: usize = 13;
+
+/// One cylinder on duty.
+#[derive(Debug, Clone)]
+struct Active {
+    lever: Lever,
+    area_cap: f64,
+    area_ann: f64,
+    stroke: f64,
+    /// Offset of (p_cap, p_rod, x_rod) in the state vector.
+    at: usize,
+}
+
+/// One idle cylinder: chambers at LP through the bypass, rod following the eye.
+#[derive(Debug, Clone)]
+struct Idle {
+    lever: Lever,
+    area_cap: f64,
+    area_ann: f64,
+    stroke: f64,
+}
+
+impl Idle {
+    /// Volume of both (bypassed) chambers with the rod at `x`, m³.
+    fn volume_at(&self, dead: f64, x: f64) -> f64 {
+        2.0 * dead + self.area_cap * x + self.area_ann * (self.stroke - x)
+    }
+}
+
+/// Everything the model computes at one instant.
+#[derive(Debug, Clone, Default)]
+pub struct Eval {
+    /// Shaft angle, rad.
+    pub theta: f64,
+    /// Shaft speed, rad/s.
+    pub theta_dot: f64,
+    /// Rod positions, m (eye position for idle cylinders).
+    pub rod: [f64; N_CYL],
+    /// Cap chamber pressures, Pa.
+    pub p_cap: [f64; N_CYL],
+    /// Rod chamber pressures, Pa.
+    pub p_rod: [f64; N_CYL],
+    /// Flow delivered into HP per cylinder, m³/s.
+    pub q_into_hp: [f64; N_CYL],
+    /// Torque the input must supply per cylinder (restraining torque), N·m.
+    pub torque: [f64; N_CYL],
+    /// HP pressure P2, Pa.
+    pub p2: f64,
+    /// LP pressure, Pa.
+    pub lp: f64,
+    /// Motor inlet pressure, Pa.
+    pub p_motor: f64,
+    /// Control valve flow, m³/s.
+    pub q_valve: f64,
+    /// Relief flow, m³/s.
+    pub q_relief: f64,
+    /// Make-up flow, m³/s.
+    pub q_makeup: f64,
+    /// Flow through the motor (inlet -> LP, incl. leakage), m³/s.
+    pub q_motor: f64,
+    /// Motor speed, rad/s.
+    pub omega: f64,
+    /// Spool aperture, fraction.
+    pub aperture: f64,
+    /// Integrand of the balance quadratures (see [`QUAD_NAMES`]), SI units per second.
+    pub quad: [f64; N_QUAD],
+    /// Stored mechanical spring energy in the hard stops, J.
+    pub spring_energy: f64,
+}
+
+/// The plant: bench, cylinders on duty, geometry, input motion and the commanded aperture.
+#[derive(Debug)]
+pub struct Plant {
+    bench: Bench,
+    active: Vec<Active>,
+    active_index: Vec<usize>,
+    idle: Vec<(usize, Idle)>,
+    motion: Motion,
+    fluid: Fluid,
+    /// Commanded aperture, fraction 0..1 (set by the valve schedule between solver segments).
+    pub command: Cell<f64>,
+    i_p2: usize,
+    i_lp: usize,
+    i_pm: usize,
+    i_w: usize,
+    i_a: Option<usize>,
+    n: usize,
+}
+
+impl Plant {
+    /// Builds the plant for `on_duty` cylinders in geometry `config`.
+    pub fn new(bench: &Bench, config: usize, on_duty: [bool; N_CYL], motion: Motion) -> Self {
+        let geom = &bench.configs[config];
+        let mut active = Vec::new();
+        let mut active_index = Vec::new();
+        let mut idle = Vec::new();
+        for (i, c) in bench.cylinders.iter().enumerate() {
+            let lever = Lever::new(geom, c.stroke, c.side);
+            if on_duty[i] {
+                active.push(Active {
+                    lever,
+                    area_cap: c.area_cap,
+                    area_ann: c.area_ann,
+                    stroke: c.stroke,
+                    at: 3 * active.len(),
+                });
+                active_index.push(i);
+            } else {
+                idle.push((
+                    i,
+                    Idle {
+                        lever,
+                        area_cap: c.area_cap,
+                        area_ann: c.area_ann,
+                        stroke: c.stroke,
+                    },
+                ));
+            }
+        }
+        let base = 3 * active.len();
+        let i_a = (bench.spool_tau > 0.0).then_some(base + 4);
+        Plant {
+            bench: bench.clone(),
+            active,
+            active_index,
+            idle,
+            motion,
+            fluid: Fluid::new(&bench.oil),
+            command: Cell::new(0.0),
+            i_p2: base,
+            i_lp: base + 1,
+            i_pm: base + 2,
+            i_w: base + 3,
+            n: base + 4 + usize::from(i_a.is_some()),
+            i_a,
+        }
+    }
+
+    /// Number of states.
+    pub fn len(&self) -> usize {
+        self.n
+    }
+
+    /// True when there are no states (never: P2, LP, motor inlet and speed always exist).
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    /// The bench.
+    pub fn bench(&self) -> &Bench {
+        &self.bench
+    }
+
+    /// The input motion.
+    pub fn motion(&self) -> &Motion {
+        &self.motion
+    }
+
+    /// Index of P2 (bar) in the state.
+    pub fn p2_index(&self) -> usize {
+        self.i_p2
+    }
+
+    /// Human-readable name of state `i` (for error messages).
+    pub fn state_name(&self, i: usize) -> String {
+        if i < self.i_p2 {
+            let c = &self.bench.cylinders[self.active_index[i / 3]].name;
+            return match i % 3 {
+                0 => format!("{c} cap-chamber pressure (bar)"),
+                1 => format!("{c} rod-chamber pressure (bar)"),
+                _ => format!("{c} rod position (mm)"),
+            };
+        }
+        match i - self.i_p2 {
+            0 => "HP pressure P2 (bar)".into(),
+            1 => "LP pressure (bar)".into(),
+            2 => "motor inlet pressure (bar)".into(),
+            3 => "motor speed (rad/s)".into(),
+            _ => "spool aperture (%)".into(),
+        }
+    }
+
+    /// Per-state absolute tolerance in state units for a given scale factor.
+    pub fn atol(&self, scale: f64) -> Vec<f64> {
+        let mut a = vec![1e-3 * scale; self.n];
+        for c in &self.active {
+            a[c.at + 2] = 1e-4 * scale; // mm
+        }
+        a[self.i_w] = 1e-3 * scale; // rad/s
+        a
+    }
+
+    /// Initial state: chambers at LP, rods touching their eyes' play centre, motor as given.
+    pub fn initial_state(&self, p2: f64, lp: f64, p_motor: f64, omega: f64, aperture: f64) -> Vec<f64> {
+        let (theta, _) = self.motion.at(0.0);
+        let mut y = vec![0.0; self.n];
+        for c in &self.active {
+            let (x, _, _) = c.lever.eye(theta, 0.0);
+            y[c.at] = lp / BAR;
+            y[c.at + 1] = lp / BAR;
+            y[c.at + 2] = x * 1e3;
+        }
+        y[self.i_p2] = p2 / BAR;
+        y[self.i_lp] = lp / BAR;
+        y[self.i_pm] = p_motor / BAR;
+        y[self.i_w] = omega;
+        if let Some(i) = self.i_a {
+            y[i] = aperture * 100.0;
+        }
+        self.command.set(aperture);
+        y
+    }
+
+    /// Right-hand side in scaled units.
+    pub fn rhs(&self, t: f64, y: &[f64], dy: &mut [f64]) {
+        self.evaluate(t, y, Some(dy));
+    }
+
+    /// Evaluates the model; writes the scaled derivative when `dy` is given, and the balance
+    /// integrands (which need the fluid exergy, not used by the right-hand side) when it is not.
+    ///
+    /// Flows are mass-consistent: an orifice passes `q` m³/s at its upstream density, i.e.
+    /// `q/v(p_up)` m³/s of reference volume, and each node turns its net reference inflow into a
+    /// pressure rate through its own v(p) and E(p).
+    pub fn evaluate(&self, t: f64, y: &[f64], dy: Option<&mut [f64]>) -> Eval {
+        let b = &self.bench;
+        let oil = &b.oil;
+        let fl = &self.fluid;
+        let want_quad = dy.is_none();
+        let (theta, theta_dot) = self.motion.at(t);
+        let p2 = y[self.i_p2] * BAR;
+        let lp = y[self.i_lp] * BAR;
+        let pm = y[self.i_pm] * BAR;
+        let omega = y[self.i_w];
+        let aperture = match self.i_a {
+            Some(i) => (y[i] / 100.0).clamp(0.0, 1.0),
+            None => self.command.get(),
+        };
+        let (v_hp, e_hp) = fl.state(p2);
+        let (v_lp, e_lp) = fl.state(lp);
+        let (v_pm, e_pm) = fl.state(pm);
+        let (g_hp, g_lp, g_pm) = if want_quad {
+            (fl.exergy(p2), fl.exergy(lp), fl.exergy(pm))
+        } else {
+            (0.0, 0.0, 0.0)
+        };
+        // Reference-volume flow of an orifice flow q from a node with v_a to one with v_b.
+        let mref = |q: f64, va: f64, vb: f64| if q >= 0.0 { q / va } else { q / vb };
+        let mut e = Eval {
+            theta,
+            theta_dot,
+            p2,
+            lp,
+            p_motor: pm,
+            omega,
+            aperture,
+            ..Eval::default()
+        };
+        let half = 0.5 * b.free_play;
+        let (k, d, c_seal) = (b.stop_stiffness, b.stop_damping, b.seal_friction);
+        let mut m_into_hp = 0.0;
+        let mut m_from_lp = 0.0;
+        let mut dy = dy;
+        for (j, c) in self.active.iter().enumerate() {
+            let ci = self.active_index[j];
+            let p_cap = y[c.at] * BAR;
+            let p_rod = y[c.at + 1] * BAR;
+            let x = y[c.at + 2] * 1e-3;
+            let (x_eye, v_eye, arm) = c.lever.eye(theta, theta_dot);
+            // Rod fixation: free play of width 2·half closed by a stiff, damped stop.
+            let gap = x_eye - x;
+            let pen = if gap > half {
+                gap - half
+            } else if gap < -half {
+                gap + half
+            } else {
+                0.0
+            };
+            let contact = pen != 0.0;
+            // Cylinder end stops.
+            let pen_end = if x < 0.0 {
+                -x
+            } else if x > c.stroke {
+                c.stroke - x
+            } else {
+                0.0
+            };
+            let end = pen_end != 0.0;
+            let f_hyd = p_cap * c.area_cap - p_rod * c.area_ann;
+            // Massless rod: 0 = F_contact + F_hyd + F_end − c·ẋ, solved for ẋ.
+            let mut num = f_hyd + k * pen_end;
+            let mut den = c_seal;
+            if contact {
+                num += k * pen + d * v_eye;
+                den += d;
+            }
+            if end {
+                den += d;
+            }
+            let x_dot = num / den;
+            let f_contact = if contact {
+                k * pen + d * (v_eye - x_dot)
+            } else {
+                0.0
+            };
+            let (v_cap, e_cap) = fl.state(p_cap);
+            let (v_rod, e_rod) = fl.state(p_rod);
+            let vol_cap = b.chamber_dead_volume + c.area_cap * x;
+            let vol_rod = b.chamber_dead_volume + c.area_ann * (c.stroke - x);
+            let suc_cap = mref(check_flow(oil, &b.check, lp - p_cap), v_lp, v_cap);
+            let del_cap = mref(check_flow(oil, &b.check, p_cap - p2), v_cap, v_hp);
+            let suc_rod = mref(check_flow(oil, &b.check, lp - p_rod), v_lp, v_rod);
+            let del_rod = mref(check_flow(oil, &b.check, p_rod - p2), v_rod, v_hp);
+            if let Some(dy) = dy.as_deref_mut() {
+                let vdot_cap = c.area_cap * x_dot;
+                let vdot_rod = -c.area_ann * x_dot;
+                dy[c.at] = e_cap / vol_cap * (v_cap * (suc_cap - del_cap) - vdot_cap) / BAR;
+                dy[c.at + 1] = e_rod / vol_rod * (v_rod * (suc_rod - del_rod) - vdot_rod) / BAR;
+                dy[c.at + 2] = x_dot * 1e3;
+            }
+            m_into_hp += del_cap + del_rod;
+            m_from_lp += suc_cap + suc_rod;
+            e.rod[ci] = x;
+            e.p_cap[ci] = p_cap;
+            e.p_rod[ci] = p_rod;
+            e.q_into_hp[ci] = (del_cap + del_rod) * v_hp;
+            e.torque[ci] = c.lever.side() * arm * f_contact;
+            e.quad[6] += f_contact * v_eye;
+            if want_quad {
+                let v_rel = v_eye - x_dot;
+                e.quad[7] += c_seal * x_dot * x_dot
+                    + if contact { d * v_rel * v_rel } else { 0.0 }
+                    + if end { d * x_dot * x_dot } else { 0.0 };
+                let (g_cap, g_rod) = (fl.exergy(p_cap), fl.exergy(p_rod));
+                e.quad[8] += suc_cap * (g_lp - g_cap)
+                    + del_cap * (g_cap - g_hp)
+                    + suc_rod * (g_lp - g_rod)
+                    + del_rod * (g_rod - g_hp);
+                e.spring_energy += 0.5 * k * (pen * pen + pen_end * pen_end);
+            }
+        }
+        // Idle cylinders: chambers bypassed to LP, so they are part of the LP node's volume; the
+        // rods follow their eyes and LP·A_rod pushes them out against the lever.
+        let mut idle_volume = 0.0;
+        let mut idle_vdot = 0.0;
+        for (ci, c) in &self.idle {
+            let (x_eye, v_eye, arm) = c.lever.eye(theta, theta_dot);
+            let area_rod = c.area_cap - c.area_ann;
+            let f_contact = -lp * area_rod;
+            idle_volume += c.volume_at(b.chamber_dead_volume, x_eye);
+            idle_vdot += area_rod * v_eye;
+            e.rod[*ci] = x_eye;
+            e.p_cap[*ci] = lp;
+            e.p_rod[*ci] = lp;
+            e.torque[*ci] = c.lever.side() * arm * f_contact;
+            e.quad[6] += f_contact * v_eye;
+        }
+        let q_valve = physics::valve_flow(b, aperture, p2 - pm);
+        let q_relief = physics::relief_flow(b, p2, lp);
+        let q_makeup = check_flow(oil, &b.makeup, lp - pm);
+        let dp_motor = pm - lp;
+        let q_motor = b.motor_disp * omega + b.motor_leak * dp_motor;
+        let m_valve = mref(q_valve, v_hp, v_pm);
+        let m_relief = mref(q_relief, v_hp, v_lp);
+        let m_makeup = mref(q_makeup, v_lp, v_pm);
+        let m_motor = mref(q_motor, v_pm, v_lp);
+        let t_load = match b.load {
+            Load::Viscous(c) => c * omega,
+            Load::Constant(tq) => tq * (omega / 0.104_719_755).tanh(),
+        };
+        let t_motor = b.motor_disp * dp_motor * b.motor_eta_mech;
+        if let Some(dy) = dy {
+            let oil_hp = b.hp_line_volume + b.hp_acc.fluid_volume(p2);
+            let oil_lp = b.lp_line_volume + b.lp_acc.fluid_volume(lp) + idle_volume;
+            let c_hp = b.hp_acc.capacitance(p2) + oil_hp / e_hp;
+            let c_lp = b.lp_acc.capacitance(lp) + oil_lp / e_lp;
+            let c_pm = b.motor_line_volume / e_pm;
+            dy[self.i_p2] = v_hp * (m_into_hp - m_valve - m_relief) / c_hp / BAR;
+            dy[self.i_lp] =
+                (v_lp * (m_motor + m_relief - m_from_lp - m_makeup) - idle_vdot) / c_lp / BAR;
+            dy[self.i_pm] = v_pm * (m_valve + m_makeup - m_motor) / c_pm / BAR;
+            dy[self.i_w] = (t_motor - t_load) / b.motor_inertia;
+            if let Some(i) = self.i_a {
+                dy[i] = (self.command.get() * 100.0 - y[i]) / b.spool_tau;
+            }
+        }
+        e.q_valve = q_valve;
+        e.q_relief = q_relief;
+        e.q_makeup = q_makeup;
+        e.q_motor = q_motor;
+        e.quad[0] = m_into_hp;
+        e.quad[1] = m_valve;
+        e.quad[2] = m_relief;
+        e.quad[3] = m_makeup;
+        e.quad[4] = m_motor;
+        e.quad[5] = m_from_lp;
+        if want_quad {
+            e.quad[8] += m_makeup * (g_lp - g_pm);
+            e.quad[9] = m_valve * (g_hp - g_pm);
+            e.quad[10] = m_relief * (g_hp - g_lp);
+            e.quad[11] = m_motor * (g_pm - g_lp) - t_motor * omega;
+            e.quad[12] = t_load * omega;
+        }
+        e
+    }
+
+    /// Balance integrands scaled to litres (of reference volume) and kJ per second (the
+    /// diffsol output function).
+    pub fn quadrature(&self, t: f64, y: &[f64], out: &mut [f64]) {
+        let e = self.evaluate(t, y, None);
+        for (i, (o, q)) in out.iter_mut().zip(e.quad).enumerate() {
+            *o = if i < 6 { q * 1e3 } else { q * 1e-3 };
+        }
+    }
+
+    /// Oil content (m³ of reference volume) and stored energy (J) at time `t` and state `y`:
+    /// `[HP node, motor inlet, LP node (with idle chambers), active chambers]`. Energy includes
+    /// the gas of both accumulators, the motor inertia and the hard-stop springs.
+    pub fn storage(&self, t: f64, y: &[f64]) -> ([f64; 4], f64) {
+        let b = &self.bench;
+        let fl = &self.fluid;
+        let (p2, lp, pm) = (y[self.i_p2] * BAR, y[self.i_lp] * BAR, y[self.i_pm] * BAR);
+        let (theta, _) = self.motion.at(t);
+        let idle: f64 = self
+            .idle
+            .iter()
+            .map(|(_, c)| c.volume_at(b.chamber_dead_volume, c.lever.eye(theta, 0.0).0))
+            .sum();
+        let oil = [
+            b.hp_line_volume + b.hp_acc.fluid_volume(p2),
+            b.motor_line_volume,
+            b.lp_line_volume + b.lp_acc.fluid_volume(lp) + idle,
+        ];
+        let p = [p2, pm, lp];
+        let mut content = [0.0; 4];
+        let mut energy = b.hp_acc.stored_energy(p2) + b.lp_acc.stored_energy(lp);
+        for k in 0..3 {
+            content[k] = oil[k] / fl.volume_ratio(p[k]);
+            energy += fl.stored_energy(oil[k], p[k]);
+        }
+        for c in &self.active {
+            let x = y[c.at + 2] * 1e-3;
+            for (vol, pc) in [
+                (b.chamber_dead_volume + c.area_cap * x, y[c.at] * BAR),
+                (b.chamber_dead_volume + c.area_ann * (c.stroke - x), y[c.at + 1] * BAR),
+            ] {
+                content[3] += vol / fl.volume_ratio(pc);
+                energy += fl.stored_energy(vol, pc);
+            }
+        }
+        energy += 0.5 * b.motor_inertia * y[self.i_w].powi(2);
+        energy += self.evaluate(t, y, None).spring_energy;
+        (content, energy)
+    }
+
+    /// Checks that a state is physical: finite, and every pressure above vacuum.
+    pub fn check_state(&self, y: &[f64]) -> Result<(), (usize, f64)> {
+        for (i, v) in y.iter().enumerate() {
+            if !v.is_finite() {
+                return Err((i, *v));
+            }
+        }
+        let pressure_idx = self
+            .active
+            .iter()
+            .flat_map(|c| [c.at, c.at + 1])
+            .chain([self.i_p2, self.i_lp, self.i_pm]);
+        for i in pressure_idx {
+            if y[i] * BAR <= -crate::bench::P_ATM {
+                return Err((i, y[i]));
+            }
+        }
+        Ok(())
+    }
+}

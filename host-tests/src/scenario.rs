@@ -1,0 +1,516 @@
+//! Named scenarios: the paper's tests as built-ins, and the same format loadable from TOML.
+
+use crate::bench::{BAR, Bench};
+use crate::motion::{Motion, MotionSpec};
+use crate::plant::{N_CYL, Plant};
+use crate::sim::{self, Initial, Run, SimError, SimResult, SolverOptions, ValveSchedule};
+use indicatif::ProgressBar;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// How the control valve is driven, as written in scenario files (apertures in %).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ValveSpec {
+    /// Fixed aperture.
+    Constant {
+        /// %.
+        aperture_pct: f64,
+    },
+    /// Closed until P2 reaches the threshold, then the aperture (Test III).
+    Threshold {
+        /// bar.
+        threshold_bar: f64,
+        /// %.
+        aperture_pct: f64,
+    },
+    /// Step changes at the given times (closed before the first).
+    Table {
+        /// s, increasing.
+        time_s: Vec<f64>,
+        /// %.
+        aperture_pct: Vec<f64>,
+    },
+}
+
+/// A scenario as written in a TOML file.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Scenario {
+    /// Short name (`test3-ap10`).
+    pub name: String,
+    /// One line for people.
+    #[serde(default)]
+    pub description: String,
+    /// Family in the paper (`test1`, `test2`, …), used to group plots and facts.
+    #[serde(default)]
+    pub group: String,
+    /// `Config 1` … `Config 4` (or 1 … 4).
+    pub config: String,
+    /// Cylinders on duty by name (`HC3.1`) or number.
+    pub cylinders: Vec<String>,
+    /// Input motion.
+    pub motion: MotionSpec,
+    /// Valve schedule.
+    pub valve: ValveSpec,
+    /// Simulated time, s.
+    pub duration_s: f64,
+    /// Output sample interval, s.
+    #[serde(default = "default_sample")]
+    pub sample_interval_s: f64,
+    /// Initial P2; absent = periodic steady state for a constant-aperture sine run.
+    #[serde(default)]
+    pub initial_hp_bar: Option<f64>,
+    /// Initial LP.
+    #[serde(default = "default_lp")]
+    pub initial_lp_bar: f64,
+}
+
+fn default_sample() -> f64 {
+    0.01
+}
+fn default_lp() -> f64 {
+    8.0
+}
+
+/// A scenario error, named like bench errors: `source:field: message`.
+#[derive(Debug, thiserror::Error)]
+#[error("{source_name}:{field}: {message}")]
+pub struct ScenarioError {
+    /// File or built-in name.
+    pub source_name: String,
+    /// Field.
+    pub field: String,
+    /// What is wrong.
+    pub message: String,
+}
+
+/// A scenario resolved against a bench: ready to run.
+pub struct Prepared {
+    /// The scenario.
+    pub scenario: Scenario,
+    /// The plant.
+    pub plant: Plant,
+    /// Config index.
+    pub config: usize,
+    /// On-duty mask.
+    pub on_duty: [bool; N_CYL],
+    /// Initial pressures.
+    pub initial: Initial,
+}
+
+impl Scenario {
+    /// Loads a scenario file.
+    pub fn load(path: &Path) -> Result<Self, ScenarioError> {
+        let name = path.display().to_string();
+        let err = |field: &str, message: String| ScenarioError {
+            source_name: name.clone(),
+            field: field.into(),
+            message,
+        };
+        let text = std::fs::read_to_string(path).map_err(|e| err("", format!("cannot read: {e}")))?;
+        toml::from_str(&text).map_err(|e| err("", e.to_string().trim_end().to_string()))
+    }
+
+    /// Resolves names, checks ranges and builds the plant. `base` resolves relative trace files.
+    pub fn prepare(&self, bench: &Bench, base: &Path) -> Result<Prepared, ScenarioError> {
+        let err = |field: &str, message: String| ScenarioError {
+            source_name: self.name.clone(),
+            field: field.into(),
+            message,
+        };
+        let range = |field: &str, v: f64, min: f64, max: f64, unit: &str| {
+            if v.is_finite() && v >= min && v <= max {
+                Ok(())
+            } else {
+                Err(err(field, format!("{v} outside [{min}, {max}] ({unit})")))
+            }
+        };
+        let config = bench.config_index(&self.config).ok_or_else(|| {
+            let names: Vec<_> = bench.configs.iter().map(|c| c.name.as_str()).collect();
+            err("config", format!("unknown `{}` (have: {})", self.config, names.join(", ")))
+        })?;
+        let mut on_duty = [false; N_CYL];
+        for (i, c) in self.cylinders.iter().enumerate() {
+            let k = bench.cylinder_index(c).ok_or_else(|| {
+                let names: Vec<_> = bench.cylinders.iter().map(|c| c.name.as_str()).collect();
+                err(&format!("cylinders[{i}]"), format!("unknown `{c}` (have: {})", names.join(", ")))
+            })?;
+            on_duty[k] = true;
+        }
+        if !on_duty.iter().any(|&d| d) {
+            return Err(err("cylinders", "no cylinder on duty".into()));
+        }
+        range("duration_s", self.duration_s, 0.01, 1e6, "s")?;
+        range("sample_interval_s", self.sample_interval_s, 1e-4, 10.0, "s")?;
+        let n_samples = self.duration_s / self.sample_interval_s;
+        if n_samples > 5e6 {
+            return Err(err(
+                "sample_interval_s",
+                format!("{n_samples:.0} samples: over the 5e6 limit, use a coarser interval"),
+            ));
+        }
+        range("initial_lp_bar", self.initial_lp_bar, 0.0, 100.0, "bar")?;
+        let relief = bench.relief_setting / BAR;
+        match &self.valve {
+            ValveSpec::Constant { aperture_pct } => range("valve.aperture_pct", *aperture_pct, 0.0, 100.0, "%")?,
+            ValveSpec::Threshold {
+                threshold_bar,
+                aperture_pct,
+            } => {
+                range("valve.threshold_bar", *threshold_bar, 0.0, relief, "bar")?;
+                range("valve.aperture_pct", *aperture_pct, 0.0, 100.0, "%")?;
+            }
+            ValveSpec::Table { time_s, aperture_pct } => {
+                if time_s.len() != aperture_pct.len() || time_s.is_empty() {
+                    return Err(err("valve.aperture_pct", "needs one aperture per time, at least one".into()));
+                }
+                for (i, t) in time_s.iter().enumerate() {
+                    range(&format!("valve.time_s[{i}]"), *t, 0.0, self.duration_s, "s")?;
+                    if i > 0 && *t <= time_s[i - 1] {
+                        return Err(err(&format!("valve.time_s[{i}]"), format!("{t} not after {} (s)", time_s[i - 1])));
+                    }
+                }
+                for (i, a) in aperture_pct.iter().enumerate() {
+                    range(&format!("valve.aperture_pct[{i}]"), *a, 0.0, 100.0, "%")?;
+                }
+            }
+        }
+        let motion = Motion::from_spec(&self.motion, bench.pinion_radius, base).map_err(|e| err("motion", e.to_string()))?;
+        let lp = self.initial_lp_bar * BAR;
+        let p2 = match self.initial_hp_bar {
+            Some(p) => {
+                range("initial_hp_bar", p, 0.0, relief + 10.0, "bar")?;
+                p * BAR
+            }
+            None => {
+                let aperture = match self.valve {
+                    ValveSpec::Constant { aperture_pct } if aperture_pct > 0.0 => aperture_pct / 100.0,
+                    _ => {
+                        return Err(err(
+                            "initial_hp_bar",
+                            "missing: the steady-state start needs a constant valve aperture above 0 %".into(),
+                        ));
+                    }
+                };
+                steady_p2(bench, config, &on_duty, &motion, lp, aperture)
+                    .ok_or_else(|| err("initial_hp_bar", "missing: the steady-state start needs a sine input".into()))?
+            }
+        };
+        Ok(Prepared {
+            scenario: self.clone(),
+            plant: Plant::new(bench, config, on_duty, motion),
+            config,
+            on_duty,
+            initial: Initial { p2, lp },
+        })
+    }
+
+    /// The valve schedule in simulator units.
+    pub fn schedule(&self) -> ValveSchedule {
+        match &self.valve {
+            ValveSpec::Constant { aperture_pct } => ValveSchedule::Constant(aperture_pct / 100.0),
+            ValveSpec::Threshold {
+                threshold_bar,
+                aperture_pct,
+            } => ValveSchedule::Threshold {
+                threshold: threshold_bar * BAR,
+                aperture: aperture_pct / 100.0,
+            },
+            ValveSpec::Table { time_s, aperture_pct } => {
+                ValveSchedule::Table(time_s.iter().zip(aperture_pct).map(|(t, a)| (*t, a / 100.0)).collect())
+            }
+        }
+    }
+}
+
+/// Periodic steady-state P2 of a constant-aperture sine run: the pressure at which the motor
+/// passes the mean pumped flow. Mean pumped flow = f·Σ(A_cap + A_ann)·(eye travel − free play),
+/// less the ≈1.6 % compressibility lag of physics.md; the run then settles within a few periods.
+fn steady_p2(bench: &Bench, config: usize, on_duty: &[bool; N_CYL], motion: &Motion, lp: f64, aperture: f64) -> Option<f64> {
+    let Motion::Sine { amplitude, omega } = motion else {
+        return None;
+    };
+    let f = omega / (2.0 * std::f64::consts::PI);
+    let geom = &bench.configs[config];
+    let mut q = 0.0;
+    for (c, _) in bench.cylinders.iter().zip(on_duty).filter(|(_, d)| **d) {
+        let lever = crate::physics::Lever::new(geom, c.stroke, c.side);
+        let travel = (lever.eye(*amplitude, 0.0).0 - lever.eye(-amplitude, 0.0).0).abs();
+        q += f * (c.area_cap + c.area_ann) * (travel - bench.free_play).max(0.0);
+    }
+    let q = q * (1.0 - 0.016);
+    let motor_flow = |p2: f64| {
+        let (pm, w) = sim::steady_motor(bench, p2, lp, aperture);
+        bench.motor_disp * w + bench.motor_leak * (pm - lp)
+    };
+    let (mut lo, mut hi) = (lp, bench.relief_setting);
+    if motor_flow(hi) < q {
+        return Some(hi);
+    }
+    for _ in 0..100 {
+        let mid = 0.5 * (lo + hi);
+        if motor_flow(mid) < q {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    Some(0.5 * (lo + hi))
+}
+
+impl Prepared {
+    /// Runs it.
+    pub fn run(&self, solver: SolverOptions, progress: Option<ProgressBar>) -> Result<SimResult, SimError> {
+        sim::simulate(Run {
+            plant: &self.plant,
+            valve: self.scenario.schedule(),
+            initial: self.initial,
+            duration: self.scenario.duration_s,
+            sample_dt: self.scenario.sample_interval_s,
+            solver,
+            progress,
+        })
+    }
+}
+
+fn sine() -> MotionSpec {
+    MotionSpec::Sine {
+        amplitude_mm: 40.0,
+        frequency_hz: 0.1,
+    }
+}
+
+/// Cylinder sets of the paper's figures, with short tags.
+pub const SETS: [(&str, &[&str]); 4] = [
+    ("c1", &["HC3.1"]),
+    ("c4", &["HC3.4"]),
+    ("c14", &["HC3.1", "HC3.4"]),
+    ("c1234", &["HC3.1", "HC3.2", "HC3.3", "HC3.4"]),
+];
+
+/// Test III apertures, %.
+pub const TEST3_APERTURES: [f64; 6] = [5.0, 8.0, 10.0, 15.0, 20.0, 25.0];
+/// Blocked-input apertures, %.
+pub const BLOCKED_APERTURES: [f64; 5] = [10.0, 12.0, 15.0, 20.0, 25.0];
+
+#[allow(clippy::too_many_arguments)]
+fn scenario(
+    name: String,
+    group: &str,
+    description: String,
+    config: usize,
+    cylinders: &[&str],
+    motion: MotionSpec,
+    valve: ValveSpec,
+    duration_s: f64,
+    sample_interval_s: f64,
+    initial_hp_bar: Option<f64>,
+) -> Scenario {
+    Scenario {
+        name,
+        description,
+        group: group.into(),
+        config: format!("Config {config}"),
+        cylinders: cylinders.iter().map(|s| s.to_string()).collect(),
+        motion,
+        valve,
+        duration_s,
+        sample_interval_s,
+        initial_hp_bar,
+        initial_lp_bar: 8.0,
+    }
+}
+
+/// Every built-in scenario, in the order of the paper.
+pub fn builtin() -> Vec<Scenario> {
+    let mut v = Vec::new();
+    let open = ValveSpec::Constant { aperture_pct: 100.0 };
+    let closed = ValveSpec::Constant { aperture_pct: 0.0 };
+    // Test I: valve fully open, periodic steady state. {HC3.1, HC3.3} added for fact 7.
+    for config in [1, 2, 3] {
+        for (tag, set) in SETS.iter().copied().chain([("c13", &["HC3.1", "HC3.3"][..])]) {
+            v.push(scenario(
+                format!("test1-cfg{config}-{tag}"),
+                "test1",
+                format!("Test I: valve 100 %, Config {config}, {} on duty", set.join(" + ")),
+                config,
+                set,
+                sine(),
+                open.clone(),
+                150.0,
+                0.01,
+                None,
+            ));
+        }
+    }
+    // Test II: valve closed from 30 bar until the relief holds P2.
+    for config in 1..=4 {
+        for (tag, set) in SETS {
+            v.push(scenario(
+                format!("test2-cfg{config}-{tag}"),
+                "test2",
+                format!("Test II: valve closed, Config {config}, {} on duty, from 30 bar", set.join(" + ")),
+                config,
+                set,
+                sine(),
+                closed.clone(),
+                1200.0,
+                0.05,
+                Some(30.0),
+            ));
+        }
+    }
+    // Restraining torque (Figs. 15/16): valve closed near 100 bar, three wave periods.
+    for config in 1..=3 {
+        for (tag, set) in SETS {
+            v.push(scenario(
+                format!("torque-cfg{config}-{tag}"),
+                "torque",
+                format!("Restraining torque: valve closed from 100 bar, Config {config}, {}", set.join(" + ")),
+                config,
+                set,
+                sine(),
+                closed.clone(),
+                30.0,
+                0.005,
+                Some(100.0),
+            ));
+        }
+    }
+    // Test III: HC3.1 + HC3.4, Config 1, valve opens at 100 bar.
+    for ap in TEST3_APERTURES {
+        v.push(scenario(
+            format!("test3-ap{ap}"),
+            "test3",
+            format!("Test III: HC3.1 + HC3.4, Config 1, from 60 bar, valve to {ap} % at 100 bar"),
+            1,
+            &["HC3.1", "HC3.4"],
+            sine(),
+            ValveSpec::Threshold {
+                threshold_bar: 100.0,
+                aperture_pct: ap,
+            },
+            400.0,
+            0.01,
+            Some(60.0),
+        ));
+    }
+    // Blocked input from 102 bar (Fig. 19).
+    for ap in BLOCKED_APERTURES {
+        v.push(scenario(
+            format!("blocked-ap{ap}"),
+            "blocked",
+            format!("Blocked input from 102 bar, valve {ap} %"),
+            1,
+            &["HC3.1", "HC3.4"],
+            MotionSpec::Blocked { angle_deg: 0.0 },
+            ValveSpec::Constant { aperture_pct: ap },
+            600.0,
+            0.05,
+            Some(102.0),
+        ));
+    }
+    // The experimental runs of Section 4.2 (Config 1).
+    let exp: [(&str, &[&str], f64, f64, bool, f64); 7] = [
+        ("exp-charge-64.5", &["HC3.1", "HC3.3"], 64.5, 0.0, false, 200.0),
+        ("exp-charge-67.2", &["HC3.2"], 67.2, 0.0, false, 200.0),
+        ("exp-charge-72", &["HC3.4"], 72.0, 0.0, false, 200.0),
+        ("exp-9pct-101.5", &["HC3.1", "HC3.3"], 101.5, 9.0, false, 300.0),
+        ("exp-discharge-102", &["HC3.1", "HC3.4"], 102.0, 12.0, true, 200.0),
+        ("exp-discharge-84", &["HC3.1", "HC3.4"], 84.0, 15.0, true, 200.0),
+        ("exp-discharge-71", &["HC3.1", "HC3.4"], 71.0, 25.0, true, 200.0),
+    ];
+    for (name, set, p0, ap, blocked, dur) in exp {
+        v.push(scenario(
+            name.into(),
+            "experimental",
+            format!(
+                "Experimental run: {}, {} from {p0} bar, valve {ap} %",
+                if blocked { "input blocked" } else { "±40 mm at 0.1 Hz" },
+                set.join(" + ")
+            ),
+            1,
+            set,
+            if blocked { MotionSpec::Blocked { angle_deg: 0.0 } } else { sine() },
+            ValveSpec::Constant { aperture_pct: ap },
+            dur,
+            0.02,
+            Some(p0),
+        ));
+    }
+    // Irregular sea: the performance case and the estimator's validation input.
+    v.push(scenario(
+        "irregular-sea".into(),
+        "irregular",
+        "Irregular sea: JONSWAP Hs 50 mm of rack, Tp 10 s, HC3.1 + HC3.4, Config 1, valve 10 % at 100 bar".into(),
+        1,
+        &["HC3.1", "HC3.4"],
+        MotionSpec::Irregular {
+            significant_mm: 50.0,
+            peak_period_s: 10.0,
+            gamma: 3.3,
+            components: 64,
+            seed: 1,
+        },
+        ValveSpec::Threshold {
+            threshold_bar: 100.0,
+            aperture_pct: 10.0,
+        },
+        1000.0,
+        0.02,
+        Some(60.0),
+    ));
+    v
+}
+
+/// A built-in by name, or a scenario file by path.
+pub fn resolve(name_or_file: &str) -> Result<(Scenario, PathBuf), ScenarioError> {
+    if let Some(s) = builtin().into_iter().find(|s| s.name == name_or_file) {
+        return Ok((s, PathBuf::from(".")));
+    }
+    let p = Path::new(name_or_file);
+    if p.exists() {
+        let base = p.parent().map(Path::to_path_buf).unwrap_or_default();
+        return Ok((Scenario::load(p)?, base));
+    }
+    Err(ScenarioError {
+        source_name: name_or_file.into(),
+        field: "scenario".into(),
+        message: "neither a built-in scenario (see `pto scenarios`) nor a file".into(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn builtin_names_are_unique_and_all_prepare() {
+        let b = Bench::reference();
+        let all = builtin();
+        let mut names: Vec<_> = all.iter().map(|s| s.name.clone()).collect();
+        names.sort();
+        names.dedup();
+        assert_eq!(names.len(), all.len());
+        for s in &all {
+            s.prepare(&b, Path::new(".")).unwrap_or_else(|e| panic!("{e}"));
+        }
+    }
+
+    #[test]
+    fn scenario_round_trips_through_toml_and_errors_name_the_field() {
+        let s = builtin().into_iter().find(|s| s.name == "test3-ap10").unwrap();
+        let text = toml::to_string(&s).unwrap();
+        let back: Scenario = toml::from_str(&text).unwrap();
+        assert_eq!(back, s);
+        let mut bad = s.clone();
+        bad.cylinders.push("HC7".into());
+        let e = bad.prepare(&Bench::reference(), Path::new(".")).err().unwrap().to_string();
+        assert!(e.starts_with("test3-ap10:cylinders[2]: unknown `HC7`"), "{e}");
+        let mut bad = s;
+        bad.valve = ValveSpec::Constant { aperture_pct: 120.0 };
+        let e = bad.prepare(&Bench::reference(), Path::new(".")).err().unwrap().to_string();
+        assert_eq!(e, "test3-ap10:valve.aperture_pct: 120 outside [0, 100] (%)");
+    }
+}
