@@ -13,3 +13,6 @@ pub mod sim;
 pub mod paper;
 pub mod runner;
 pub mod scenario;
+pub mod figures;
+pub mod perf;
+pub mod plot;

@@ -214,8 +214,15 @@ impl Trace {
         a..b
     }
 
-    /// Writes the trace as CSV with units in the headers.
+    /// Writes the trace as CSV with units in the headers (to a temporary file renamed at the
+    /// end, so an interrupted write leaves nothing half-written).
     pub fn write_csv(&self, path: &std::path::Path, names: &[String; N_CYL]) -> std::io::Result<()> {
+        let tmp = path.with_extension("csv.tmp");
+        self.write_csv_to(&tmp, names)?;
+        std::fs::rename(&tmp, path)
+    }
+
+    fn write_csv_to(&self, path: &std::path::Path, names: &[String; N_CYL]) -> std::io::Result<()> {
         let mut w = csv::Writer::from_path(path)?;
         let mut header: Vec<String> = [
             "time_s",

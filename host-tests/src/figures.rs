@@ -1,0 +1,231 @@
+//! The paper's Figures 10–19 (and the experimental runs) rebuilt from the built-in scenarios.
+
+use crate::bench::BAR;
+use crate::paper::Results;
+use crate::plot::{Figure, Panel, Series};
+use crate::scenario::{BLOCKED_APERTURES, SETS, TEST3_APERTURES};
+use crate::sim::Trace;
+
+const RPM: f64 = 30.0 / std::f64::consts::PI;
+const LPM: f64 = 6e4;
+
+/// Which trace column a series shows, with its display scale.
+#[derive(Clone, Copy)]
+enum Col {
+    P2,
+    Lp,
+    Inj,
+    Motor,
+    Speed,
+    Torque,
+}
+
+impl Col {
+    fn get(self, t: &Trace, k: usize) -> f64 {
+        match self {
+            Col::P2 => t.p2[k] / BAR,
+            Col::Lp => t.lp[k] / BAR,
+            Col::Inj => t.q_inj[k] * LPM,
+            Col::Motor => t.q_motor[k] * LPM,
+            Col::Speed => t.omega[k] * RPM,
+            Col::Torque => t.torque[k],
+        }
+    }
+
+    fn label(self) -> &'static str {
+        match self {
+            Col::P2 => "P2 (bar)",
+            Col::Lp => "LP (bar)",
+            Col::Inj => "flow injected into HP (L/min)",
+            Col::Motor => "motor flow (L/min)",
+            Col::Speed => "motor speed (rpm)",
+            Col::Torque => "restraining torque (N·m)",
+        }
+    }
+}
+
+/// A series of `col` from scenario `name` over `[from, to]` (negative `from`: the last |from| s).
+fn series(r: &Results, name: &str, label: &str, col: Col, from: f64, to: f64) -> Option<Series> {
+    let t = r.trace(name)?;
+    let end = *t.t.last()?;
+    let (a, b) = if from < 0.0 { (end + from, end) } else { (from, to.min(end)) };
+    let w = t.window(a, b);
+    Some(Series {
+        label: label.into(),
+        x: t.t[w.clone()].to_vec(),
+        y: w.map(|k| col.get(t, k)).collect(),
+    })
+}
+
+fn panel(title: String, col: Col, series: Vec<Series>) -> Panel {
+    Panel {
+        title,
+        x_label: "time (s)".into(),
+        y_label: col.label().into(),
+        series,
+    }
+}
+
+fn set_label(tag: &str) -> String {
+    SETS.iter()
+        .find(|s| s.0 == tag)
+        .map(|s| s.1.join("+"))
+        .unwrap_or_else(|| "HC3.1+HC3.3".into())
+}
+
+/// Panels of one config with every cylinder set overlaid.
+fn per_config(r: &Results, group: &str, configs: &[usize], col: Col, from: f64, to: f64) -> Vec<Panel> {
+    configs
+        .iter()
+        .map(|c| {
+            let s = SETS
+                .iter()
+                .filter_map(|(tag, _)| series(r, &format!("{group}-cfg{c}-{tag}"), &set_label(tag), col, from, to))
+                .collect();
+            panel(format!("Config {c}"), col, s)
+        })
+        .collect()
+}
+
+/// Every figure that has data in `r`.
+pub fn all(r: &Results) -> Vec<Figure> {
+    let mut figs = Vec::new();
+    let mut f10 = per_config(r, "test1", &[1, 3], Col::Inj, -20.0, 0.0);
+    f10.extend(per_config(r, "test1", &[1, 3], Col::Motor, -20.0, 0.0));
+    figs.push(Figure {
+        name: "fig10-test1-flows".into(),
+        title: "Test I (valve 100 %): flow injected into HP (top) and motor flow (bottom), Config 1 | Config 3".into(),
+        panels: f10,
+        cols: 2,
+    });
+    figs.push(Figure {
+        name: "fig11-test1-motor-speed".into(),
+        title: "Test I: motor speed, Config 1 | 2 | 3".into(),
+        panels: per_config(r, "test1", &[1, 2, 3], Col::Speed, -20.0, 0.0),
+        cols: 3,
+    });
+    figs.push(Figure {
+        name: "fig12-test1-p2".into(),
+        title: "Test I: HP accumulator pressure, Config 1 | 2 | 3".into(),
+        panels: per_config(r, "test1", &[1, 2, 3], Col::P2, -20.0, 0.0),
+        cols: 3,
+    });
+    let f13 = SETS
+        .iter()
+        .map(|(tag, _)| {
+            let s = (1..=4)
+                .filter_map(|c| series(r, &format!("test2-cfg{c}-{tag}"), &format!("Config {c}"), Col::P2, 0.0, f64::INFINITY))
+                .collect();
+            panel(set_label(tag), Col::P2, s)
+        })
+        .collect();
+    figs.push(Figure {
+        name: "fig13-test2-p2-by-config".into(),
+        title: "Test II (valve closed): P2 by geometrical configuration, per cylinder set".into(),
+        panels: f13,
+        cols: 2,
+    });
+    figs.push(Figure {
+        name: "fig14-test2-p2-by-cylinders".into(),
+        title: "Test II (valve closed): P2 by cylinders on duty, per configuration".into(),
+        panels: per_config(r, "test2", &[1, 2, 3, 4], Col::P2, 0.0, f64::INFINITY),
+        cols: 2,
+    });
+    figs.push(Figure {
+        name: "fig15-torque".into(),
+        title: "Restraining torque (valve closed near 100 bar), Config 1 | 2 | 3".into(),
+        panels: per_config(r, "torque", &[1, 2, 3], Col::Torque, -20.0, 0.0),
+        cols: 3,
+    });
+    figs.push(Figure {
+        name: "fig16-torque-p2".into(),
+        title: "P2 during the torque runs, Config 1 | 2 | 3".into(),
+        panels: per_config(r, "torque", &[1, 2, 3], Col::P2, 0.0, f64::INFINITY),
+        cols: 3,
+    });
+    let ap = |col: Col, from: f64, to: f64| -> Vec<Series> {
+        TEST3_APERTURES
+            .iter()
+            .filter_map(|a| series(r, &format!("test3-ap{a}"), &format!("{a} %"), col, from, to))
+            .collect()
+    };
+    figs.push(Figure {
+        name: "fig17-test3-p2".into(),
+        title: "Test III: HC3.1 + HC3.4, Config 1, valve opens at 100 bar".into(),
+        panels: vec![panel("P2 by aperture".into(), Col::P2, ap(Col::P2, 0.0, 400.0)), panel("LP by aperture".into(), Col::Lp, ap(Col::Lp, 0.0, 400.0))],
+        cols: 2,
+    });
+    figs.push(Figure {
+        name: "fig18-test3-output".into(),
+        title: "Test III, 200–400 s: P2, motor flow, motor speed".into(),
+        panels: vec![
+            panel("P2".into(), Col::P2, ap(Col::P2, 200.0, 400.0)),
+            panel("motor flow".into(), Col::Motor, ap(Col::Motor, 200.0, 400.0)),
+            panel("motor speed".into(), Col::Speed, ap(Col::Speed, 200.0, 400.0)),
+        ],
+        cols: 3,
+    });
+    let bl = |col: Col| -> Vec<Series> {
+        BLOCKED_APERTURES
+            .iter()
+            .filter_map(|a| series(r, &format!("blocked-ap{a}"), &format!("{a} %"), col, 0.0, f64::INFINITY))
+            .collect()
+    };
+    figs.push(Figure {
+        name: "fig19-blocked-input".into(),
+        title: "Blocked input from 102 bar: autonomy of the HP accumulator by aperture".into(),
+        panels: vec![
+            panel("P2".into(), Col::P2, bl(Col::P2)),
+            panel("motor flow".into(), Col::Motor, bl(Col::Motor)),
+            panel("motor speed".into(), Col::Speed, bl(Col::Speed)),
+        ],
+        cols: 3,
+    });
+    let exp = |names: &[&str], col: Col| -> Vec<Series> {
+        names.iter().filter_map(|n| series(r, n, n, col, 0.0, f64::INFINITY)).collect()
+    };
+    let charges = ["exp-charge-64.5", "exp-charge-67.2", "exp-charge-72", "exp-9pct-101.5"];
+    let discharges = ["exp-discharge-102", "exp-discharge-84", "exp-discharge-71"];
+    figs.push(Figure {
+        name: "fig22-29-experimental-runs".into(),
+        title: "Experimental runs of Section 4.2 (simulated): charging, 9 % aperture, discharges".into(),
+        panels: vec![
+            panel("charging / 9 % runs: P2".into(), Col::P2, exp(&charges, Col::P2)),
+            panel("discharges: P2".into(), Col::P2, exp(&discharges, Col::P2)),
+            panel("discharges: motor speed".into(), Col::Speed, exp(&discharges, Col::Speed)),
+        ],
+        cols: 3,
+    });
+    figs.retain(|f| f.panels.iter().any(|p| !p.series.is_empty()));
+    figs
+}
+
+/// The standard figure of a single run: P2/LP, flows, motor speed, torque.
+pub fn single(name: &str, t: &Trace) -> Figure {
+    let s = |label: &str, col: Col| Series {
+        label: label.into(),
+        x: t.t.clone(),
+        y: (0..t.len()).map(|k| col.get(t, k)).collect(),
+    };
+    Figure {
+        name: name.into(),
+        title: format!("{name}: pressures, flows, motor speed and restraining torque"),
+        panels: vec![
+            Panel {
+                title: "pressures".into(),
+                x_label: "time (s)".into(),
+                y_label: "pressure (bar)".into(),
+                series: vec![s("P2", Col::P2), s("LP", Col::Lp)],
+            },
+            Panel {
+                title: "flows".into(),
+                x_label: "time (s)".into(),
+                y_label: "flow (L/min)".into(),
+                series: vec![s("injected into HP", Col::Inj), s("motor", Col::Motor)],
+            },
+            panel("motor speed".into(), Col::Speed, vec![s("motor", Col::Speed)]),
+            panel("restraining torque".into(), Col::Torque, vec![s("shaft", Col::Torque)]),
+        ],
+        cols: 2,
+    }
+}

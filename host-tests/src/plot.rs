@@ -1,0 +1,219 @@
+//! Figures: a grid of panels of line series, written as PNG and SVG.
+
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use std::path::{Path, PathBuf};
+use std::sync::Once;
+
+/// One line.
+#[derive(Debug, Clone)]
+pub struct Series {
+    /// Legend label.
+    pub label: String,
+    /// x values.
+    pub x: Vec<f64>,
+    /// y values.
+    pub y: Vec<f64>,
+}
+
+/// One panel.
+#[derive(Debug, Clone)]
+pub struct Panel {
+    /// Caption.
+    pub title: String,
+    /// x-axis label with unit.
+    pub x_label: String,
+    /// y-axis label with unit.
+    pub y_label: String,
+    /// Lines.
+    pub series: Vec<Series>,
+}
+
+/// A figure: panels laid out in `cols` columns.
+#[derive(Debug, Clone)]
+pub struct Figure {
+    /// File stem (`fig17-test3-p2`).
+    pub name: String,
+    /// Title on top.
+    pub title: String,
+    /// Panels.
+    pub panels: Vec<Panel>,
+    /// Columns.
+    pub cols: usize,
+}
+
+static FONT: Once = Once::new();
+
+fn register_font() {
+    FONT.call_once(|| {
+        // The dejavu crate ships the font, so no system font is needed. Registration only fails
+        // on corrupt font bytes, which the crate's own tests exclude.
+        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
+    });
+}
+
+/// Keeps at most ~`max` points, preserving each bucket's min and max (peaks stay visible).
+fn decimate(x: &[f64], y: &[f64], max: usize) -> Vec<(f64, f64)> {
+    let n = x.len().min(y.len());
+    if n <= max {
+        return x.iter().zip(y).map(|(a, b)| (*a, *b)).collect();
+    }
+    let bucket = n.div_ceil(max / 2);
+    let mut out = Vec::with_capacity(max + 2);
+    for start in (0..n).step_by(bucket) {
+        let end = (start + bucket).min(n);
+        let (mut imin, mut imax) = (start, start);
+        for i in start..end {
+            if y[i] < y[imin] {
+                imin = i;
+            }
+            if y[i] > y[imax] {
+                imax = i;
+            }
+        }
+        let (a, b) = if imin < imax { (imin, imax) } else { (imax, imin) };
+        out.push((x[a], y[a]));
+        if b != a {
+            out.push((x[b], y[b]));
+        }
+    }
+    out
+}
+
+fn bounds(p: &Panel) -> ((f64, f64), (f64, f64)) {
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    for s in &p.series {
+        for (x, y) in s.x.iter().zip(&s.y) {
+            if x.is_finite() && y.is_finite() {
+                x0 = x0.min(*x);
+                x1 = x1.max(*x);
+                y0 = y0.min(*y);
+                y1 = y1.max(*y);
+            }
+        }
+    }
+    if !x0.is_finite() {
+        return ((0.0, 1.0), (0.0, 1.0));
+    }
+    if x1 <= x0 {
+        x1 = x0 + 1.0;
+    }
+    let pad = ((y1 - y0) * 0.05).max(1e-9 + y1.abs() * 1e-3);
+    ((x0, x1), (y0 - pad, y1 + pad))
+}
+
+fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> Result<(), String> {
+    let ((x0, x1), (y0, y1)) = bounds(p);
+    let mut chart = ChartBuilder::on(area)
+        .caption(&p.title, ("sans-serif", 18))
+        .margin(8)
+        .x_label_area_size(38)
+        .y_label_area_size(62)
+        .build_cartesian_2d(x0..x1, y0..y1)
+        .map_err(|e| e.to_string())?;
+    chart
+        .configure_mesh()
+        .x_desc(&p.x_label)
+        .y_desc(&p.y_label)
+        .label_style(("sans-serif", 13))
+        .light_line_style(RGBColor(235, 235, 235))
+        .draw()
+        .map_err(|e| e.to_string())?;
+    for (i, s) in p.series.iter().enumerate() {
+        let color = Palette99::pick(i).to_rgba();
+        let pts = decimate(&s.x, &s.y, 4000);
+        chart
+            .draw_series(LineSeries::new(pts, color.stroke_width(2)))
+            .map_err(|e| e.to_string())?
+            .label(&s.label)
+            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
+    }
+    if p.series.len() > 1 || p.series.first().is_some_and(|s| !s.label.is_empty()) {
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK.mix(0.3))
+            .label_font(("sans-serif", 12))
+            .position(SeriesLabelPosition::UpperRight)
+            .draw()
+            .map_err(|e| e.to_string())?;
+    }
+    Ok(())
+}
+
+fn draw<DB: DrawingBackend>(root: DrawingArea<DB, Shift>, fig: &Figure) -> Result<(), String> {
+    root.fill(&WHITE).map_err(|e| e.to_string())?;
+    let root = root
+        .titled(&fig.title, ("sans-serif", 22))
+        .map_err(|e| e.to_string())?;
+    let cols = fig.cols.max(1);
+    let rows = fig.panels.len().div_ceil(cols).max(1);
+    let areas = root.split_evenly((rows, cols));
+    for (area, p) in areas.iter().zip(&fig.panels) {
+        draw_panel(area, p)?;
+    }
+    root.present().map_err(|e| e.to_string())
+}
+
+impl Figure {
+    /// Writes `<dir>/<name>.png` and `.svg`; returns the PNG path.
+    pub fn write(&self, dir: &Path) -> Result<PathBuf, String> {
+        register_font();
+        let cols = self.cols.max(1);
+        let rows = self.panels.len().div_ceil(cols).max(1);
+        let size = (560 * cols as u32, 60 + 380 * rows as u32);
+        // Render to temporary names and rename, so a failed run leaves no half-written figure.
+        let png = dir.join(format!("{}.png", self.name));
+        let svg = dir.join(format!("{}.svg", self.name));
+        let png_tmp = dir.join(format!(".{}.tmp.png", self.name));
+        let svg_tmp = dir.join(format!(".{}.tmp.svg", self.name));
+        draw(BitMapBackend::new(&png_tmp, size).into_drawing_area(), self).map_err(|e| format!("{}: {e}", png.display()))?;
+        draw(SVGBackend::new(&svg_tmp, size).into_drawing_area(), self).map_err(|e| format!("{}: {e}", svg.display()))?;
+        std::fs::rename(&png_tmp, &png).map_err(|e| format!("{}: {e}", png.display()))?;
+        std::fs::rename(&svg_tmp, &svg).map_err(|e| format!("{}: {e}", svg.display()))?;
+        Ok(png)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn decimation_keeps_extremes() {
+        let x: Vec<f64> = (0..100_000).map(|k| k as f64).collect();
+        let mut y = vec![0.0; 100_000];
+        y[54_321] = 7.0;
+        y[12_345] = -3.0;
+        let d = decimate(&x, &y, 1000);
+        assert!(d.len() <= 1002);
+        assert!(d.iter().any(|p| p.1 == 7.0) && d.iter().any(|p| p.1 == -3.0));
+    }
+
+    #[test]
+    fn figure_writes_png_and_svg() {
+        let dir = std::env::temp_dir().join(format!("pto-plot-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let fig = Figure {
+            name: "t".into(),
+            title: "test".into(),
+            cols: 2,
+            panels: vec![
+                Panel {
+                    title: "a".into(),
+                    x_label: "time (s)".into(),
+                    y_label: "P2 (bar)".into(),
+                    series: vec![Series {
+                        label: "x".into(),
+                        x: vec![0.0, 1.0, 2.0],
+                        y: vec![1.0, 3.0, 2.0],
+                    }],
+                };
+                3
+            ],
+        };
+        let png = fig.write(&dir).unwrap();
+        assert!(std::fs::metadata(&png).unwrap().len() > 1000);
+        assert!(std::fs::metadata(dir.join("t.svg")).unwrap().len() > 1000);
+    }
+}
