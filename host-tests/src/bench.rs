@@ -253,8 +253,20 @@ impl Checker {
     }
 
     fn valve(&mut self, prefix: &str, v: &ValveSection) {
-        self.range(format!("{prefix}.cracking_bar"), v.cracking_bar, 0.01, 20.0, "bar");
-        self.range(format!("{prefix}.full_open_bar"), v.full_open_bar, 0.02, 50.0, "bar");
+        self.range(
+            format!("{prefix}.cracking_bar"),
+            v.cracking_bar,
+            0.01,
+            20.0,
+            "bar",
+        );
+        self.range(
+            format!("{prefix}.full_open_bar"),
+            v.full_open_bar,
+            0.02,
+            50.0,
+            "bar",
+        );
         if v.full_open_bar <= v.cracking_bar {
             self.fail(
                 format!("{prefix}.full_open_bar"),
@@ -264,7 +276,13 @@ impl Checker {
                 ),
             );
         }
-        self.range(format!("{prefix}.max_area_mm2"), v.max_area_mm2, 0.01, 2000.0, "mm²");
+        self.range(
+            format!("{prefix}.max_area_mm2"),
+            v.max_area_mm2,
+            0.01,
+            2000.0,
+            "mm²",
+        );
         self.range(
             format!("{prefix}.discharge_coefficient"),
             v.discharge_coefficient,
@@ -276,7 +294,13 @@ impl Checker {
 
     fn accumulator(&mut self, prefix: &str, a: &AccumulatorSection) {
         self.range(format!("{prefix}.volume_l"), a.volume_l, 0.1, 500.0, "L");
-        self.range(format!("{prefix}.precharge_bar"), a.precharge_bar, 0.5, 400.0, "bar");
+        self.range(
+            format!("{prefix}.precharge_bar"),
+            a.precharge_bar,
+            0.5,
+            400.0,
+            "bar",
+        );
         self.range(
             format!("{prefix}.polytropic_index"),
             a.polytropic_index,
@@ -287,7 +311,13 @@ impl Checker {
     }
 
     fn line(&mut self, prefix: &str, length_m: f64, id_mm: f64) {
-        self.range(format!("lines.{prefix}_length_m"), length_m, 0.0, 100.0, "m");
+        self.range(
+            format!("lines.{prefix}_length_m"),
+            length_m,
+            0.0,
+            100.0,
+            "m",
+        );
         self.range(
             format!("lines.{prefix}_inner_diameter_mm"),
             id_mm,
@@ -310,18 +340,72 @@ impl BenchFile {
     /// Checks every field against its physical range.
     pub fn validate(&self, file: &str) -> Result<(), BenchError> {
         let mut c = Checker { errors: Vec::new() };
-        c.range("input.pinion_radius_mm", self.input.pinion_radius_mm, 5.0, 2000.0, "mm");
+        c.range(
+            "input.pinion_radius_mm",
+            self.input.pinion_radius_mm,
+            5.0,
+            2000.0,
+            "mm",
+        );
         let o = &self.oil;
         c.range("oil.density_kg_m3", o.density_kg_m3, 600.0, 1200.0, "kg/m³");
-        c.range("oil.kinematic_viscosity_cst", o.kinematic_viscosity_cst, 1.0, 1000.0, "cSt");
-        c.range("oil.liquid_bulk_modulus_mpa", o.liquid_bulk_modulus_mpa, 100.0, 5000.0, "MPa");
-        c.range("oil.trapped_air_fraction", o.trapped_air_fraction, 0.0, 0.5, "-");
-        c.range("oil.air_polytropic_index", o.air_polytropic_index, 1.0, 1.67, "-");
-        c.range("oil.critical_reynolds", o.critical_reynolds, 1.0, 5000.0, "-");
-        c.range("oil.leakage_area_mm2", o.leakage_area_mm2, 1e-9, 1e-2, "mm²");
+        c.range(
+            "oil.kinematic_viscosity_cst",
+            o.kinematic_viscosity_cst,
+            1.0,
+            1000.0,
+            "cSt",
+        );
+        c.range(
+            "oil.liquid_bulk_modulus_mpa",
+            o.liquid_bulk_modulus_mpa,
+            100.0,
+            5000.0,
+            "MPa",
+        );
+        c.range(
+            "oil.trapped_air_fraction",
+            o.trapped_air_fraction,
+            0.0,
+            0.5,
+            "-",
+        );
+        c.range(
+            "oil.air_polytropic_index",
+            o.air_polytropic_index,
+            1.0,
+            1.67,
+            "-",
+        );
+        c.range(
+            "oil.critical_reynolds",
+            o.critical_reynolds,
+            1.0,
+            5000.0,
+            "-",
+        );
+        c.range(
+            "oil.leakage_area_mm2",
+            o.leakage_area_mm2,
+            1e-9,
+            1e-2,
+            "mm²",
+        );
         let m = &self.cylinder_mounting;
-        c.range("cylinder_mounting.dead_volume_cm3", m.dead_volume_cm3, 0.1, 5000.0, "cm³");
-        c.range("cylinder_mounting.hose_length_m", m.hose_length_m, 0.0, 50.0, "m");
+        c.range(
+            "cylinder_mounting.dead_volume_cm3",
+            m.dead_volume_cm3,
+            0.1,
+            5000.0,
+            "cm³",
+        );
+        c.range(
+            "cylinder_mounting.hose_length_m",
+            m.hose_length_m,
+            0.0,
+            50.0,
+            "m",
+        );
         c.range(
             "cylinder_mounting.hose_inner_diameter_mm",
             m.hose_inner_diameter_mm,
@@ -329,7 +413,13 @@ impl BenchFile {
             100.0,
             "mm",
         );
-        c.range("cylinder_mounting.free_play_mm", m.free_play_mm, 0.0, 50.0, "mm");
+        c.range(
+            "cylinder_mounting.free_play_mm",
+            m.free_play_mm,
+            0.0,
+            50.0,
+            "mm",
+        );
         c.range(
             "cylinder_mounting.hard_stop_stiffness_n_per_m",
             m.hard_stop_stiffness_n_per_m,
@@ -354,7 +444,10 @@ impl BenchFile {
         if self.cylinder.len() != 4 {
             c.fail(
                 "cylinder",
-                format!("{} entries, the bench has exactly 4 (HC3.1..HC3.4)", self.cylinder.len()),
+                format!(
+                    "{} entries, the bench has exactly 4 (HC3.1..HC3.4)",
+                    self.cylinder.len()
+                ),
             );
         }
         for (i, cyl) in self.cylinder.iter().enumerate() {
@@ -364,18 +457,27 @@ impl BenchFile {
             if cyl.rod_mm >= cyl.bore_mm {
                 c.fail(
                     format!("{p}.rod_mm"),
-                    format!("{} must be smaller than bore_mm = {} (mm)", cyl.rod_mm, cyl.bore_mm),
+                    format!(
+                        "{} must be smaller than bore_mm = {} (mm)",
+                        cyl.rod_mm, cyl.bore_mm
+                    ),
                 );
             }
             c.range(format!("{p}.stroke_mm"), cyl.stroke_mm, 10.0, 5000.0, "mm");
             if cyl.side != 1 && cyl.side != -1 {
-                c.fail(format!("{p}.side"), format!("{} outside {{-1, 1}} (-)", cyl.side));
+                c.fail(
+                    format!("{p}.side"),
+                    format!("{} outside {{-1, 1}} (-)", cyl.side),
+                );
             }
         }
         if self.config.len() != 4 {
             c.fail(
                 "config",
-                format!("{} entries, the bench has exactly 4 (Config 1..4)", self.config.len()),
+                format!(
+                    "{} entries, the bench has exactly 4 (Config 1..4)",
+                    self.config.len()
+                ),
             );
         }
         let min_stroke = self
@@ -404,8 +506,20 @@ impl BenchFile {
         c.valve("makeup_valve", &self.makeup_valve);
         let r = &self.relief_valve;
         c.range("relief_valve.setting_bar", r.setting_bar, 1.0, 400.0, "bar");
-        c.range("relief_valve.regulation_range_bar", r.regulation_range_bar, 0.1, 50.0, "bar");
-        c.range("relief_valve.max_area_mm2", r.max_area_mm2, 0.01, 2000.0, "mm²");
+        c.range(
+            "relief_valve.regulation_range_bar",
+            r.regulation_range_bar,
+            0.1,
+            50.0,
+            "bar",
+        );
+        c.range(
+            "relief_valve.max_area_mm2",
+            r.max_area_mm2,
+            0.01,
+            2000.0,
+            "mm²",
+        );
         c.range(
             "relief_valve.discharge_coefficient",
             r.discharge_coefficient,
@@ -439,23 +553,44 @@ impl BenchFile {
             );
         }
         for (i, a) in v.aperture_pct.iter().enumerate() {
-            c.range(format!("control_valve.aperture_pct[{i}]"), *a, 0.0, 100.0, "%");
+            c.range(
+                format!("control_valve.aperture_pct[{i}]"),
+                *a,
+                0.0,
+                100.0,
+                "%",
+            );
             if i > 0 && *a <= v.aperture_pct[i - 1] {
                 c.fail(
                     format!("control_valve.aperture_pct[{i}]"),
-                    format!("{a} not above the previous {} (%): must increase", v.aperture_pct[i - 1]),
+                    format!(
+                        "{a} not above the previous {} (%): must increase",
+                        v.aperture_pct[i - 1]
+                    ),
                 );
             }
         }
         if v.aperture_pct.first() != Some(&0.0) || v.aperture_pct.last() != Some(&100.0) {
-            c.fail("control_valve.aperture_pct", "must start at 0 and end at 100 (%)");
+            c.fail(
+                "control_valve.aperture_pct",
+                "must start at 0 and end at 100 (%)",
+            );
         }
         for (i, a) in v.area_mm2.iter().enumerate() {
-            c.range(format!("control_valve.area_mm2[{i}]"), *a, 0.0, 5000.0, "mm²");
+            c.range(
+                format!("control_valve.area_mm2[{i}]"),
+                *a,
+                0.0,
+                5000.0,
+                "mm²",
+            );
             if i > 0 && *a < v.area_mm2[i - 1] {
                 c.fail(
                     format!("control_valve.area_mm2[{i}]"),
-                    format!("{a} below the previous {} (mm²): must not decrease", v.area_mm2[i - 1]),
+                    format!(
+                        "{a} below the previous {} (mm²): must not decrease",
+                        v.area_mm2[i - 1]
+                    ),
                 );
             }
         }
@@ -469,7 +604,13 @@ impl BenchFile {
             1000.0,
             "cm³/rev",
         );
-        c.range("motor.volumetric_efficiency", mo.volumetric_efficiency, 0.5, 1.0, "-");
+        c.range(
+            "motor.volumetric_efficiency",
+            mo.volumetric_efficiency,
+            0.5,
+            1.0,
+            "-",
+        );
         c.range("motor.total_efficiency", mo.total_efficiency, 0.3, 1.0, "-");
         if mo.total_efficiency > mo.volumetric_efficiency {
             c.fail(
@@ -480,9 +621,27 @@ impl BenchFile {
                 ),
             );
         }
-        c.range("motor.nominal_pressure_bar", mo.nominal_pressure_bar, 1.0, 500.0, "bar");
-        c.range("motor.nominal_speed_rpm", mo.nominal_speed_rpm, 10.0, 10000.0, "rpm");
-        c.range("motor.inertia_kg_m2", mo.inertia_kg_m2, 1e-5, 100.0, "kg·m²");
+        c.range(
+            "motor.nominal_pressure_bar",
+            mo.nominal_pressure_bar,
+            1.0,
+            500.0,
+            "bar",
+        );
+        c.range(
+            "motor.nominal_speed_rpm",
+            mo.nominal_speed_rpm,
+            10.0,
+            10000.0,
+            "rpm",
+        );
+        c.range(
+            "motor.inertia_kg_m2",
+            mo.inertia_kg_m2,
+            1e-5,
+            100.0,
+            "kg·m²",
+        );
         match mo.load {
             LoadSection::Viscous {
                 torque_per_speed_nm_per_rpm,
@@ -499,9 +658,21 @@ impl BenchFile {
         }
         let l = &self.lines;
         c.line("hp", l.hp_length_m, l.hp_inner_diameter_mm);
-        c.line("valve_to_motor", l.valve_to_motor_length_m, l.valve_to_motor_inner_diameter_mm);
-        c.line("motor_to_lp", l.motor_to_lp_length_m, l.motor_to_lp_inner_diameter_mm);
-        c.line("lp_to_manifold", l.lp_to_manifold_length_m, l.lp_to_manifold_inner_diameter_mm);
+        c.line(
+            "valve_to_motor",
+            l.valve_to_motor_length_m,
+            l.valve_to_motor_inner_diameter_mm,
+        );
+        c.line(
+            "motor_to_lp",
+            l.motor_to_lp_length_m,
+            l.motor_to_lp_inner_diameter_mm,
+        );
+        c.line(
+            "lp_to_manifold",
+            l.lp_to_manifold_length_m,
+            l.lp_to_manifold_inner_diameter_mm,
+        );
         if c.errors.is_empty() {
             Ok(())
         } else {
@@ -779,7 +950,12 @@ impl Bench {
             relief_area: f.relief_valve.max_area_mm2 * 1e-6,
             relief_cd: f.relief_valve.discharge_coefficient,
             valve_cd: f.control_valve.discharge_coefficient,
-            valve_aperture: f.control_valve.aperture_pct.iter().map(|a| a / 100.0).collect(),
+            valve_aperture: f
+                .control_valve
+                .aperture_pct
+                .iter()
+                .map(|a| a / 100.0)
+                .collect(),
             valve_area: f.control_valve.area_mm2.iter().map(|a| a * 1e-6).collect(),
             spool_tau: f.control_valve.spool_time_constant_ms * 1e-3,
             hp_acc: acc(&f.hp_accumulator),
@@ -790,9 +966,15 @@ impl Bench {
             motor_inertia: mo.inertia_kg_m2,
             load,
             hp_line_volume: pipe_volume(l.hp_length_m, l.hp_inner_diameter_mm),
-            motor_line_volume: pipe_volume(l.valve_to_motor_length_m, l.valve_to_motor_inner_diameter_mm),
+            motor_line_volume: pipe_volume(
+                l.valve_to_motor_length_m,
+                l.valve_to_motor_inner_diameter_mm,
+            ),
             lp_line_volume: pipe_volume(l.motor_to_lp_length_m, l.motor_to_lp_inner_diameter_mm)
-                + pipe_volume(l.lp_to_manifold_length_m, l.lp_to_manifold_inner_diameter_mm),
+                + pipe_volume(
+                    l.lp_to_manifold_length_m,
+                    l.lp_to_manifold_inner_diameter_mm,
+                ),
             file: f,
         })
     }
@@ -847,7 +1029,10 @@ mod tests {
     fn out_of_range_field_is_named_with_file_range_and_unit() {
         let text = REFERENCE_BENCH_TOML.replace("bore_mm = 32.0", "bore_mm = 0.5");
         let err = Bench::from_toml(&text, "my.toml").unwrap_err().to_string();
-        assert!(err.contains("my.toml:cylinder[0].bore_mm: 0.5 outside [5, 500] (mm)"), "{err}");
+        assert!(
+            err.contains("my.toml:cylinder[0].bore_mm: 0.5 outside [5, 500] (mm)"),
+            "{err}"
+        );
     }
 
     #[test]
@@ -866,7 +1051,10 @@ mod tests {
         match Bench::from_toml(&text, "b.toml") {
             Err(BenchError::Invalid { errors, .. }) => {
                 let fields: Vec<_> = errors.iter().map(|e| e.field.as_str()).collect();
-                assert_eq!(fields, ["oil.density_kg_m3", "hp_accumulator.precharge_bar"]);
+                assert_eq!(
+                    fields,
+                    ["oil.density_kg_m3", "hp_accumulator.precharge_bar"]
+                );
             }
             other => panic!("expected Invalid, got {other:?}"),
         }

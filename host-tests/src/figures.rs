@@ -48,7 +48,11 @@ impl Col {
 fn series(r: &Results, name: &str, label: &str, col: Col, from: f64, to: f64) -> Option<Series> {
     let t = r.trace(name)?;
     let end = *t.t.last()?;
-    let (a, b) = if from < 0.0 { (end + from, end) } else { (from, to.min(end)) };
+    let (a, b) = if from < 0.0 {
+        (end + from, end)
+    } else {
+        (from, to.min(end))
+    };
     let w = t.window(a, b);
     Some(Series {
         label: label.into(),
@@ -74,13 +78,29 @@ fn set_label(tag: &str) -> String {
 }
 
 /// Panels of one config with every cylinder set overlaid.
-fn per_config(r: &Results, group: &str, configs: &[usize], col: Col, from: f64, to: f64) -> Vec<Panel> {
+fn per_config(
+    r: &Results,
+    group: &str,
+    configs: &[usize],
+    col: Col,
+    from: f64,
+    to: f64,
+) -> Vec<Panel> {
     configs
         .iter()
         .map(|c| {
             let s = SETS
                 .iter()
-                .filter_map(|(tag, _)| series(r, &format!("{group}-cfg{c}-{tag}"), &set_label(tag), col, from, to))
+                .filter_map(|(tag, _)| {
+                    series(
+                        r,
+                        &format!("{group}-cfg{c}-{tag}"),
+                        &set_label(tag),
+                        col,
+                        from,
+                        to,
+                    )
+                })
                 .collect();
             panel(format!("Config {c}"), col, s)
         })
@@ -114,7 +134,16 @@ pub fn all(r: &Results) -> Vec<Figure> {
         .iter()
         .map(|(tag, _)| {
             let s = (1..=4)
-                .filter_map(|c| series(r, &format!("test2-cfg{c}-{tag}"), &format!("Config {c}"), Col::P2, 0.0, f64::INFINITY))
+                .filter_map(|c| {
+                    series(
+                        r,
+                        &format!("test2-cfg{c}-{tag}"),
+                        &format!("Config {c}"),
+                        Col::P2,
+                        0.0,
+                        f64::INFINITY,
+                    )
+                })
                 .collect();
             panel(set_label(tag), Col::P2, s)
         })
@@ -152,7 +181,10 @@ pub fn all(r: &Results) -> Vec<Figure> {
     figs.push(Figure {
         name: "fig17-test3-p2".into(),
         title: "Test III: HC3.1 + HC3.4, Config 1, valve opens at 100 bar".into(),
-        panels: vec![panel("P2 by aperture".into(), Col::P2, ap(Col::P2, 0.0, 400.0)), panel("LP by aperture".into(), Col::Lp, ap(Col::Lp, 0.0, 400.0))],
+        panels: vec![
+            panel("P2 by aperture".into(), Col::P2, ap(Col::P2, 0.0, 400.0)),
+            panel("LP by aperture".into(), Col::Lp, ap(Col::Lp, 0.0, 400.0)),
+        ],
         cols: 2,
     });
     figs.push(Figure {
@@ -160,15 +192,32 @@ pub fn all(r: &Results) -> Vec<Figure> {
         title: "Test III, 200–400 s: P2, motor flow, motor speed".into(),
         panels: vec![
             panel("P2".into(), Col::P2, ap(Col::P2, 200.0, 400.0)),
-            panel("motor flow".into(), Col::Motor, ap(Col::Motor, 200.0, 400.0)),
-            panel("motor speed".into(), Col::Speed, ap(Col::Speed, 200.0, 400.0)),
+            panel(
+                "motor flow".into(),
+                Col::Motor,
+                ap(Col::Motor, 200.0, 400.0),
+            ),
+            panel(
+                "motor speed".into(),
+                Col::Speed,
+                ap(Col::Speed, 200.0, 400.0),
+            ),
         ],
         cols: 3,
     });
     let bl = |col: Col| -> Vec<Series> {
         BLOCKED_APERTURES
             .iter()
-            .filter_map(|a| series(r, &format!("blocked-ap{a}"), &format!("{a} %"), col, 0.0, f64::INFINITY))
+            .filter_map(|a| {
+                series(
+                    r,
+                    &format!("blocked-ap{a}"),
+                    &format!("{a} %"),
+                    col,
+                    0.0,
+                    f64::INFINITY,
+                )
+            })
             .collect()
     };
     figs.push(Figure {
@@ -182,17 +231,34 @@ pub fn all(r: &Results) -> Vec<Figure> {
         cols: 3,
     });
     let exp = |names: &[&str], col: Col| -> Vec<Series> {
-        names.iter().filter_map(|n| series(r, n, n, col, 0.0, f64::INFINITY)).collect()
+        names
+            .iter()
+            .filter_map(|n| series(r, n, n, col, 0.0, f64::INFINITY))
+            .collect()
     };
-    let charges = ["exp-charge-64.5", "exp-charge-67.2", "exp-charge-72", "exp-9pct-101.5"];
+    let charges = [
+        "exp-charge-64.5",
+        "exp-charge-67.2",
+        "exp-charge-72",
+        "exp-9pct-101.5",
+    ];
     let discharges = ["exp-discharge-102", "exp-discharge-84", "exp-discharge-71"];
     figs.push(Figure {
         name: "fig22-29-experimental-runs".into(),
-        title: "Experimental runs of Section 4.2 (simulated): charging, 9 % aperture, discharges".into(),
+        title: "Experimental runs of Section 4.2 (simulated): charging, 9 % aperture, discharges"
+            .into(),
         panels: vec![
-            panel("charging / 9 % runs: P2".into(), Col::P2, exp(&charges, Col::P2)),
+            panel(
+                "charging / 9 % runs: P2".into(),
+                Col::P2,
+                exp(&charges, Col::P2),
+            ),
             panel("discharges: P2".into(), Col::P2, exp(&discharges, Col::P2)),
-            panel("discharges: motor speed".into(), Col::Speed, exp(&discharges, Col::Speed)),
+            panel(
+                "discharges: motor speed".into(),
+                Col::Speed,
+                exp(&discharges, Col::Speed),
+            ),
         ],
         cols: 3,
     });
@@ -223,8 +289,16 @@ pub fn single(name: &str, t: &Trace) -> Figure {
                 y_label: "flow (L/min)".into(),
                 series: vec![s("injected into HP", Col::Inj), s("motor", Col::Motor)],
             },
-            panel("motor speed".into(), Col::Speed, vec![s("motor", Col::Speed)]),
-            panel("restraining torque".into(), Col::Torque, vec![s("shaft", Col::Torque)]),
+            panel(
+                "motor speed".into(),
+                Col::Speed,
+                vec![s("motor", Col::Speed)],
+            ),
+            panel(
+                "restraining torque".into(),
+                Col::Torque,
+                vec![s("shaft", Col::Torque)],
+            ),
         ],
         cols: 2,
     }

@@ -6,13 +6,13 @@
 //! [`paper`] (the paper's facts) → [`plot`] / [`report`] (figures and tables).
 
 pub mod bench;
+pub mod figures;
 pub mod motion;
+pub mod paper;
+pub mod perf;
 pub mod physics;
 pub mod plant;
-pub mod sim;
-pub mod paper;
+pub mod plot;
 pub mod runner;
 pub mod scenario;
-pub mod figures;
-pub mod perf;
-pub mod plot;
+pub mod sim;

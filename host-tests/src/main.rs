@@ -14,7 +14,11 @@ use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 
 #[derive(Parser)]
-#[command(name = "pto", version, about = "Hydraulic PTO test bench: full simulation, the paper's scenarios and facts")]
+#[command(
+    name = "pto",
+    version,
+    about = "Hydraulic PTO test bench: full simulation, the paper's scenarios and facts"
+)]
 struct Cli {
     #[command(subcommand)]
     cmd: Cmd,
@@ -91,7 +95,11 @@ fn main() -> ExitCode {
             json,
             no_plots,
         } => paper_cmd(bench.as_ref(), &out, json, !no_plots),
-        Cmd::Bench { bench, repeats, json } => bench_cmd(bench.as_ref(), repeats, json),
+        Cmd::Bench {
+            bench,
+            repeats,
+            json,
+        } => bench_cmd(bench.as_ref(), repeats, json),
     };
     match result {
         Ok(true) => ExitCode::SUCCESS,
@@ -116,7 +124,10 @@ fn scenarios(json: bool) -> Result<bool> {
         for s in &all {
             println!("{:<22} {:>6.0}s  {}", s.name, s.duration_s, s.description);
         }
-        println!("\n{} scenarios. Write your own in the same TOML form (`pto scenarios --json` shows the fields).", all.len());
+        println!(
+            "\n{} scenarios. Write your own in the same TOML form (`pto scenarios --json` shows the fields).",
+            all.len()
+        );
     }
     Ok(true)
 }
@@ -177,7 +188,13 @@ fn progress_bar(len_ms: u64, label: &str) -> ProgressBar {
     pb
 }
 
-fn simulate(name: &str, bench_path: Option<&PathBuf>, out: &Path, json: bool, rtol: f64) -> Result<bool> {
+fn simulate(
+    name: &str,
+    bench_path: Option<&PathBuf>,
+    out: &Path,
+    json: bool,
+    rtol: f64,
+) -> Result<bool> {
     let bench = load_bench(bench_path)?;
     let (s, base) = scenario::resolve(name)?;
     let prepared = s.prepare(&bench, &base)?;
@@ -191,22 +208,32 @@ fn simulate(name: &str, bench_path: Option<&PathBuf>, out: &Path, json: bool, rt
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let csv = out.join(format!("{}.csv", s.name));
     let names: [String; 4] = std::array::from_fn(|i| bench.cylinders[i].name.clone());
-    r.trace.write_csv(&csv, &names).with_context(|| format!("cannot write {}", csv.display()))?;
-    let fig = figures::single(&s.name, &r.trace).write(out).map_err(anyhow::Error::msg)?;
+    r.trace
+        .write_csv(&csv, &names)
+        .with_context(|| format!("cannot write {}", csv.display()))?;
+    let fig = figures::single(&s.name, &r.trace)
+        .write(out)
+        .map_err(anyhow::Error::msg)?;
     let sum = summarize(&s.name, &r, &csv, &fig);
     let pass = sum.balance_worst_rel <= tol::BALANCE_REL;
     if json {
         println!("{}", serde_json::to_string_pretty(&sum)?);
     } else {
         println!("{} — {}", s.name, s.description);
-        println!("  simulated {:.0} s in {:.3} s ({} steps)", sum.simulated_s, sum.wall_s, sum.steps);
+        println!(
+            "  simulated {:.0} s in {:.3} s ({} steps)",
+            sum.simulated_s, sum.wall_s, sum.steps
+        );
         println!(
             "  P2 {:.2} -> {:.2} bar (min {:.2}, max {:.2}); LP at end {:.2} bar",
             sum.p2_start_bar, sum.p2_end_bar, sum.p2_min_bar, sum.p2_max_bar, sum.lp_end_bar
         );
         println!(
             "  mean injected {:.3} L/min, mean motor flow {:.3} L/min, mean motor speed {:.1} rpm, peak torque {:.0} N·m",
-            sum.mean_injected_lpm, sum.mean_motor_flow_lpm, sum.mean_motor_speed_rpm, sum.peak_torque_nm
+            sum.mean_injected_lpm,
+            sum.mean_motor_flow_lpm,
+            sum.mean_motor_speed_rpm,
+            sum.peak_torque_nm
         );
         println!(
             "  oil/energy balance worst relative error {:.1e} (target {:.0e}): {}",
@@ -235,9 +262,18 @@ fn paper_cmd(bench_path: Option<&PathBuf>, out: &Path, json: bool, plots: bool) 
     let all = scenario::builtin();
     let start = std::time::Instant::now();
     if !json {
-        eprintln!("running {} scenarios on {} threads…", all.len(), rayon::current_num_threads());
+        eprintln!(
+            "running {} scenarios on {} threads…",
+            all.len(),
+            rayon::current_num_threads()
+        );
     }
-    let outcomes = runner::run_all(&bench, &all, SolverOptions::default(), std::io::stderr().is_terminal());
+    let outcomes = runner::run_all(
+        &bench,
+        &all,
+        SolverOptions::default(),
+        std::io::stderr().is_terminal(),
+    );
     let wall = start.elapsed().as_secs_f64();
     let facts = paper::check(&bench, &outcomes);
     let pass = facts.iter().all(|f| f.pass);
@@ -246,10 +282,18 @@ fn paper_cmd(bench_path: Option<&PathBuf>, out: &Path, json: bool, plots: bool) 
     if plots {
         let r = Results::new(&outcomes);
         for f in figures::all(&r) {
-            fig_paths.push(f.write(out).map_err(anyhow::Error::msg)?.display().to_string());
+            fig_paths.push(
+                f.write(out)
+                    .map_err(anyhow::Error::msg)?
+                    .display()
+                    .to_string(),
+            );
         }
     }
-    let failed_runs: Vec<String> = outcomes.iter().filter_map(|o| o.result.as_ref().err().cloned()).collect();
+    let failed_runs: Vec<String> = outcomes
+        .iter()
+        .filter_map(|o| o.result.as_ref().err().cloned())
+        .collect();
     let report = PaperReport {
         bench: bench.source.clone(),
         runs: outcomes.len(),
@@ -261,7 +305,10 @@ fn paper_cmd(bench_path: Option<&PathBuf>, out: &Path, json: bool, plots: bool) 
     };
     let md = markdown_report(&report, &outcomes);
     write_atomic(&out.join("report.md"), md.as_bytes())?;
-    write_atomic(&out.join("facts.json"), serde_json::to_string_pretty(&report)?.as_bytes())?;
+    write_atomic(
+        &out.join("facts.json"),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
+    )?;
     if json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
@@ -284,7 +331,12 @@ fn facts_table(facts: &[Fact]) -> String {
     let mut s = String::new();
     s.push_str(&format!("{:<3} {:<5} {}\n", "#", "", "fact — measured"));
     for f in facts {
-        s.push_str(&format!("{:<3} {:<5} {}\n", f.id, if f.pass { "PASS" } else { "FAIL" }, f.statement));
+        s.push_str(&format!(
+            "{:<3} {:<5} {}\n",
+            f.id,
+            if f.pass { "PASS" } else { "FAIL" },
+            f.statement
+        ));
         s.push_str(&format!("{:<9} {}\n", "", f.measured));
     }
     s
@@ -296,10 +348,20 @@ fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
         r.bench,
         r.runs,
         r.wall_s,
-        if r.pass { "all facts hold" } else { "some facts FAIL" }
+        if r.pass {
+            "all facts hold"
+        } else {
+            "some facts FAIL"
+        }
     );
     for f in r.facts {
-        s.push_str(&format!("| {} | {} | {} | {} |\n", f.id, f.statement, f.measured, if f.pass { "pass" } else { "**FAIL**" }));
+        s.push_str(&format!(
+            "| {} | {} | {} | {} |\n",
+            f.id,
+            f.statement,
+            f.measured,
+            if f.pass { "pass" } else { "**FAIL**" }
+        ));
     }
     s.push_str("\n## Runs\n\n| scenario | wall (s) | steps | P2 start → end (bar) | worst balance error |\n|---|---|---|---|---|\n");
     for o in outcomes {
@@ -322,7 +384,10 @@ fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
     if !r.figures.is_empty() {
         s.push_str("\n## Figures\n\n");
         for f in &r.figures {
-            let file = Path::new(f).file_name().map(|n| n.to_string_lossy().to_string()).unwrap_or_default();
+            let file = Path::new(f)
+                .file_name()
+                .map(|n| n.to_string_lossy().to_string())
+                .unwrap_or_default();
             s.push_str(&format!("![{file}]({file})\n\n"));
         }
     }

@@ -82,7 +82,13 @@ pub enum MotionError {
     },
 }
 
-fn range(field: &'static str, value: f64, min: f64, max: f64, unit: &'static str) -> Result<(), MotionError> {
+fn range(
+    field: &'static str,
+    value: f64,
+    min: f64,
+    max: f64,
+    unit: &'static str,
+) -> Result<(), MotionError> {
     if value.is_finite() && value >= min && value <= max {
         Ok(())
     } else {
@@ -123,7 +129,11 @@ pub enum Motion {
 
 impl Motion {
     /// Builds the motion from its spec; `base` resolves relative trace paths.
-    pub fn from_spec(spec: &MotionSpec, pinion_radius: f64, base: &Path) -> Result<Self, MotionError> {
+    pub fn from_spec(
+        spec: &MotionSpec,
+        pinion_radius: f64,
+        base: &Path,
+    ) -> Result<Self, MotionError> {
         match spec {
             MotionSpec::Sine {
                 amplitude_mm,
@@ -141,7 +151,11 @@ impl Motion {
                 Ok(Motion::Blocked(angle_deg.to_radians()))
             }
             MotionSpec::Trace { file } => {
-                let path = if file.is_relative() { base.join(file) } else { file.clone() };
+                let path = if file.is_relative() {
+                    base.join(file)
+                } else {
+                    file.clone()
+                };
                 Self::from_trace_file(&path)
             }
             MotionSpec::Irregular {
@@ -180,7 +194,15 @@ impl Motion {
             headers
                 .iter()
                 .position(|h| h.trim() == name)
-                .ok_or_else(|| err(1, format!("missing column `{name}` (have: {})", headers.iter().collect::<Vec<_>>().join(", "))))
+                .ok_or_else(|| {
+                    err(
+                        1,
+                        format!(
+                            "missing column `{name}` (have: {})",
+                            headers.iter().collect::<Vec<_>>().join(", ")
+                        ),
+                    )
+                })
         };
         let (it, ia) = (col("time_s")?, col("shaft_angle_deg")?);
         let (mut t, mut theta) = (Vec::new(), Vec::new());
@@ -191,16 +213,30 @@ impl Motion {
                 rec.get(i)
                     .and_then(|s| s.trim().parse::<f64>().ok())
                     .filter(|v| v.is_finite())
-                    .ok_or_else(|| err(line, format!("column `{name}`: not a number: {:?}", rec.get(i).unwrap_or(""))))
+                    .ok_or_else(|| {
+                        err(
+                            line,
+                            format!(
+                                "column `{name}`: not a number: {:?}",
+                                rec.get(i).unwrap_or("")
+                            ),
+                        )
+                    })
             };
             let (ti, ai) = (get(it, "time_s")?, get(ia, "shaft_angle_deg")?);
             if let Some(&last) = t.last()
                 && ti <= last
             {
-                return Err(err(line, format!("column `time_s`: {ti} s is not after {last} s (time must increase)")));
+                return Err(err(
+                    line,
+                    format!("column `time_s`: {ti} s is not after {last} s (time must increase)"),
+                ));
             }
             if !(-30.0..=30.0).contains(&ai) {
-                return Err(err(line, format!("column `shaft_angle_deg`: {ai} outside [-30, 30] (deg)")));
+                return Err(err(
+                    line,
+                    format!("column `shaft_angle_deg`: {ai} outside [-30, 30] (deg)"),
+                ));
             }
             t.push(ti);
             theta.push(ai.to_radians());
@@ -241,7 +277,11 @@ impl Motion {
             .collect();
         // Scale so that 4σ = hs exactly (σ² = Σ a²/2).
         let var: f64 = comps.iter().map(|c| 0.5 * c.0 * c.0).sum();
-        let k = if var > 0.0 { hs / (4.0 * var.sqrt()) } else { 0.0 };
+        let k = if var > 0.0 {
+            hs / (4.0 * var.sqrt())
+        } else {
+            0.0
+        };
         for c in &mut comps {
             c.0 *= k;
         }
@@ -256,7 +296,11 @@ impl Motion {
                 (amplitude * s, amplitude * omega * c)
             }
             Motion::Blocked(a) => (*a, 0.0),
-            Motion::Trace { t: ts, theta, slope } => {
+            Motion::Trace {
+                t: ts,
+                theta,
+                slope,
+            } => {
                 let n = ts.len();
                 if t <= ts[0] {
                     return (theta[0], 0.0);
@@ -360,7 +404,10 @@ mod tests {
         let f = dir.join("t.csv");
         std::fs::write(&f, "time_s,shaft_angle_deg\n0,0\n1,2\n1,3\n").unwrap();
         let e = Motion::from_trace_file(&f).unwrap_err().to_string();
-        assert!(e.ends_with(":4: column `time_s`: 1 s is not after 1 s (time must increase)"), "{e}");
+        assert!(
+            e.ends_with(":4: column `time_s`: 1 s is not after 1 s (time must increase)"),
+            "{e}"
+        );
         std::fs::write(&f, "t,angle\n0,0\n").unwrap();
         let e = Motion::from_trace_file(&f).unwrap_err().to_string();
         assert!(e.contains(":1: missing column `time_s`"), "{e}");

@@ -64,10 +64,12 @@ fn mean(x: &[f64]) -> f64 {
 
 /// First time a series reaches `level` (linear interpolation).
 pub fn time_to_reach(t: &[f64], x: &[f64], level: f64) -> Option<f64> {
-    (1..x.len()).find(|&k| x[k - 1] < level && x[k] >= level).map(|k| {
-        let u = (level - x[k - 1]) / (x[k] - x[k - 1]);
-        t[k - 1] + u * (t[k] - t[k - 1])
-    })
+    (1..x.len())
+        .find(|&k| x[k - 1] < level && x[k] >= level)
+        .map(|k| {
+            let u = (level - x[k - 1]) / (x[k] - x[k - 1]);
+            t[k - 1] + u * (t[k] - t[k - 1])
+        })
 }
 
 /// First time a series falls below `level` after having been above it.
@@ -105,7 +107,12 @@ impl<'a> Results<'a> {
         Results {
             map: outcomes
                 .iter()
-                .filter_map(|o| o.result.as_ref().ok().map(|r| (o.scenario.name.as_str(), r)))
+                .filter_map(|o| {
+                    o.result
+                        .as_ref()
+                        .ok()
+                        .map(|r| (o.scenario.name.as_str(), r))
+                })
                 .collect(),
         }
     }
@@ -165,13 +172,23 @@ fn fact1(r: &Results) -> Fact {
     let t = need!(r, "test3-ap10", 1, st);
     let peak = t.theta_dot.iter().fold(0.0f64, |m, v| m.max(v.abs())) * RPM;
     let rel = (peak / tol::PEAK_SPEED_RPM - 1.0).abs();
-    fact(1, st, format!("{peak:.3} rpm ({:+.2} %)", (peak / tol::PEAK_SPEED_RPM - 1.0) * 100.0), rel <= tol::PEAK_SPEED_REL)
+    fact(
+        1,
+        st,
+        format!(
+            "{peak:.3} rpm ({:+.2} %)",
+            (peak / tol::PEAK_SPEED_RPM - 1.0) * 100.0
+        ),
+        rel <= tol::PEAK_SPEED_REL,
+    )
 }
 
 fn fact2(bench: &Bench, r: &Results) -> Fact {
-    let st = "valve closed: P2 rises to the relief setting and holds at 130 ± 2 bar; LP falls meanwhile";
+    let st =
+        "valve closed: P2 rises to the relief setting and holds at 130 ± 2 bar; LP falls meanwhile";
     let setting = bench.relief_setting / BAR;
-    let (mut lo, mut hi, mut worst_lp, mut all) = (f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY, true);
+    let (mut lo, mut hi, mut worst_lp, mut all) =
+        (f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY, true);
     for config in 1..=4 {
         for (tag, _) in SETS {
             let name = format!("test2-cfg{config}-{tag}");
@@ -183,10 +200,19 @@ fn fact2(bench: &Bench, r: &Results) -> Fact {
             lo = lo.min(a);
             hi = hi.max(b);
             worst_lp = worst_lp.max(lp_drop);
-            all &= (a - setting).abs() <= tol::RELIEF_BAND_BAR && (b - setting).abs() <= tol::RELIEF_BAND_BAR && lp_drop < 0.0;
+            all &= (a - setting).abs() <= tol::RELIEF_BAND_BAR
+                && (b - setting).abs() <= tol::RELIEF_BAND_BAR
+                && lp_drop < 0.0;
         }
     }
-    fact(2, st, format!("P2 over the last 100 s of 16 runs: {lo:.2}..{hi:.2} bar; LP change ≤ {worst_lp:+.2} bar"), all)
+    fact(
+        2,
+        st,
+        format!(
+            "P2 over the last 100 s of 16 runs: {lo:.2}..{hi:.2} bar; LP change ≤ {worst_lp:+.2} bar"
+        ),
+        all,
+    )
 }
 
 fn fact3(r: &Results) -> Fact {
@@ -201,13 +227,28 @@ fn fact3(r: &Results) -> Fact {
         }
         table.push(format!(
             "cfg{config}: {}",
-            times[config - 1].iter().map(|x| format!("{x:.0}")).collect::<Vec<_>>().join("/")
+            times[config - 1]
+                .iter()
+                .map(|x| format!("{x:.0}"))
+                .collect::<Vec<_>>()
+                .join("/")
         ));
     }
     let config1_fastest = (0..4).all(|j| (1..4).all(|c| times[0][j] < times[c][j]));
     // Sets in order {HC3.1}, {HC3.4}, {HC3.1, HC3.4}, all four: 1, 1, 2, 4 cylinders.
-    let more_is_faster = times.iter().all(|row| row[3] < row[2] && row[2] < row[0].min(row[1]));
-    fact(3, st, format!("s to 100 bar ({}): {}", SETS.map(|s| s.0).join("/"), table.join("; ")), config1_fastest && more_is_faster)
+    let more_is_faster = times
+        .iter()
+        .all(|row| row[3] < row[2] && row[2] < row[0].min(row[1]));
+    fact(
+        3,
+        st,
+        format!(
+            "s to 100 bar ({}): {}",
+            SETS.map(|s| s.0).join("/"),
+            table.join("; ")
+        ),
+        config1_fastest && more_is_faster,
+    )
 }
 
 fn fact4(r: &Results) -> Fact {
@@ -255,7 +296,8 @@ fn fact5(bench: &Bench, r: &Results) -> Fact {
         let mut se = 0.0;
         let mut n = 0.0;
         for k in w {
-            let pred = (t.q_valve[k] - bench.motor_leak * (t.p_motor[k] - t.lp[k])) / bench.motor_disp;
+            let pred =
+                (t.q_valve[k] - bench.motor_leak * (t.p_motor[k] - t.lp[k])) / bench.motor_disp;
             se += ((pred - t.omega[k]) / t.omega[k]).powi(2);
             n += 1.0;
         }
@@ -264,7 +306,11 @@ fn fact5(bench: &Bench, r: &Results) -> Fact {
     fact(
         5,
         st,
-        format!("ripple ≤ {:.2} %, Eq. 9 RMS deviation ≤ {:.2} %", worst_ripple * 100.0, worst_eq9 * 100.0),
+        format!(
+            "ripple ≤ {:.2} %, Eq. 9 RMS deviation ≤ {:.2} %",
+            worst_ripple * 100.0,
+            worst_eq9 * 100.0
+        ),
         worst_ripple <= tol::SPEED_RIPPLE_REL && worst_eq9 <= tol::EQ9_REL,
     )
 }
@@ -295,7 +341,11 @@ fn fact6(r: &Results) -> Fact {
     fact(
         6,
         st,
-        format!("worst |Δ| {:.2} % (injected L/min: {})", worst * 100.0, parts.join(", ")),
+        format!(
+            "worst |Δ| {:.2} % (injected L/min: {})",
+            worst * 100.0,
+            parts.join(", ")
+        ),
         worst <= tol::FLOW_MEAN_REL,
     )
 }
@@ -327,7 +377,11 @@ fn fact7(bench: &Bench, r: &Results) -> Fact {
     fact(
         7,
         st,
-        format!("HC3.1 ratio {ratio:.3} (A_cap/A_ann {want:.3}); HC3.1+HC3.3 peaks {:.2}/{:.2} L/min", p * LPM, n * LPM),
+        format!(
+            "HC3.1 ratio {ratio:.3} (A_cap/A_ann {want:.3}); HC3.1+HC3.3 peaks {:.2}/{:.2} L/min",
+            p * LPM,
+            n * LPM
+        ),
         (ratio / want - 1.0).abs() <= tol::ASYM_RATIO_REL && sym <= tol::SYM_REL,
     )
 }
@@ -336,8 +390,13 @@ fn fact7(bench: &Bench, r: &Results) -> Fact {
 /// last two periods.
 fn torque_stats(t: &Trace) -> (f64, f64) {
     let w = last_periods(t, 2.0);
-    let peak = t.torque[w.clone()].iter().fold(0.0f64, |m, v| m.max(v.abs()));
-    let on = t.torque[w.clone()].iter().filter(|v| v.abs() > tol::TORQUE_ON_FRACTION * peak).count();
+    let peak = t.torque[w.clone()]
+        .iter()
+        .fold(0.0f64, |m, v| m.max(v.abs()));
+    let on = t.torque[w.clone()]
+        .iter()
+        .filter(|v| v.abs() > tol::TORQUE_ON_FRACTION * peak)
+        .count();
     (peak, on as f64 / w.len().max(1) as f64)
 }
 
@@ -352,10 +411,17 @@ fn fact8(r: &Results) -> Fact {
             (peak[config - 1][j], frac[config - 1][j]) = torque_stats(t);
         }
     }
-    let grows = peak.iter().all(|row| row[3] > row[2] && row[2] > row[0].max(row[1]));
+    let grows = peak
+        .iter()
+        .all(|row| row[3] > row[2] && row[2] > row[0].max(row[1]));
     let order = (0..4).all(|j| peak[0][j] > peak[1][j] && peak[1][j] > peak[2][j]);
     let shorter = (0..4).all(|j| frac[2][j] < frac[0][j]);
-    let fmt = |row: &[f64; 4], k: f64, d: usize| row.iter().map(|v| format!("{:.*}", d, v * k)).collect::<Vec<_>>().join("/");
+    let fmt = |row: &[f64; 4], k: f64, d: usize| {
+        row.iter()
+            .map(|v| format!("{:.*}", d, v * k))
+            .collect::<Vec<_>>()
+            .join("/")
+    };
     fact(
         8,
         st,
@@ -414,9 +480,22 @@ fn fact10(outcomes: &[Outcome]) -> Fact {
         }
     }
     if !failed.is_empty() {
-        return fact(10, st, format!("{} runs failed: {}", failed.len(), failed.join("; ")), false);
+        return fact(
+            10,
+            st,
+            format!("{} runs failed: {}", failed.len(), failed.join("; ")),
+            false,
+        );
     }
-    fact(10, st, format!("worst {worst:.1e} ({worst_name}) over {} runs", outcomes.len()), worst <= tol::BALANCE_REL)
+    fact(
+        10,
+        st,
+        format!(
+            "worst {worst:.1e} ({worst_name}) over {} runs",
+            outcomes.len()
+        ),
+        worst <= tol::BALANCE_REL,
+    )
 }
 
 #[cfg(test)]
@@ -425,7 +504,9 @@ mod tests {
 
     #[test]
     fn ripple_of_a_pure_sine_about_its_mean() {
-        let x: Vec<f64> = (0..2000).map(|k| 100.0 + 2.0 * (k as f64 * 0.01 * std::f64::consts::TAU).sin()).collect();
+        let x: Vec<f64> = (0..2000)
+            .map(|k| 100.0 + 2.0 * (k as f64 * 0.01 * std::f64::consts::TAU).sin())
+            .collect();
         let r = ripple_about_moving_mean(&x, 100);
         assert!((r - 0.02).abs() < 1e-3, "{r}");
     }

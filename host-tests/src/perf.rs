@@ -101,13 +101,21 @@ pub fn measure(bench: &Bench, repeats: usize) -> Result<BenchReport, String> {
             target::TEST3_WALL_S,
             t3.real_time_factor,
             target::TEST3_RTF,
-            if t3.wall_s <= target::TEST3_WALL_S { "met" } else { "MISSED" }
+            if t3.wall_s <= target::TEST3_WALL_S {
+                "met"
+            } else {
+                "MISSED"
+            }
         ),
         format!(
             "Test III P2 error vs tight run {:.4} bar <= {} bar: {}",
             err,
             target::TEST3_P2_ERR_BAR,
-            if err <= target::TEST3_P2_ERR_BAR { "met" } else { "MISSED" }
+            if err <= target::TEST3_P2_ERR_BAR {
+                "met"
+            } else {
+                "MISSED"
+            }
         ),
     ];
     let pass = t3.wall_s <= target::TEST3_WALL_S && err <= target::TEST3_P2_ERR_BAR;

@@ -223,7 +223,14 @@ impl Plant {
     }
 
     /// Initial state: chambers at LP, rods touching their eyes' play centre, motor as given.
-    pub fn initial_state(&self, p2: f64, lp: f64, p_motor: f64, omega: f64, aperture: f64) -> Vec<f64> {
+    pub fn initial_state(
+        &self,
+        p2: f64,
+        lp: f64,
+        p_motor: f64,
+        omega: f64,
+        aperture: f64,
+    ) -> Vec<f64> {
         let (theta, _) = self.motion.at(0.0);
         let mut y = vec![0.0; self.n];
         for c in &self.active {
@@ -245,20 +252,20 @@ impl Plant {
 
     /// Right-hand side in scaled units.
     pub fn rhs(&self, t: f64, y: &[f64], dy: &mut [f64]) {
-        self.evaluate(t, y, Some(dy));
+        self.evaluate(t, y, Some(dy), false);
     }
 
     /// Evaluates the model; writes the scaled derivative when `dy` is given, and the balance
-    /// integrands (which need the fluid exergy, not used by the right-hand side) when it is not.
+    /// integrands and spring energy (which need the fluid exergy, not used by the right-hand
+    /// side) when `want_quad` is set.
     ///
     /// Flows are mass-consistent: an orifice passes `q` m³/s at its upstream density, i.e.
     /// `q/v(p_up)` m³/s of reference volume, and each node turns its net reference inflow into a
     /// pressure rate through its own v(p) and E(p).
-    pub fn evaluate(&self, t: f64, y: &[f64], dy: Option<&mut [f64]>) -> Eval {
+    pub fn evaluate(&self, t: f64, y: &[f64], dy: Option<&mut [f64]>, want_quad: bool) -> Eval {
         let b = &self.bench;
         let oil = &b.oil;
         let fl = &self.fluid;
-        let want_quad = dy.is_none();
         let (theta, theta_dot) = self.motion.at(t);
         let p2 = y[self.i_p2] * BAR;
         let lp = y[self.i_lp] * BAR;
@@ -439,7 +446,7 @@ impl Plant {
     /// Balance integrands scaled to litres (of reference volume) and kJ per second (the
     /// diffsol output function).
     pub fn quadrature(&self, t: f64, y: &[f64], out: &mut [f64]) {
-        let e = self.evaluate(t, y, None);
+        let e = self.evaluate(t, y, None, true);
         for (i, (o, q)) in out.iter_mut().zip(e.quad).enumerate() {
             *o = if i < 6 { q * 1e3 } else { q * 1e-3 };
         }
@@ -474,14 +481,17 @@ impl Plant {
             let x = y[c.at + 2] * 1e-3;
             for (vol, pc) in [
                 (b.chamber_dead_volume + c.area_cap * x, y[c.at] * BAR),
-                (b.chamber_dead_volume + c.area_ann * (c.stroke - x), y[c.at + 1] * BAR),
+                (
+                    b.chamber_dead_volume + c.area_ann * (c.stroke - x),
+                    y[c.at + 1] * BAR,
+                ),
             ] {
                 content[3] += vol / fl.volume_ratio(pc);
                 energy += fl.stored_energy(vol, pc);
             }
         }
         energy += 0.5 * b.motor_inertia * y[self.i_w].powi(2);
-        energy += self.evaluate(t, y, None).spring_energy;
+        energy += self.evaluate(t, y, None, true).spring_energy;
         (content, energy)
     }
 

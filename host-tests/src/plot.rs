@@ -48,7 +48,11 @@ fn register_font() {
     FONT.call_once(|| {
         // The dejavu crate ships the font, so no system font is needed. Registration only fails
         // on corrupt font bytes, which the crate's own tests exclude.
-        let _ = plotters::style::register_font("sans-serif", FontStyle::Normal, dejavu::sans::regular());
+        let _ = plotters::style::register_font(
+            "sans-serif",
+            FontStyle::Normal,
+            dejavu::sans::regular(),
+        );
     });
 }
 
@@ -71,7 +75,11 @@ fn decimate(x: &[f64], y: &[f64], max: usize) -> Vec<(f64, f64)> {
                 imax = i;
             }
         }
-        let (a, b) = if imin < imax { (imin, imax) } else { (imax, imin) };
+        let (a, b) = if imin < imax {
+            (imin, imax)
+        } else {
+            (imax, imin)
+        };
         out.push((x[a], y[a]));
         if b != a {
             out.push((x[b], y[b]));
@@ -81,7 +89,12 @@ fn decimate(x: &[f64], y: &[f64], max: usize) -> Vec<(f64, f64)> {
 }
 
 fn bounds(p: &Panel) -> ((f64, f64), (f64, f64)) {
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::INFINITY, f64::NEG_INFINITY, f64::INFINITY, f64::NEG_INFINITY);
+    let (mut x0, mut x1, mut y0, mut y1) = (
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+    );
     for s in &p.series {
         for (x, y) in s.x.iter().zip(&s.y) {
             if x.is_finite() && y.is_finite() {
@@ -126,7 +139,9 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
             .draw_series(LineSeries::new(pts, color.stroke_width(2)))
             .map_err(|e| e.to_string())?
             .label(&s.label)
-            .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
+            });
     }
     if p.series.len() > 1 || p.series.first().is_some_and(|s| !s.label.is_empty()) {
         chart
@@ -167,8 +182,10 @@ impl Figure {
         let svg = dir.join(format!("{}.svg", self.name));
         let png_tmp = dir.join(format!(".{}.tmp.png", self.name));
         let svg_tmp = dir.join(format!(".{}.tmp.svg", self.name));
-        draw(BitMapBackend::new(&png_tmp, size).into_drawing_area(), self).map_err(|e| format!("{}: {e}", png.display()))?;
-        draw(SVGBackend::new(&svg_tmp, size).into_drawing_area(), self).map_err(|e| format!("{}: {e}", svg.display()))?;
+        draw(BitMapBackend::new(&png_tmp, size).into_drawing_area(), self)
+            .map_err(|e| format!("{}: {e}", png.display()))?;
+        draw(SVGBackend::new(&svg_tmp, size).into_drawing_area(), self)
+            .map_err(|e| format!("{}: {e}", svg.display()))?;
         std::fs::rename(&png_tmp, &png).map_err(|e| format!("{}: {e}", png.display()))?;
         std::fs::rename(&svg_tmp, &svg).map_err(|e| format!("{}: {e}", svg.display()))?;
         Ok(png)

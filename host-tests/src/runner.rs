@@ -17,18 +17,25 @@ pub struct Outcome {
 
 /// Runs `scenarios` on all cores. Progress bars go to stderr when it is a terminal and
 /// `progress` is set.
-pub fn run_all(bench: &Bench, scenarios: &[Scenario], solver: SolverOptions, progress: bool) -> Vec<Outcome> {
+pub fn run_all(
+    bench: &Bench,
+    scenarios: &[Scenario],
+    solver: SolverOptions,
+    progress: bool,
+) -> Vec<Outcome> {
     let multi = MultiProgress::with_draw_target(if progress {
         ProgressDrawTarget::stderr()
     } else {
         ProgressDrawTarget::hidden()
     });
-    let style = ProgressStyle::with_template("{prefix:>22} [{bar:30}] {pos:>7}/{len:7} ms sim  {elapsed}")
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> ");
+    let style =
+        ProgressStyle::with_template("{prefix:>22} [{bar:30}] {pos:>7}/{len:7} ms sim  {elapsed}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> ");
     let overall = multi.add(ProgressBar::new(scenarios.len() as u64));
     overall.set_style(
-        ProgressStyle::with_template("{prefix:>22} {pos}/{len} scenarios  {elapsed}").unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template("{prefix:>22} {pos}/{len} scenarios  {elapsed}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     overall.set_prefix("total");
     let out = scenarios
@@ -40,7 +47,10 @@ pub fn run_all(bench: &Bench, scenarios: &[Scenario], solver: SolverOptions, pro
             let result = s
                 .prepare(bench, Path::new("."))
                 .map_err(|e| e.to_string())
-                .and_then(|p| p.run(solver, Some(pb.clone())).map_err(|e| format!("{}: {e}", s.name)));
+                .and_then(|p| {
+                    p.run(solver, Some(pb.clone()))
+                        .map_err(|e| format!("{}: {e}", s.name))
+                });
             pb.finish_and_clear();
             multi.remove(&pb);
             overall.inc(1);

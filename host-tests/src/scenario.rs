@@ -108,7 +108,8 @@ impl Scenario {
             field: field.into(),
             message,
         };
-        let text = std::fs::read_to_string(path).map_err(|e| err("", format!("cannot read: {e}")))?;
+        let text =
+            std::fs::read_to_string(path).map_err(|e| err("", format!("cannot read: {e}")))?;
         toml::from_str(&text).map_err(|e| err("", e.to_string().trim_end().to_string()))
     }
 
@@ -128,13 +129,19 @@ impl Scenario {
         };
         let config = bench.config_index(&self.config).ok_or_else(|| {
             let names: Vec<_> = bench.configs.iter().map(|c| c.name.as_str()).collect();
-            err("config", format!("unknown `{}` (have: {})", self.config, names.join(", ")))
+            err(
+                "config",
+                format!("unknown `{}` (have: {})", self.config, names.join(", ")),
+            )
         })?;
         let mut on_duty = [false; N_CYL];
         for (i, c) in self.cylinders.iter().enumerate() {
             let k = bench.cylinder_index(c).ok_or_else(|| {
                 let names: Vec<_> = bench.cylinders.iter().map(|c| c.name.as_str()).collect();
-                err(&format!("cylinders[{i}]"), format!("unknown `{c}` (have: {})", names.join(", ")))
+                err(
+                    &format!("cylinders[{i}]"),
+                    format!("unknown `{c}` (have: {})", names.join(", ")),
+                )
             })?;
             on_duty[k] = true;
         }
@@ -153,7 +160,9 @@ impl Scenario {
         range("initial_lp_bar", self.initial_lp_bar, 0.0, 100.0, "bar")?;
         let relief = bench.relief_setting / BAR;
         match &self.valve {
-            ValveSpec::Constant { aperture_pct } => range("valve.aperture_pct", *aperture_pct, 0.0, 100.0, "%")?,
+            ValveSpec::Constant { aperture_pct } => {
+                range("valve.aperture_pct", *aperture_pct, 0.0, 100.0, "%")?
+            }
             ValveSpec::Threshold {
                 threshold_bar,
                 aperture_pct,
@@ -161,14 +170,23 @@ impl Scenario {
                 range("valve.threshold_bar", *threshold_bar, 0.0, relief, "bar")?;
                 range("valve.aperture_pct", *aperture_pct, 0.0, 100.0, "%")?;
             }
-            ValveSpec::Table { time_s, aperture_pct } => {
+            ValveSpec::Table {
+                time_s,
+                aperture_pct,
+            } => {
                 if time_s.len() != aperture_pct.len() || time_s.is_empty() {
-                    return Err(err("valve.aperture_pct", "needs one aperture per time, at least one".into()));
+                    return Err(err(
+                        "valve.aperture_pct",
+                        "needs one aperture per time, at least one".into(),
+                    ));
                 }
                 for (i, t) in time_s.iter().enumerate() {
                     range(&format!("valve.time_s[{i}]"), *t, 0.0, self.duration_s, "s")?;
                     if i > 0 && *t <= time_s[i - 1] {
-                        return Err(err(&format!("valve.time_s[{i}]"), format!("{t} not after {} (s)", time_s[i - 1])));
+                        return Err(err(
+                            &format!("valve.time_s[{i}]"),
+                            format!("{t} not after {} (s)", time_s[i - 1]),
+                        ));
                     }
                 }
                 for (i, a) in aperture_pct.iter().enumerate() {
@@ -176,7 +194,8 @@ impl Scenario {
                 }
             }
         }
-        let motion = Motion::from_spec(&self.motion, bench.pinion_radius, base).map_err(|e| err("motion", e.to_string()))?;
+        let motion = Motion::from_spec(&self.motion, bench.pinion_radius, base)
+            .map_err(|e| err("motion", e.to_string()))?;
         let lp = self.initial_lp_bar * BAR;
         let p2 = match self.initial_hp_bar {
             Some(p) => {
@@ -185,7 +204,9 @@ impl Scenario {
             }
             None => {
                 let aperture = match self.valve {
-                    ValveSpec::Constant { aperture_pct } if aperture_pct > 0.0 => aperture_pct / 100.0,
+                    ValveSpec::Constant { aperture_pct } if aperture_pct > 0.0 => {
+                        aperture_pct / 100.0
+                    }
                     _ => {
                         return Err(err(
                             "initial_hp_bar",
@@ -193,8 +214,12 @@ impl Scenario {
                         ));
                     }
                 };
-                steady_p2(bench, config, &on_duty, &motion, lp, aperture)
-                    .ok_or_else(|| err("initial_hp_bar", "missing: the steady-state start needs a sine input".into()))?
+                steady_p2(bench, config, &on_duty, &motion, lp, aperture).ok_or_else(|| {
+                    err(
+                        "initial_hp_bar",
+                        "missing: the steady-state start needs a sine input".into(),
+                    )
+                })?
             }
         };
         Ok(Prepared {
@@ -217,9 +242,16 @@ impl Scenario {
                 threshold: threshold_bar * BAR,
                 aperture: aperture_pct / 100.0,
             },
-            ValveSpec::Table { time_s, aperture_pct } => {
-                ValveSchedule::Table(time_s.iter().zip(aperture_pct).map(|(t, a)| (*t, a / 100.0)).collect())
-            }
+            ValveSpec::Table {
+                time_s,
+                aperture_pct,
+            } => ValveSchedule::Table(
+                time_s
+                    .iter()
+                    .zip(aperture_pct)
+                    .map(|(t, a)| (*t, a / 100.0))
+                    .collect(),
+            ),
         }
     }
 }
@@ -227,7 +259,14 @@ impl Scenario {
 /// Periodic steady-state P2 of a constant-aperture sine run: the pressure at which the motor
 /// passes the mean pumped flow. Mean pumped flow = f·Σ(A_cap + A_ann)·(eye travel − free play),
 /// less the ≈1.6 % compressibility lag of physics.md; the run then settles within a few periods.
-fn steady_p2(bench: &Bench, config: usize, on_duty: &[bool; N_CYL], motion: &Motion, lp: f64, aperture: f64) -> Option<f64> {
+fn steady_p2(
+    bench: &Bench,
+    config: usize,
+    on_duty: &[bool; N_CYL],
+    motion: &Motion,
+    lp: f64,
+    aperture: f64,
+) -> Option<f64> {
     let Motion::Sine { amplitude, omega } = motion else {
         return None;
     };
@@ -261,7 +300,11 @@ fn steady_p2(bench: &Bench, config: usize, on_duty: &[bool; N_CYL], motion: &Mot
 
 impl Prepared {
     /// Runs it.
-    pub fn run(&self, solver: SolverOptions, progress: Option<ProgressBar>) -> Result<SimResult, SimError> {
+    pub fn run(
+        &self,
+        solver: SolverOptions,
+        progress: Option<ProgressBar>,
+    ) -> Result<SimResult, SimError> {
         sim::simulate(Run {
             plant: &self.plant,
             valve: self.scenario.schedule(),
@@ -325,15 +368,24 @@ fn scenario(
 /// Every built-in scenario, in the order of the paper.
 pub fn builtin() -> Vec<Scenario> {
     let mut v = Vec::new();
-    let open = ValveSpec::Constant { aperture_pct: 100.0 };
+    let open = ValveSpec::Constant {
+        aperture_pct: 100.0,
+    };
     let closed = ValveSpec::Constant { aperture_pct: 0.0 };
     // Test I: valve fully open, periodic steady state. {HC3.1, HC3.3} added for fact 7.
     for config in [1, 2, 3] {
-        for (tag, set) in SETS.iter().copied().chain([("c13", &["HC3.1", "HC3.3"][..])]) {
+        for (tag, set) in SETS
+            .iter()
+            .copied()
+            .chain([("c13", &["HC3.1", "HC3.3"][..])])
+        {
             v.push(scenario(
                 format!("test1-cfg{config}-{tag}"),
                 "test1",
-                format!("Test I: valve 100 %, Config {config}, {} on duty", set.join(" + ")),
+                format!(
+                    "Test I: valve 100 %, Config {config}, {} on duty",
+                    set.join(" + ")
+                ),
                 config,
                 set,
                 sine(),
@@ -350,7 +402,10 @@ pub fn builtin() -> Vec<Scenario> {
             v.push(scenario(
                 format!("test2-cfg{config}-{tag}"),
                 "test2",
-                format!("Test II: valve closed, Config {config}, {} on duty, from 30 bar", set.join(" + ")),
+                format!(
+                    "Test II: valve closed, Config {config}, {} on duty, from 30 bar",
+                    set.join(" + ")
+                ),
                 config,
                 set,
                 sine(),
@@ -367,7 +422,10 @@ pub fn builtin() -> Vec<Scenario> {
             v.push(scenario(
                 format!("torque-cfg{config}-{tag}"),
                 "torque",
-                format!("Restraining torque: valve closed from 100 bar, Config {config}, {}", set.join(" + ")),
+                format!(
+                    "Restraining torque: valve closed from 100 bar, Config {config}, {}",
+                    set.join(" + ")
+                ),
                 config,
                 set,
                 sine(),
@@ -412,14 +470,51 @@ pub fn builtin() -> Vec<Scenario> {
         ));
     }
     // The experimental runs of Section 4.2 (Config 1).
-    let exp: [(&str, &[&str], f64, f64, bool, f64); 7] = [
-        ("exp-charge-64.5", &["HC3.1", "HC3.3"], 64.5, 0.0, false, 200.0),
+    // (name, cylinders, initial P2 bar, aperture %, input blocked, duration s)
+    type ExpRun<'a> = (&'a str, &'a [&'a str], f64, f64, bool, f64);
+    let exp: [ExpRun; 7] = [
+        (
+            "exp-charge-64.5",
+            &["HC3.1", "HC3.3"],
+            64.5,
+            0.0,
+            false,
+            200.0,
+        ),
         ("exp-charge-67.2", &["HC3.2"], 67.2, 0.0, false, 200.0),
         ("exp-charge-72", &["HC3.4"], 72.0, 0.0, false, 200.0),
-        ("exp-9pct-101.5", &["HC3.1", "HC3.3"], 101.5, 9.0, false, 300.0),
-        ("exp-discharge-102", &["HC3.1", "HC3.4"], 102.0, 12.0, true, 200.0),
-        ("exp-discharge-84", &["HC3.1", "HC3.4"], 84.0, 15.0, true, 200.0),
-        ("exp-discharge-71", &["HC3.1", "HC3.4"], 71.0, 25.0, true, 200.0),
+        (
+            "exp-9pct-101.5",
+            &["HC3.1", "HC3.3"],
+            101.5,
+            9.0,
+            false,
+            300.0,
+        ),
+        (
+            "exp-discharge-102",
+            &["HC3.1", "HC3.4"],
+            102.0,
+            12.0,
+            true,
+            200.0,
+        ),
+        (
+            "exp-discharge-84",
+            &["HC3.1", "HC3.4"],
+            84.0,
+            15.0,
+            true,
+            200.0,
+        ),
+        (
+            "exp-discharge-71",
+            &["HC3.1", "HC3.4"],
+            71.0,
+            25.0,
+            true,
+            200.0,
+        ),
     ];
     for (name, set, p0, ap, blocked, dur) in exp {
         v.push(scenario(
@@ -427,12 +522,20 @@ pub fn builtin() -> Vec<Scenario> {
             "experimental",
             format!(
                 "Experimental run: {}, {} from {p0} bar, valve {ap} %",
-                if blocked { "input blocked" } else { "±40 mm at 0.1 Hz" },
+                if blocked {
+                    "input blocked"
+                } else {
+                    "±40 mm at 0.1 Hz"
+                },
                 set.join(" + ")
             ),
             1,
             set,
-            if blocked { MotionSpec::Blocked { angle_deg: 0.0 } } else { sine() },
+            if blocked {
+                MotionSpec::Blocked { angle_deg: 0.0 }
+            } else {
+                sine()
+            },
             ValveSpec::Constant { aperture_pct: ap },
             dur,
             0.02,
@@ -494,23 +597,40 @@ mod tests {
         names.dedup();
         assert_eq!(names.len(), all.len());
         for s in &all {
-            s.prepare(&b, Path::new(".")).unwrap_or_else(|e| panic!("{e}"));
+            s.prepare(&b, Path::new("."))
+                .unwrap_or_else(|e| panic!("{e}"));
         }
     }
 
     #[test]
     fn scenario_round_trips_through_toml_and_errors_name_the_field() {
-        let s = builtin().into_iter().find(|s| s.name == "test3-ap10").unwrap();
+        let s = builtin()
+            .into_iter()
+            .find(|s| s.name == "test3-ap10")
+            .unwrap();
         let text = toml::to_string(&s).unwrap();
         let back: Scenario = toml::from_str(&text).unwrap();
         assert_eq!(back, s);
         let mut bad = s.clone();
         bad.cylinders.push("HC7".into());
-        let e = bad.prepare(&Bench::reference(), Path::new(".")).err().unwrap().to_string();
-        assert!(e.starts_with("test3-ap10:cylinders[2]: unknown `HC7`"), "{e}");
+        let e = bad
+            .prepare(&Bench::reference(), Path::new("."))
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            e.starts_with("test3-ap10:cylinders[2]: unknown `HC7`"),
+            "{e}"
+        );
         let mut bad = s;
-        bad.valve = ValveSpec::Constant { aperture_pct: 120.0 };
-        let e = bad.prepare(&Bench::reference(), Path::new(".")).err().unwrap().to_string();
+        bad.valve = ValveSpec::Constant {
+            aperture_pct: 120.0,
+        };
+        let e = bad
+            .prepare(&Bench::reference(), Path::new("."))
+            .err()
+            .unwrap()
+            .to_string();
         assert_eq!(e, "test3-ap10:valve.aperture_pct: 120 outside [0, 100] (%)");
     }
 }

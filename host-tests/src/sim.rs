@@ -475,7 +475,7 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let n = plant.len();
     // Initial state: motor in steady state for the initial command.
     let probe = plant.initial_state(run.initial.p2, run.initial.lp, run.initial.lp, 0.0, 0.0);
-    let a0 = run.valve.initial(&plant.evaluate(0.0, &probe, None)).clamp(0.0, 1.0);
+    let a0 = run.valve.initial(&plant.evaluate(0.0, &probe, None, false)).clamp(0.0, 1.0);
     let (pm0, w0) = steady_motor(bench, run.initial.p2, run.initial.lp, a0);
     let y0 = plant.initial_state(run.initial.p2, run.initial.lp, pm0, w0, a0);
     let threshold = match run.valve {
@@ -537,11 +537,12 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let t_end = run.duration;
     let n_samples = (t_end / run.sample_dt + 1e-9).floor() as usize + 1;
     let mut trace = Trace::default();
-    trace.push(0.0, &plant.evaluate(0.0, &y0, None));
+    trace.push(0.0, &plant.evaluate(0.0, &y0, None, false));
     let mut next_k = 1usize;
     let mut valve_opened_at = None;
     let mut ybuf = NalgebraVec::zeros(n, Default::default());
     let mut yv = vec![0.0; n];
+    let mut ysample = vec![0.0; n];
     let solver_err = |t: f64, e: diffsol::error::DiffsolError| SimError::Solver {
         t,
         message: e.to_string(),
@@ -597,8 +598,10 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
             solver
                 .interpolate_inplace(tk, &mut ybuf)
                 .map_err(|e| solver_err(tk, e))?;
-            let ys = ybuf.clone_as_vec();
-            trace.push(tk, &plant.evaluate(tk, &ys, None));
+            for (i, v) in ysample.iter_mut().enumerate() {
+                *v = ybuf[i];
+            }
+            trace.push(tk, &plant.evaluate(tk, &ysample, None, false));
             next_k += 1;
         }
         if let Some(pb) = &run.progress {
@@ -618,7 +621,7 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
                 if t_now >= t_end - 1e-12 {
                     break;
                 }
-                let e = plant.evaluate(t_now, &yv, None);
+                let e = plant.evaluate(t_now, &yv, None, false);
                 let cmd = match &mut run.valve {
                     ValveSchedule::Table(tab) => table_at(tab, t_now),
                     ValveSchedule::Controller(c) => c.update(t_now, &e),

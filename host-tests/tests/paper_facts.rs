@@ -7,10 +7,20 @@ use pto_host::{paper, runner, scenario};
 #[test]
 fn all_ten_facts_hold_on_the_reference_bench() {
     let bench = Bench::reference();
-    let outcomes = runner::run_all(&bench, &scenario::builtin(), SolverOptions::default(), false);
+    let outcomes = runner::run_all(
+        &bench,
+        &scenario::builtin(),
+        SolverOptions::default(),
+        false,
+    );
     let facts = paper::check(&bench, &outcomes);
     for f in &facts {
-        println!("fact {:>2} {}: {}", f.id, if f.pass { "PASS" } else { "FAIL" }, f.measured);
+        println!(
+            "fact {:>2} {}: {}",
+            f.id,
+            if f.pass { "PASS" } else { "FAIL" },
+            f.measured
+        );
     }
     let failed: Vec<_> = facts.iter().filter(|f| !f.pass).map(|f| f.id).collect();
     assert!(failed.is_empty(), "facts failing: {failed:?}");

@@ -1,0 +1,148 @@
+//! The `pto` binary: exit codes, error messages that name the file and field, outputs written.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn pto() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_pto"))
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("pto-cli-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[test]
+fn bad_bench_file_names_file_field_range_and_unit() {
+    let dir = tmp("bench");
+    let f = dir.join("my-bench.toml");
+    let text =
+        pto_host::bench::REFERENCE_BENCH_TOML.replace("setting_bar = 130.0", "setting_bar = 900.0");
+    std::fs::write(&f, text).unwrap();
+    let out = pto()
+        .args(["simulate", "torque-cfg1-c1", "--bench"])
+        .arg(&f)
+        .output()
+        .unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("my-bench.toml:relief_valve.setting_bar: 900 outside [1, 400] (bar)"),
+        "{err}"
+    );
+}
+
+#[test]
+fn unknown_scenario_is_a_clear_error() {
+    let out = pto().args(["simulate", "no-such-test"]).output().unwrap();
+    assert_eq!(out.status.code(), Some(2));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("no-such-test:scenario: neither a built-in scenario"),
+        "{err}"
+    );
+}
+
+#[test]
+fn simulate_writes_csv_with_units_and_a_json_summary() {
+    let dir = tmp("sim");
+    let out = pto()
+        .args(["simulate", "torque-cfg1-c14", "--json", "--out"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let worst = v["balance_worst_rel"].as_f64().unwrap();
+    println!("balance {worst:e}, peak torque {}", v["peak_torque_nm"]);
+    assert!(worst <= 1e-4);
+    let csv = std::fs::read_to_string(dir.join("torque-cfg1-c14.csv")).unwrap();
+    let header = csv.lines().next().unwrap();
+    for col in [
+        "time_s",
+        "p2_bar",
+        "motor_speed_rpm",
+        "restraining_torque_nm",
+        "hc3_4_cap_bar",
+    ] {
+        assert!(
+            header.split(',').any(|h| h == col),
+            "missing {col} in {header}"
+        );
+    }
+    assert_eq!(csv.lines().count(), 1 + 6001);
+    assert!(dir.join("torque-cfg1-c14.png").exists() && dir.join("torque-cfg1-c14.svg").exists());
+}
+
+#[test]
+fn scenario_file_with_recorded_trace_runs() {
+    let dir = tmp("trace");
+    let mut trace = String::from("time_s,shaft_angle_deg\n");
+    for k in 0..=300 {
+        let t = k as f64 * 0.1;
+        trace.push_str(&format!(
+            "{t},{}\n",
+            20.0 * (0.2 * std::f64::consts::PI * t).sin()
+        ));
+    }
+    std::fs::write(dir.join("motion.csv"), trace).unwrap();
+    std::fs::write(
+        dir.join("s.toml"),
+        r#"name = "recorded"
+config = "Config 1"
+cylinders = ["HC3.1", "HC3.4"]
+duration_s = 30.0
+initial_hp_bar = 80.0
+[motion]
+kind = "trace"
+file = "motion.csv"
+[valve]
+kind = "table"
+time_s = [10.0, 20.0]
+aperture_pct = [12.0, 0.0]
+"#,
+    )
+    .unwrap();
+    let out = pto()
+        .arg("simulate")
+        .arg(dir.join("s.toml"))
+        .arg("--out")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let csv = std::fs::read_to_string(dir.join("recorded.csv")).unwrap();
+    // The valve table: closed, 12 % from 10 s, closed again from 20 s (spool lag 50 ms).
+    let ap: Vec<f64> = csv
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').nth(11).unwrap().parse().unwrap())
+        .collect();
+    assert!(
+        ap[900] < 1e-9 && (ap[1500] - 12.0).abs() < 1e-3 && ap[2900] < 1e-3,
+        "{} {} {}",
+        ap[900],
+        ap[1500],
+        ap[2900]
+    );
+}
+
+#[test]
+fn scenarios_json_lists_every_builtin() {
+    let out = pto().args(["scenarios", "--json"]).output().unwrap();
+    assert!(out.status.success());
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(
+        v.as_array().unwrap().len(),
+        pto_host::scenario::builtin().len()
+    );
+}
