@@ -42,7 +42,10 @@ impl std::fmt::Debug for ValveSchedule {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
             ValveSchedule::Constant(a) => write!(f, "Constant({a})"),
-            ValveSchedule::Threshold { threshold, aperture } => {
+            ValveSchedule::Threshold {
+                threshold,
+                aperture,
+            } => {
                 write!(f, "Threshold({threshold} Pa -> {aperture})")
             }
             ValveSchedule::Table(t) => write!(f, "Table({t:?})"),
@@ -56,7 +59,10 @@ impl ValveSchedule {
     fn initial(&mut self, plant0: &Eval) -> f64 {
         match self {
             ValveSchedule::Constant(a) => *a,
-            ValveSchedule::Threshold { threshold, aperture } => {
+            ValveSchedule::Threshold {
+                threshold,
+                aperture,
+            } => {
                 if plant0.p2 >= *threshold {
                     *aperture
                 } else {
@@ -216,7 +222,11 @@ impl Trace {
 
     /// Writes the trace as CSV with units in the headers (to a temporary file renamed at the
     /// end, so an interrupted write leaves nothing half-written).
-    pub fn write_csv(&self, path: &std::path::Path, names: &[String; N_CYL]) -> std::io::Result<()> {
+    pub fn write_csv(
+        &self,
+        path: &std::path::Path,
+        names: &[String; N_CYL],
+    ) -> std::io::Result<()> {
         let tmp = path.with_extension("csv.tmp");
         self.write_csv_to(&tmp, names)?;
         std::fs::rename(&tmp, path)
@@ -381,7 +391,14 @@ impl JvCache {
         }
     }
 
-    fn jv(&mut self, f: impl Fn(f64, &[f64], &mut [f64]), t: f64, x: &[f64], v: &[f64], out: &mut [f64]) {
+    fn jv(
+        &mut self,
+        f: impl Fn(f64, &[f64], &mut [f64]),
+        t: f64,
+        x: &[f64],
+        v: &[f64],
+        out: &mut [f64],
+    ) {
         if t != self.t || x != self.x.as_slice() {
             f(t, x, &mut self.fx);
             self.evals += 1;
@@ -475,7 +492,10 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let n = plant.len();
     // Initial state: motor in steady state for the initial command.
     let probe = plant.initial_state(run.initial.p2, run.initial.lp, run.initial.lp, 0.0, 0.0);
-    let a0 = run.valve.initial(&plant.evaluate(0.0, &probe, None, false)).clamp(0.0, 1.0);
+    let a0 = run
+        .valve
+        .initial(&plant.evaluate(0.0, &probe, None, false))
+        .clamp(0.0, 1.0);
     let (pm0, w0) = steady_motor(bench, run.initial.p2, run.initial.lp, a0);
     let y0 = plant.initial_state(run.initial.p2, run.initial.lp, pm0, w0, a0);
     let threshold = match run.valve {
@@ -503,7 +523,10 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
                 cache.borrow_mut().jv(rhs_f, t, x, v, y)
             },
         )
-        .init(move |_p: &[f64], _t: f64, y: &mut [f64]| y.copy_from_slice(&y0c), n)
+        .init(
+            move |_p: &[f64], _t: f64, y: &mut [f64]| y.copy_from_slice(&y0c),
+            n,
+        )
         .root(
             |x: &[f64], _p: &[f64], _t: f64, y: &mut [f64]| {
                 y[0] = match threshold {
@@ -633,7 +656,9 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
                     refresh_derivative!(solver, t_now);
                 }
                 stop = run.valve.next_event(t_now).min(t_end);
-                solver.set_stop_time(stop).map_err(|e| solver_err(t_now, e))?;
+                solver
+                    .set_stop_time(stop)
+                    .map_err(|e| solver_err(t_now, e))?;
             }
             OdeSolverStopReason::InternalTimestep => {}
         }
@@ -653,7 +678,6 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
         valve_opened_at,
     })
 }
-
 
 fn balances(plant: &Plant, (t0, y0): (f64, &[f64]), (t1, y1): (f64, &[f64]), g: &[f64]) -> Balance {
     let (m0, e0) = plant.storage(t0, y0);
@@ -698,7 +722,11 @@ fn balances(plant: &Plant, (t0, y0): (f64, &[f64]), (t1, y1): (f64, &[f64]), g: 
             .map(|(n, v)| (n.to_string(), *v))
             .collect(),
         volume_rel_error,
-        energy_rel_error: if scale > 0.0 { resid.abs() / scale } else { 0.0 },
+        energy_rel_error: if scale > 0.0 {
+            resid.abs() / scale
+        } else {
+            0.0
+        },
         stored_kj: stored * 1e-3,
     }
 }
