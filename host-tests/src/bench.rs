@@ -173,6 +173,13 @@ pub struct LinesSection {
     pub motor_to_lp_inner_diameter_mm: f64,
     pub lp_to_manifold_length_m: f64,
     pub lp_to_manifold_inner_diameter_mm: f64,
+    /// Laminar resistance of the HP line between the check-valve manifold and the accumulator
+    /// block; 0 (the default) lumps manifold, line and accumulator into one node.
+    #[serde(default)]
+    pub hp_line_resistance_bar_per_lpm: f64,
+    /// Same for the LP line between the LP accumulator and the manifold.
+    #[serde(default)]
+    pub lp_line_resistance_bar_per_lpm: f64,
 }
 
 /// One field outside its allowed range (or otherwise inconsistent).
@@ -673,6 +680,20 @@ impl BenchFile {
             l.lp_to_manifold_length_m,
             l.lp_to_manifold_inner_diameter_mm,
         );
+        c.range(
+            "lines.hp_line_resistance_bar_per_lpm",
+            l.hp_line_resistance_bar_per_lpm,
+            0.0,
+            100.0,
+            "bar/(L/min)",
+        );
+        c.range(
+            "lines.lp_line_resistance_bar_per_lpm",
+            l.lp_line_resistance_bar_per_lpm,
+            0.0,
+            100.0,
+            "bar/(L/min)",
+        );
         if c.errors.is_empty() {
             Ok(())
         } else {
@@ -829,6 +850,13 @@ pub struct Bench {
     pub motor_line_volume: f64,
     /// Motor -> LP and LP -> manifold line volume (LP node), m³.
     pub lp_line_volume: f64,
+    /// LP -> manifold line volume alone, m³ (split off into the LP manifold node when the LP
+    /// line has a resistance).
+    pub lp_manifold_line_volume: f64,
+    /// HP line resistance, Pa·s/m³ (0 = lumped).
+    pub hp_line_resistance: f64,
+    /// LP line resistance, Pa·s/m³ (0 = lumped).
+    pub lp_line_resistance: f64,
 }
 
 fn pipe_volume(length_m: f64, id_mm: f64) -> f64 {
@@ -975,6 +1003,12 @@ impl Bench {
                     l.lp_to_manifold_length_m,
                     l.lp_to_manifold_inner_diameter_mm,
                 ),
+            lp_manifold_line_volume: pipe_volume(
+                l.lp_to_manifold_length_m,
+                l.lp_to_manifold_inner_diameter_mm,
+            ),
+            hp_line_resistance: l.hp_line_resistance_bar_per_lpm * BAR * 6e4,
+            lp_line_resistance: l.lp_line_resistance_bar_per_lpm * BAR * 6e4,
             file: f,
         })
     }

@@ -28,9 +28,10 @@ pub const QUAD_NAMES: [&str; N_QUAD] = [
     "relief_loss_kj",
     "motor_loss_kj",
     "load_work_kj",
+    "line_loss_kj",
 ];
 /// Length of the integrated balance vector.
-pub const N_QUAD: usize = 13;
+pub const N_QUAD: usize = 14;
 
 /// One cylinder on duty.
 #[derive(Debug, Clone)]
@@ -116,6 +117,14 @@ pub struct Plant {
     i_pm: usize,
     i_w: usize,
     i_a: Option<usize>,
+    /// HP manifold pressure, when the HP line has a resistance.
+    i_hm: Option<usize>,
+    /// LP manifold pressure, when the LP line has a resistance.
+    i_lm: Option<usize>,
+    /// Oil volume of the HP manifold node (half the HP line), m³.
+    vol_hm: f64,
+    /// Line oil volume of the LP manifold node (half the LP->manifold line), m³.
+    vol_lm: f64,
     n: usize,
 }
 
@@ -151,6 +160,15 @@ impl Plant {
         }
         let base = 3 * active.len();
         let i_a = (bench.spool_tau > 0.0).then_some(base + 4);
+        let mut next = base + 4 + usize::from(i_a.is_some());
+        let mut take = |on: bool| {
+            on.then(|| {
+                next += 1;
+                next - 1
+            })
+        };
+        let i_hm = take(bench.hp_line_resistance > 0.0);
+        let i_lm = take(bench.lp_line_resistance > 0.0);
         Plant {
             bench: bench.clone(),
             active,
@@ -163,8 +181,20 @@ impl Plant {
             i_lp: base + 1,
             i_pm: base + 2,
             i_w: base + 3,
-            n: base + 4 + usize::from(i_a.is_some()),
+            n: next,
             i_a,
+            i_hm,
+            i_lm,
+            vol_hm: if i_hm.is_some() {
+                0.5 * bench.hp_line_volume
+            } else {
+                0.0
+            },
+            vol_lm: if i_lm.is_some() {
+                0.5 * bench.lp_manifold_line_volume
+            } else {
+                0.0
+            },
         }
     }
 
@@ -208,7 +238,9 @@ impl Plant {
             1 => "LP pressure (bar)".into(),
             2 => "motor inlet pressure (bar)".into(),
             3 => "motor speed (rad/s)".into(),
-            _ => "spool aperture (%)".into(),
+            _ if Some(i) == self.i_a => "spool aperture (%)".into(),
+            _ if Some(i) == self.i_hm => "HP manifold pressure (bar)".into(),
+            _ => "LP manifold pressure (bar)".into(),
         }
     }
 
@@ -245,6 +277,12 @@ impl Plant {
         y[self.i_w] = omega;
         if let Some(i) = self.i_a {
             y[i] = aperture * 100.0;
+        }
+        if let Some(i) = self.i_hm {
+            y[i] = p2 / BAR;
+        }
+        if let Some(i) = self.i_lm {
+            y[i] = lp / BAR;
         }
         self.command.set(aperture);
         y
@@ -283,6 +321,17 @@ impl Plant {
         } else {
             (0.0, 0.0, 0.0)
         };
+        // Manifold nodes: their own state behind a line resistance, else the accumulator node.
+        let node = |idx: Option<usize>, p: f64, v: f64, e: f64, g: f64| match idx {
+            Some(i) => {
+                let pi = y[i] * BAR;
+                let (vi, ei) = fl.state(pi);
+                (pi, vi, ei, if want_quad { fl.exergy(pi) } else { 0.0 })
+            }
+            None => (p, v, e, g),
+        };
+        let (p_hm, v_hm, e_hm, g_hm) = node(self.i_hm, p2, v_hp, e_hp, g_hp);
+        let (p_lm, v_lm, e_lm, g_lm) = node(self.i_lm, lp, v_lp, e_lp, g_lp);
         // Reference-volume flow of an orifice flow q from a node with v_a to one with v_b.
         let mref = |q: f64, va: f64, vb: f64| if q >= 0.0 { q / va } else { q / vb };
         let mut e = Eval {
@@ -346,10 +395,10 @@ impl Plant {
             let (v_rod, e_rod) = fl.state(p_rod);
             let vol_cap = b.chamber_dead_volume + c.area_cap * x;
             let vol_rod = b.chamber_dead_volume + c.area_ann * (c.stroke - x);
-            let suc_cap = mref(check_flow(oil, &b.check, lp - p_cap), v_lp, v_cap);
-            let del_cap = mref(check_flow(oil, &b.check, p_cap - p2), v_cap, v_hp);
-            let suc_rod = mref(check_flow(oil, &b.check, lp - p_rod), v_lp, v_rod);
-            let del_rod = mref(check_flow(oil, &b.check, p_rod - p2), v_rod, v_hp);
+            let suc_cap = mref(check_flow(oil, &b.check, p_lm - p_cap), v_lm, v_cap);
+            let del_cap = mref(check_flow(oil, &b.check, p_cap - p_hm), v_cap, v_hm);
+            let suc_rod = mref(check_flow(oil, &b.check, p_lm - p_rod), v_lm, v_rod);
+            let del_rod = mref(check_flow(oil, &b.check, p_rod - p_hm), v_rod, v_hm);
             if let Some(dy) = dy.as_deref_mut() {
                 let vdot_cap = c.area_cap * x_dot;
                 let vdot_rod = -c.area_ann * x_dot;
@@ -362,7 +411,7 @@ impl Plant {
             e.rod[ci] = x;
             e.p_cap[ci] = p_cap;
             e.p_rod[ci] = p_rod;
-            e.q_into_hp[ci] = (del_cap + del_rod) * v_hp;
+            e.q_into_hp[ci] = (del_cap + del_rod) * v_hm;
             e.torque[ci] = c.lever.side() * arm * f_contact;
             e.quad[6] += f_contact * v_eye;
             if want_quad {
@@ -371,10 +420,10 @@ impl Plant {
                     + if contact { d * v_rel * v_rel } else { 0.0 }
                     + if end { d * x_dot * x_dot } else { 0.0 };
                 let (g_cap, g_rod) = (fl.exergy(p_cap), fl.exergy(p_rod));
-                e.quad[8] += suc_cap * (g_lp - g_cap)
-                    + del_cap * (g_cap - g_hp)
-                    + suc_rod * (g_lp - g_rod)
-                    + del_rod * (g_rod - g_hp);
+                e.quad[8] += suc_cap * (g_lm - g_cap)
+                    + del_cap * (g_cap - g_hm)
+                    + suc_rod * (g_lm - g_rod)
+                    + del_rod * (g_rod - g_hm);
                 e.spring_energy += 0.5 * k * (pen * pen + pen_end * pen_end);
             }
         }
@@ -385,12 +434,12 @@ impl Plant {
         for (ci, c) in &self.idle {
             let (x_eye, v_eye, arm) = c.lever.eye(theta, theta_dot);
             let area_rod = c.area_cap - c.area_ann;
-            let f_contact = -lp * area_rod;
+            let f_contact = -p_lm * area_rod;
             idle_volume += c.volume_at(b.chamber_dead_volume, x_eye);
             idle_vdot += area_rod * v_eye;
             e.rod[*ci] = x_eye;
-            e.p_cap[*ci] = lp;
-            e.p_rod[*ci] = lp;
+            e.p_cap[*ci] = p_lm;
+            e.p_rod[*ci] = p_lm;
             e.torque[*ci] = c.lever.side() * arm * f_contact;
             e.quad[6] += f_contact * v_eye;
         }
@@ -408,15 +457,31 @@ impl Plant {
             Load::Constant(tq) => tq * (omega / 0.104_719_755).tanh(),
         };
         let t_motor = b.motor_disp * dp_motor * b.motor_eta_mech;
+        // Line flows manifold <-> accumulator (pass-through when lumped).
+        let m_hline = match self.i_hm {
+            Some(_) => mref((p_hm - p2) / b.hp_line_resistance, v_hm, v_hp),
+            None => m_into_hp,
+        };
+        let m_lline = match self.i_lm {
+            Some(_) => mref((lp - p_lm) / b.lp_line_resistance, v_lp, v_lm),
+            None => m_from_lp,
+        };
         if let Some(dy) = dy {
-            let oil_hp = b.hp_line_volume + b.hp_acc.fluid_volume(p2);
-            let oil_lp = b.lp_line_volume + b.lp_acc.fluid_volume(lp) + idle_volume;
+            let [oil_hp, oil_lp] = self.accumulator_node_oil(p2, lp, idle_volume);
             let c_hp = b.hp_acc.capacitance(p2) + oil_hp / e_hp;
             let c_lp = b.lp_acc.capacitance(lp) + oil_lp / e_lp;
             let c_pm = b.motor_line_volume / e_pm;
-            dy[self.i_p2] = v_hp * (m_into_hp - m_valve - m_relief) / c_hp / BAR;
+            dy[self.i_p2] = v_hp * (m_hline - m_valve - m_relief) / c_hp / BAR;
+            let idle_at_lp = if self.i_lm.is_some() { 0.0 } else { idle_vdot };
             dy[self.i_lp] =
-                (v_lp * (m_motor + m_relief - m_from_lp - m_makeup) - idle_vdot) / c_lp / BAR;
+                (v_lp * (m_motor + m_relief - m_lline - m_makeup) - idle_at_lp) / c_lp / BAR;
+            if let Some(i) = self.i_hm {
+                dy[i] = e_hm / self.vol_hm * v_hm * (m_into_hp - m_hline) / BAR;
+            }
+            if let Some(i) = self.i_lm {
+                let vol = self.vol_lm + idle_volume;
+                dy[i] = e_lm / vol * (v_lm * (m_lline - m_from_lp) - idle_vdot) / BAR;
+            }
             dy[self.i_pm] = v_pm * (m_valve + m_makeup - m_motor) / c_pm / BAR;
             dy[self.i_w] = (t_motor - t_load) / b.motor_inertia;
             if let Some(i) = self.i_a {
@@ -439,6 +504,7 @@ impl Plant {
             e.quad[10] = m_relief * (g_hp - g_lp);
             e.quad[11] = m_motor * (g_pm - g_lp) - t_motor * omega;
             e.quad[12] = t_load * omega;
+            e.quad[13] = m_hline * (g_hm - g_hp) + m_lline * (g_lp - g_lm);
         }
         e
     }
@@ -452,9 +518,25 @@ impl Plant {
         }
     }
 
+    /// Oil volume of the HP and LP accumulator nodes (line share + accumulator fluid, plus the
+    /// idle chambers when they are not behind an LP line resistance), m³.
+    fn accumulator_node_oil(&self, p2: f64, lp: f64, idle_volume: f64) -> [f64; 2] {
+        let b = &self.bench;
+        let idle = if self.i_lm.is_some() {
+            0.0
+        } else {
+            idle_volume
+        };
+        [
+            b.hp_line_volume - self.vol_hm + b.hp_acc.fluid_volume(p2),
+            b.lp_line_volume - self.vol_lm + b.lp_acc.fluid_volume(lp) + idle,
+        ]
+    }
+
     /// Oil content (m³ of reference volume) and stored energy (J) at time `t` and state `y`:
-    /// `[HP node, motor inlet, LP node (with idle chambers), active chambers]`. Energy includes
-    /// the gas of both accumulators, the motor inertia and the hard-stop springs.
+    /// `[HP side, motor inlet, LP side (with idle chambers), active chambers]`, a side being
+    /// its accumulator node plus its manifold node when the line has a resistance. Energy
+    /// includes the gas of both accumulators, the motor inertia and the hard-stop springs.
     pub fn storage(&self, t: f64, y: &[f64]) -> ([f64; 4], f64) {
         let b = &self.bench;
         let fl = &self.fluid;
@@ -465,17 +547,24 @@ impl Plant {
             .iter()
             .map(|(_, c)| c.volume_at(b.chamber_dead_volume, c.lever.eye(theta, 0.0).0))
             .sum();
-        let oil = [
-            b.hp_line_volume + b.hp_acc.fluid_volume(p2),
-            b.motor_line_volume,
-            b.lp_line_volume + b.lp_acc.fluid_volume(lp) + idle,
+        let [oil_hp, oil_lp] = self.accumulator_node_oil(p2, lp, idle);
+        // (side, oil volume, pressure)
+        let mut nodes = vec![
+            (0, oil_hp, p2),
+            (1, b.motor_line_volume, pm),
+            (2, oil_lp, lp),
         ];
-        let p = [p2, pm, lp];
+        if let Some(i) = self.i_hm {
+            nodes.push((0, self.vol_hm, y[i] * BAR));
+        }
+        if let Some(i) = self.i_lm {
+            nodes.push((2, self.vol_lm + idle, y[i] * BAR));
+        }
         let mut content = [0.0; 4];
         let mut energy = b.hp_acc.stored_energy(p2) + b.lp_acc.stored_energy(lp);
-        for k in 0..3 {
-            content[k] = oil[k] / fl.volume_ratio(p[k]);
-            energy += fl.stored_energy(oil[k], p[k]);
+        for (side, vol, p) in nodes {
+            content[side] += vol / fl.volume_ratio(p);
+            energy += fl.stored_energy(vol, p);
         }
         for c in &self.active {
             let x = y[c.at + 2] * 1e-3;
@@ -506,12 +595,38 @@ impl Plant {
             .active
             .iter()
             .flat_map(|c| [c.at, c.at + 1])
-            .chain([self.i_p2, self.i_lp, self.i_pm]);
+            .chain([self.i_p2, self.i_lp, self.i_pm])
+            .chain(self.i_hm)
+            .chain(self.i_lm);
         for i in pressure_idx {
             if y[i] * BAR <= -crate::bench::P_ATM {
                 return Err((i, y[i]));
             }
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plant() -> Plant {
+        let b = Bench::reference();
+        Plant::new(&b, 0, [true, false, false, true], Motion::Blocked(0.0))
+    }
+
+    #[test]
+    fn non_physical_states_are_named() {
+        let p = plant();
+        let mut y = p.initial_state(100.0 * BAR, 8.0 * BAR, 8.0 * BAR, 0.0, 0.0);
+        assert!(p.check_state(&y).is_ok());
+        y[4] = -1.5; // HC3.4 rod-chamber pressure below vacuum (bar gauge)
+        let (i, v) = p.check_state(&y).unwrap_err();
+        assert_eq!((p.state_name(i).as_str(), v), ("HC3.4 rod-chamber pressure (bar)", -1.5));
+        y[4] = 8.0;
+        y[p.p2_index()] = f64::NAN;
+        let (i, _) = p.check_state(&y).unwrap_err();
+        assert_eq!(p.state_name(i), "HP pressure P2 (bar)");
     }
 }

@@ -711,7 +711,7 @@ fn balances(plant: &Plant, (t0, y0): (f64, &[f64]), (t1, y1): (f64, &[f64]), g: 
     let scale = if moved > 0.0 { moved } else { m0.iter().sum() };
     volume_rel_error[4] = total.abs() / scale;
     let stored = e1 - e0;
-    let losses = w(7) + w(8) + w(9) + w(10) + w(11) + w(12);
+    let losses = w(7) + w(8) + w(9) + w(10) + w(11) + w(12) + w(13);
     let input = w(6);
     let resid = input - losses - stored;
     let scale = input.abs() + losses.abs() + stored.abs();
