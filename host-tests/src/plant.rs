@@ -623,7 +623,10 @@ mod tests {
         assert!(p.check_state(&y).is_ok());
         y[4] = -1.5; // HC3.4 rod-chamber pressure below vacuum (bar gauge)
         let (i, v) = p.check_state(&y).unwrap_err();
-        assert_eq!((p.state_name(i).as_str(), v), ("HC3.4 rod-chamber pressure (bar)", -1.5));
+        assert_eq!(
+            (p.state_name(i).as_str(), v),
+            ("HC3.4 rod-chamber pressure (bar)", -1.5)
+        );
         y[4] = 8.0;
         y[p.p2_index()] = f64::NAN;
         let (i, _) = p.check_state(&y).unwrap_err();

@@ -1,0 +1,345 @@
+//! Precomputed coefficients: the validated configuration turned into fixed-point constants and
+//! tables, once, so the per-step functions need no float, no division and no trig.
+//!
+//! Everything here is computed in f32 at configuration time (libm for the transcendental
+//! functions, so it is the same on host and target), then rounded to Q16.16.
+
+use crate::config::{AccumulatorConfig, ConfigError, ModelConfig};
+use crate::fx::{Fx, ONE, ZERO};
+use crate::table::{Table1, Table2};
+use libm::{cosf, expf, powf, sinf, sqrtf};
+
+/// Rows (aperture, 0..100 % in 5 % steps) of the valve and autonomy tables.
+pub const N_APERTURE: usize = 21;
+/// Columns (pressure, 0..160 bar in 5 bar steps) of the valve and autonomy tables.
+pub const N_PRESSURE: usize = 33;
+/// Points of the lever-arm tables over ±[`ARM_RANGE_RAD`].
+pub const N_ARM: usize = 65;
+/// Half-range of the lever-arm tables, rad (the design limit is ±30° = ±0.52 rad).
+pub const ARM_RANGE_RAD: f32 = 0.6;
+/// Upper end of the pressure axes, bar.
+pub const P_MAX_BAR: f32 = 160.0;
+/// Autonomy reported when the motor would never slow below the minimum speed, s.
+pub const AUTONOMY_CAP_S: f32 = 30_000.0;
+
+const P_ATM_BAR: f32 = 1.01325;
+
+/// Per-cylinder constants.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CylinderCoeffs {
+    /// ±1.
+    pub side: Fx,
+    /// Cap-side flow per rod speed, L/min per m/s.
+    pub q_cap: Fx,
+    /// Rod-side flow per rod speed, L/min per m/s.
+    pub q_ann: Fx,
+    /// Cap-side force per bar, kN/bar.
+    pub f_cap: Fx,
+    /// Rod-side force per bar, kN/bar.
+    pub f_ann: Fx,
+    /// 1 / lag volume (free play + compression from LP to P2) of the cap chamber vs P2, 1/mL.
+    pub inv_lag_cap: Table1<17>,
+    /// Same for the rod chamber.
+    pub inv_lag_rod: Table1<17>,
+}
+
+/// Everything the step functions read.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Coefficients {
+    /// dt = 2^−dt_log2 s.
+    pub dt_log2: u8,
+    /// Encoder count → rad, as Q32.32 (i64) so a 16 384-count encoder keeps full precision.
+    pub rad_per_count_q32: i64,
+    /// α of the α–β shaft tracker.
+    pub alpha: Fx,
+    /// β/dt of the α–β shaft tracker, 1/s.
+    pub beta_over_dt: Fx,
+    /// Cylinders.
+    pub cyl: [CylinderCoeffs; 4],
+    /// Lever arm d (m) vs s·θ (rad), per geometry.
+    pub arm: [Table1<N_ARM>; 4],
+    /// Valve (= motor) flow, L/min, vs (aperture %, P2 − LP bar), motor on its load line.
+    pub valve_flow: Table2<N_APERTURE, N_PRESSURE>,
+    /// Autonomy, s, vs (aperture %, P2 bar), input blocked, LP nominal.
+    pub autonomy: Table2<N_APERTURE, N_PRESSURE>,
+    /// dP2/dt per net HP inflow, bar/s per L/min, vs P2.
+    pub inv_c_hp: Table1<N_PRESSURE>,
+    /// dLP/dt per net LP inflow, bar/s per L/min, vs LP.
+    pub inv_c_lp: Table1<N_PRESSURE>,
+    /// Motor speed per valve flow, rpm per L/min (Eq. 9 with the load line).
+    pub rpm_per_lpm: Fx,
+    /// Spool lag gain per step, dt/τ (1 = ideal valve).
+    pub spool_gain: Fx,
+    /// Relief setting, bar.
+    pub relief_setting: Fx,
+    /// Relief gain, L/min per bar.
+    pub relief_gain: Fx,
+    /// Process noise added to the P2 variance per step, bar².
+    pub q_step: Fx,
+    /// Measurement variance, bar².
+    pub r: Fx,
+    /// Kalman gain vs prior variance on [0, r].
+    pub gain_fine: Table1<33>,
+    /// Kalman gain vs prior variance on [0, 32 r].
+    pub gain_coarse: Table1<33>,
+    /// Steady-state Kalman gain used for LP.
+    pub gain_lp: Fx,
+    /// Gate², in σ².
+    pub gate_sq: Fx,
+    /// Consecutive rejected steps before the estimate is reset to the sensor.
+    pub gate_reset_steps: u16,
+    /// HP sensor range, bar.
+    pub hp_range: (Fx, Fx),
+    /// LP sensor range, bar.
+    pub lp_range: (Fx, Fx),
+    /// Motor sensor full scale, rpm.
+    pub motor_max: Fx,
+    /// Overpressure trip, bar.
+    pub trip: Fx,
+    /// Steps without an encoder change after which the encoder is suspected stuck.
+    pub stuck_steps: u16,
+    /// Minimum autonomy speed, rpm.
+    pub autonomy_min_rpm: Fx,
+    /// Pump-flow averaging gain per step (≈ one wave period), dt/τ.
+    pub mean_gain: Fx,
+    /// Motor speed → motor pressure drop, bar per rpm (load line).
+    pub bar_per_rpm: Fx,
+}
+
+/// Trapped-air bulk modulus (physics.md), bar.
+fn modulus_bar(cfg: &ModelConfig, p: f32) -> f32 {
+    let el = cfg.oil_bulk_modulus_mpa * 10.0;
+    let a = cfg.trapped_air_fraction;
+    let n = 1.4f32;
+    let pabs = (P_ATM_BAR + p).max(1e-3);
+    let ratio = powf(P_ATM_BAR / pabs, 1.0 / n);
+    el * (1.0 + a * ratio) / (1.0 + a * ratio / (n * pabs) * el)
+}
+
+/// Compression strain ∫_0^p dp/E (fraction of volume), by the midpoint rule on 0.25 bar cells.
+fn strain(cfg: &ModelConfig, p: f32) -> f32 {
+    let n = ((p.abs() / 0.25) as i32).max(1);
+    let h = p / n as f32;
+    (0..n)
+        .map(|k| h / modulus_bar(cfg, (k as f32 + 0.5) * h))
+        .sum()
+}
+
+/// Accumulator oil volume (L) at gauge pressure p (bar).
+fn acc_fluid(a: &AccumulatorConfig, p: f32) -> f32 {
+    if p <= a.precharge_bar {
+        0.0
+    } else {
+        a.volume_l
+            * (1.0
+                - powf(
+                    (a.precharge_bar + P_ATM_BAR) / (p + P_ATM_BAR),
+                    1.0 / a.polytropic_index,
+                ))
+    }
+}
+
+/// Node capacitance, L/bar: accumulator gas + compressibility of the node's oil.
+fn capacitance(cfg: &ModelConfig, a: &AccumulatorConfig, p: f32) -> f32 {
+    let gas = if p <= a.precharge_bar {
+        0.0
+    } else {
+        (a.volume_l - acc_fluid(a, p)) / (a.polytropic_index * (p + P_ATM_BAR))
+    };
+    gas + (a.line_volume_l + acc_fluid(a, p)) / modulus_bar(cfg, p)
+}
+
+/// Lever geometry: φ0 such that the eye is at mid-stroke at θ = 0.
+fn arm_m(g: &crate::config::GeometryConfig, stroke_mm: f32, theta: f32) -> f32 {
+    let (r, oc, mid) = (
+        g.ob_mm * 1e-3,
+        g.oc_mm * 1e-3,
+        (g.ac_mm + 0.5 * stroke_mm) * 1e-3,
+    );
+    let c0 = ((r * r + oc * oc - mid * mid) / (2.0 * r * oc)).clamp(-1.0, 1.0);
+    let phi = libm::acosf(c0) + theta;
+    let cb = sqrtf(r * r + oc * oc - 2.0 * r * oc * cosf(phi));
+    r * oc * sinf(phi) / cb
+}
+
+impl ModelConfig {
+    /// Valve flow coefficient K at aperture `a` %, L/min per √bar.
+    pub fn valve_k(&self, a: f32) -> f32 {
+        let xs = &self.valve_aperture_pct;
+        let ys = &self.valve_area_mm2;
+        let a = a.clamp(0.0, 100.0);
+        let mut i = 1;
+        while i < 10 && xs[i] < a {
+            i += 1;
+        }
+        let area = ys[i - 1] + (ys[i] - ys[i - 1]) * (a - xs[i - 1]) / (xs[i] - xs[i - 1]);
+        // Cd·A·sqrt(2/ρ) in m³/s per √Pa → L/min per √bar.
+        self.valve_cd * area * 1e-6 * sqrtf(2.0 / self.oil_density_kg_m3) * 6e4 * sqrtf(1e5)
+    }
+
+    /// Motor pressure drop per rpm on the load line, bar/rpm.
+    pub fn bar_per_rpm(&self) -> f32 {
+        let nm_per_bar = self.motor_displacement_cm3 * 1e-6 / (2.0 * core::f32::consts::PI) * 1e5;
+        self.load_nm_per_rpm / (nm_per_bar * self.motor_mech_efficiency)
+    }
+
+    /// Motor speed per motor flow, rpm per L/min (Eq. 9 with the load line's pressure drop).
+    pub fn rpm_per_lpm(&self) -> f32 {
+        1.0 / (self.motor_displacement_cm3 * 1e-3
+            + self.motor_leak_lpm_per_bar * self.bar_per_rpm())
+    }
+
+    /// Steady valve/motor flow, L/min, at aperture `a` % and P2 − LP = `dp` bar: the root of
+    /// Q = K·sqrt(dp − β·Q) with β the motor's bar per L/min.
+    pub fn steady_flow(&self, a: f32, dp: f32) -> f32 {
+        let k = self.valve_k(a);
+        if k <= 0.0 || dp <= 0.0 {
+            return 0.0;
+        }
+        let beta = self.bar_per_rpm() * self.rpm_per_lpm();
+        let k2 = k * k;
+        // Q² + K²βQ − K²·dp = 0, the stable form of the positive root.
+        2.0 * k2 * dp / (k2 * beta + sqrtf(k2 * k2 * beta * beta + 4.0 * k2 * dp))
+    }
+
+    /// Autonomy, s: time for the motor to fall below the minimum speed with the input blocked,
+    /// from P2 = `p2` at aperture `a` % (LP nominal), integrating dt = 60·C(P)/Q dP.
+    pub fn autonomy_s(&self, a: f32, p2: f32) -> f32 {
+        let lp = self.nominal_lp_bar;
+        let q_min = self.autonomy_min_rpm / self.rpm_per_lpm();
+        if self.steady_flow(a, p2 - lp) <= q_min {
+            return 0.0;
+        }
+        // Find the stop pressure by bisection, then integrate from it up to p2.
+        let (mut lo, mut hi) = (lp, p2);
+        for _ in 0..40 {
+            let mid = 0.5 * (lo + hi);
+            if self.steady_flow(a, mid - lp) > q_min {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
+        }
+        let n = 200;
+        let h = (p2 - hi) / n as f32;
+        let mut t = 0.0;
+        for k in 0..n {
+            let p = hi + (k as f32 + 0.5) * h;
+            t += 60.0 * capacitance(self, &self.hp, p) / self.steady_flow(a, p - lp) * h;
+        }
+        t.min(AUTONOMY_CAP_S)
+    }
+
+    /// Turns the validated configuration into coefficients.
+    pub fn coefficients(&self) -> Result<Coefficients, ConfigError> {
+        self.validate()?;
+        let k = self.dt_log2;
+        let dt = powf(2.0, -f32::from(k));
+        let fx = Fx::saturating_from_num;
+        let two_pi = 2.0 * core::f64::consts::PI;
+        let rad_per_count_q32 =
+            (two_pi / f64::from(self.encoder_counts_per_rev) * 4_294_967_296.0) as i64;
+        // Critically damped α–β tracker: r = exp(−ω_n dt), α = 1 − r², β = (1 − r)².
+        let rr = expf(-2.0 * core::f32::consts::PI * self.encoder_bandwidth_hz * dt);
+        let alpha = 1.0 - rr * rr;
+        let beta = (1.0 - rr) * (1.0 - rr);
+        let lp_nom = self.nominal_lp_bar;
+        let play_mm = self.free_play_mm;
+        let cyl = core::array::from_fn(|i| {
+            let c = &self.cylinders[i];
+            let a_cap = core::f32::consts::PI / 4.0 * c.bore_mm * c.bore_mm * 1e-6;
+            let a_ann = a_cap - core::f32::consts::PI / 4.0 * c.rod_mm * c.rod_mm * 1e-6;
+            let lag = |area: f32| {
+                // Chamber at mid-stroke; volumes in mL.
+                let v_ch = self.chamber_dead_volume_cm3 + area * 1e6 * c.stroke_mm * 0.05;
+                let play = area * 1e6 * play_mm * 0.1;
+                Table1::sample(0.0, P_MAX_BAR, |p| {
+                    let comp = v_ch * (strain(self, p.max(lp_nom)) - strain(self, lp_nom));
+                    1.0 / (play + comp).max(0.01)
+                })
+            };
+            CylinderCoeffs {
+                side: fx(f32::from(c.side)),
+                q_cap: fx(a_cap * 6e4),
+                q_ann: fx(a_ann * 6e4),
+                f_cap: fx(a_cap * 100.0),
+                f_ann: fx(a_ann * 100.0),
+                inv_lag_cap: lag(a_cap),
+                inv_lag_rod: lag(a_ann),
+            }
+        });
+        let stroke = self.cylinders[0].stroke_mm;
+        let arm = core::array::from_fn(|g| {
+            let geo = self.geometries[g];
+            Table1::sample(-ARM_RANGE_RAD, ARM_RANGE_RAD, move |th| {
+                arm_m(&geo, stroke, th)
+            })
+        });
+        let valve_flow = Table2::sample((0.0, 100.0), (0.0, P_MAX_BAR), |a, dp| {
+            self.steady_flow(a, dp)
+        });
+        let autonomy = Table2::sample((0.0, 100.0), (0.0, P_MAX_BAR), |a, p| self.autonomy_s(a, p));
+        let inv_c_hp = Table1::sample(0.0, P_MAX_BAR, |p| {
+            1.0 / (60.0 * capacitance(self, &self.hp, p))
+        });
+        let inv_c_lp = Table1::sample(0.0, 32.0, |p| 1.0 / (60.0 * capacitance(self, &self.lp, p)));
+        let spool_gain = if self.spool_time_constant_ms <= 0.0 {
+            1.0
+        } else {
+            (dt / (self.spool_time_constant_ms * 1e-3)).min(1.0)
+        };
+        let r = self.pressure_noise_bar * self.pressure_noise_bar;
+        let q = self.process_noise_bar_per_sqrt_s * self.process_noise_bar_per_sqrt_s * dt;
+        let gain = |v: f32| v / (v + r);
+        let pp = 0.5 * (q + sqrtf(q * q + 4.0 * q * r));
+        Ok(Coefficients {
+            dt_log2: k,
+            rad_per_count_q32,
+            alpha: fx(alpha),
+            beta_over_dt: fx(beta / dt),
+            cyl,
+            arm,
+            valve_flow,
+            autonomy,
+            inv_c_hp,
+            inv_c_lp,
+            rpm_per_lpm: fx(self.rpm_per_lpm()),
+            spool_gain: fx(spool_gain),
+            relief_setting: fx(self.relief_setting_bar),
+            relief_gain: fx(self.relief_gain_lpm_per_bar),
+            q_step: fx(q).max(Fx::DELTA),
+            r: fx(r),
+            gain_fine: Table1::sample(0.0, r, gain),
+            gain_coarse: Table1::sample(0.0, 32.0 * r, gain),
+            gain_lp: fx(pp / (pp + r)),
+            gate_sq: fx(self.gate_sigma * self.gate_sigma),
+            gate_reset_steps: (self.gate_reset_ms * 1e-3 / dt).clamp(1.0, 60_000.0) as u16,
+            hp_range: (
+                fx(self.hp_sensor_range_bar.0),
+                fx(self.hp_sensor_range_bar.1),
+            ),
+            lp_range: (
+                fx(self.lp_sensor_range_bar.0),
+                fx(self.lp_sensor_range_bar.1),
+            ),
+            motor_max: fx(self.motor_sensor_max_rpm),
+            trip: fx(self.trip_bar),
+            stuck_steps: (2.0 / dt).min(60_000.0) as u16,
+            autonomy_min_rpm: fx(self.autonomy_min_rpm),
+            mean_gain: fx(dt / 10.0).max(Fx::DELTA),
+            bar_per_rpm: fx(self.bar_per_rpm()),
+        })
+    }
+}
+
+impl Coefficients {
+    /// Kalman gain for prior variance `var` (bar²).
+    #[inline]
+    pub fn gain(&self, var: Fx) -> Fx {
+        if var < self.r {
+            self.gain_fine.at(var)
+        } else {
+            self.gain_coarse.at(var).min(ONE).max(ZERO)
+        }
+    }
+}

@@ -1,0 +1,381 @@
+//! Configuration in physical units, validated once; see [`crate::Coefficients`] for what it
+//! turns into.
+
+/// One double-acting cylinder.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct CylinderConfig {
+    /// Bore, mm.
+    pub bore_mm: f32,
+    /// Rod diameter, mm.
+    pub rod_mm: f32,
+    /// Stroke, mm.
+    pub stroke_mm: f32,
+    /// Side of the shaft, ±1.
+    pub side: i8,
+}
+
+/// One lever geometry (Eq. 1): OB, AC, OC.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct GeometryConfig {
+    /// OB = R, mm.
+    pub ob_mm: f32,
+    /// AC = L (retracted pin-to-pin), mm.
+    pub ac_mm: f32,
+    /// OC, mm.
+    pub oc_mm: f32,
+}
+
+/// Gas accumulator.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct AccumulatorConfig {
+    /// Total volume, L.
+    pub volume_l: f32,
+    /// Precharge, bar.
+    pub precharge_bar: f32,
+    /// Polytropic index.
+    pub polytropic_index: f32,
+    /// Oil volume of the node besides the accumulator (lines), L.
+    pub line_volume_l: f32,
+}
+
+/// Everything the reduced model needs, in physical units.
+#[derive(Debug, Clone, PartialEq)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct ModelConfig {
+    /// Step dt = 2^−dt_log2 s (6..=12; 10 ≈ 1 kHz).
+    pub dt_log2: u8,
+    /// Shaft encoder counts per revolution (after quadrature decoding).
+    pub encoder_counts_per_rev: u32,
+    /// Bandwidth of the α–β tracker that turns encoder counts into shaft speed, Hz.
+    pub encoder_bandwidth_hz: f32,
+    /// HC3.1 … HC3.4.
+    pub cylinders: [CylinderConfig; 4],
+    /// Config 1 … 4.
+    pub geometries: [GeometryConfig; 4],
+    /// Rod-fixation free play, mm.
+    pub free_play_mm: f32,
+    /// Chamber dead volume incl. its hose, cm³.
+    pub chamber_dead_volume_cm3: f32,
+    /// Oil liquid bulk modulus, MPa.
+    pub oil_bulk_modulus_mpa: f32,
+    /// Oil density, kg/m³.
+    pub oil_density_kg_m3: f32,
+    /// Trapped air fraction at atmospheric pressure.
+    pub trapped_air_fraction: f32,
+    /// HP accumulator (+ HP line).
+    pub hp: AccumulatorConfig,
+    /// LP accumulator (+ LP lines).
+    pub lp: AccumulatorConfig,
+    /// Control valve discharge coefficient.
+    pub valve_cd: f32,
+    /// Control valve table: aperture, %.
+    pub valve_aperture_pct: [f32; 11],
+    /// Control valve table: area, mm².
+    pub valve_area_mm2: [f32; 11],
+    /// Spool time constant, ms (0 = ideal).
+    pub spool_time_constant_ms: f32,
+    /// Relief setting, bar.
+    pub relief_setting_bar: f32,
+    /// Relief flow gained per bar above the setting, L/min/bar.
+    pub relief_gain_lpm_per_bar: f32,
+    /// Motor displacement, cm³/rev.
+    pub motor_displacement_cm3: f32,
+    /// Motor leakage, L/min per bar.
+    pub motor_leak_lpm_per_bar: f32,
+    /// Motor mechanical efficiency.
+    pub motor_mech_efficiency: f32,
+    /// Generator load, N·m per rpm (torque ∝ speed).
+    pub load_nm_per_rpm: f32,
+    /// HP transducer range, bar (readings outside are a sensor fault).
+    pub hp_sensor_range_bar: (f32, f32),
+    /// LP transducer range, bar.
+    pub lp_sensor_range_bar: (f32, f32),
+    /// Motor speed sensor full scale, rpm.
+    pub motor_sensor_max_rpm: f32,
+    /// HP/LP transducer noise (1σ), bar.
+    pub pressure_noise_bar: f32,
+    /// Model (process) uncertainty growth of P2, bar per √s.
+    pub process_noise_bar_per_sqrt_s: f32,
+    /// Innovation gate, in standard deviations.
+    pub gate_sigma: f32,
+    /// After this long of consecutive rejected HP readings the estimate is reset to them, ms.
+    pub gate_reset_ms: f32,
+    /// Overpressure trip, bar.
+    pub trip_bar: f32,
+    /// Minimum motor speed for the autonomy estimate, rpm.
+    pub autonomy_min_rpm: f32,
+    /// Nominal LP for the autonomy table, bar.
+    pub nominal_lp_bar: f32,
+}
+
+/// A configuration field outside its range.
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ConfigError {
+    /// Field name.
+    pub field: &'static str,
+    /// Offending value.
+    pub value: f32,
+    /// Allowed minimum.
+    pub min: f32,
+    /// Allowed maximum.
+    pub max: f32,
+}
+
+impl core::fmt::Display for ConfigError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(
+            f,
+            "{}: {} outside [{}, {}]",
+            self.field, self.value, self.min, self.max
+        )
+    }
+}
+
+impl core::error::Error for ConfigError {}
+
+fn check(field: &'static str, value: f32, min: f32, max: f32) -> Result<(), ConfigError> {
+    if value.is_finite() && value >= min && value <= max {
+        Ok(())
+    } else {
+        Err(ConfigError {
+            field,
+            value,
+            min,
+            max,
+        })
+    }
+}
+
+impl ModelConfig {
+    /// The reference bench of `host-tests/data/reference-bench.toml` (a host test keeps the two
+    /// in step).
+    pub fn reference() -> Self {
+        let small = CylinderConfig {
+            bore_mm: 32.0,
+            rod_mm: 18.0,
+            stroke_mm: 200.0,
+            side: 1,
+        };
+        let big = CylinderConfig {
+            bore_mm: 40.0,
+            rod_mm: 22.0,
+            stroke_mm: 200.0,
+            side: 1,
+        };
+        let g = |ob_mm, ac_mm, oc_mm| GeometryConfig {
+            ob_mm,
+            ac_mm,
+            oc_mm,
+        };
+        ModelConfig {
+            dt_log2: 10,
+            encoder_counts_per_rev: 16_384,
+            encoder_bandwidth_hz: 2.0,
+            cylinders: [
+                small,
+                big,
+                CylinderConfig { side: -1, ..small },
+                CylinderConfig { side: -1, ..big },
+            ],
+            geometries: [
+                g(125.0, 400.0, 515.4),
+                g(120.0, 450.0, 562.9),
+                g(80.0, 350.0, 457.1),
+                g(100.0, 400.0, 509.9),
+            ],
+            free_play_mm: 4.0,
+            // 15 cm³ + 1 m of 9.5 mm hose.
+            chamber_dead_volume_cm3: 85.88,
+            oil_bulk_modulus_mpa: 1600.0,
+            oil_density_kg_m3: 870.0,
+            trapped_air_fraction: 0.06,
+            // HP line 3 m × 12.7 mm; LP lines 6 m × 12.7 mm.
+            hp: AccumulatorConfig {
+                volume_l: 10.0,
+                precharge_bar: 25.0,
+                polytropic_index: 1.4,
+                line_volume_l: 0.38,
+            },
+            lp: AccumulatorConfig {
+                volume_l: 20.0,
+                precharge_bar: 4.0,
+                polytropic_index: 1.4,
+                line_volume_l: 0.76,
+            },
+            valve_cd: 0.154,
+            valve_aperture_pct: [
+                0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 90.0, 100.0,
+            ],
+            valve_area_mm2: [
+                0.0, 1.136, 2.756, 5.336, 8.876, 13.376, 18.836, 25.256, 32.636, 38.42, 44.18,
+            ],
+            spool_time_constant_ms: 50.0,
+            relief_setting_bar: 130.0,
+            // Cd·A_max/range·sqrt(2·p/ρ): 0.7 × 10 mm² / 3 bar × sqrt(2 × 130 bar / 870) in L/min/bar.
+            relief_gain_lpm_per_bar: 16.8,
+            motor_displacement_cm3: 8.0,
+            // D·ω_nom·(1 − η_v)/p_nom = 12 L/min × 0.08 / 100 bar.
+            motor_leak_lpm_per_bar: 0.0096,
+            motor_mech_efficiency: 0.923_913,
+            load_nm_per_rpm: 0.00784,
+            hp_sensor_range_bar: (-2.0, 250.0),
+            lp_sensor_range_bar: (-2.0, 40.0),
+            motor_sensor_max_rpm: 3000.0,
+            pressure_noise_bar: 0.5,
+            process_noise_bar_per_sqrt_s: 0.5,
+            gate_sigma: 5.0,
+            gate_reset_ms: 250.0,
+            trip_bar: 140.0,
+            autonomy_min_rpm: 50.0,
+            nominal_lp_bar: 8.0,
+        }
+    }
+
+    /// Checks every field against its physical range.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        check("dt_log2", f32::from(self.dt_log2), 6.0, 12.0)?;
+        check(
+            "encoder_counts_per_rev",
+            self.encoder_counts_per_rev as f32,
+            64.0,
+            1_048_576.0,
+        )?;
+        check(
+            "encoder_bandwidth_hz",
+            self.encoder_bandwidth_hz,
+            0.05,
+            50.0,
+        )?;
+        for c in &self.cylinders {
+            check("cylinders.bore_mm", c.bore_mm, 5.0, 500.0)?;
+            check("cylinders.rod_mm", c.rod_mm, 2.0, c.bore_mm - 1.0)?;
+            check("cylinders.stroke_mm", c.stroke_mm, 10.0, 5000.0)?;
+            check("cylinders.side", f32::from(c.side), -1.0, 1.0)?;
+            if c.side == 0 {
+                return Err(ConfigError {
+                    field: "cylinders.side",
+                    value: 0.0,
+                    min: -1.0,
+                    max: 1.0,
+                });
+            }
+        }
+        for g in &self.geometries {
+            check("geometries.ob_mm", g.ob_mm, 10.0, 5000.0)?;
+            check("geometries.ac_mm", g.ac_mm, 10.0, 10_000.0)?;
+            check("geometries.oc_mm", g.oc_mm, g.ob_mm + 1.0, 20_000.0)?;
+        }
+        check("free_play_mm", self.free_play_mm, 0.0, 50.0)?;
+        check(
+            "chamber_dead_volume_cm3",
+            self.chamber_dead_volume_cm3,
+            0.1,
+            5000.0,
+        )?;
+        check(
+            "oil_bulk_modulus_mpa",
+            self.oil_bulk_modulus_mpa,
+            100.0,
+            5000.0,
+        )?;
+        check("oil_density_kg_m3", self.oil_density_kg_m3, 600.0, 1200.0)?;
+        check("trapped_air_fraction", self.trapped_air_fraction, 0.0, 0.5)?;
+        for a in [&self.hp, &self.lp] {
+            check("accumulator.volume_l", a.volume_l, 0.1, 500.0)?;
+            check("accumulator.precharge_bar", a.precharge_bar, 0.5, 400.0)?;
+            check(
+                "accumulator.polytropic_index",
+                a.polytropic_index,
+                1.0,
+                1.67,
+            )?;
+            check("accumulator.line_volume_l", a.line_volume_l, 0.001, 100.0)?;
+        }
+        check("valve_cd", self.valve_cd, 0.01, 1.0)?;
+        for w in self.valve_aperture_pct.windows(2) {
+            check("valve_aperture_pct", w[1], w[0] + 0.01, 100.0)?;
+        }
+        check(
+            "valve_aperture_pct[0]",
+            self.valve_aperture_pct[0],
+            0.0,
+            0.0,
+        )?;
+        check(
+            "valve_aperture_pct[10]",
+            self.valve_aperture_pct[10],
+            100.0,
+            100.0,
+        )?;
+        for w in self.valve_area_mm2.windows(2) {
+            check("valve_area_mm2", w[1], w[0], 5000.0)?;
+        }
+        check(
+            "spool_time_constant_ms",
+            self.spool_time_constant_ms,
+            0.0,
+            5000.0,
+        )?;
+        check("relief_setting_bar", self.relief_setting_bar, 1.0, 300.0)?;
+        check(
+            "relief_gain_lpm_per_bar",
+            self.relief_gain_lpm_per_bar,
+            0.01,
+            1000.0,
+        )?;
+        check(
+            "motor_displacement_cm3",
+            self.motor_displacement_cm3,
+            0.1,
+            1000.0,
+        )?;
+        check(
+            "motor_leak_lpm_per_bar",
+            self.motor_leak_lpm_per_bar,
+            0.0,
+            1.0,
+        )?;
+        check(
+            "motor_mech_efficiency",
+            self.motor_mech_efficiency,
+            0.3,
+            1.0,
+        )?;
+        check("load_nm_per_rpm", self.load_nm_per_rpm, 1e-5, 10.0)?;
+        check(
+            "hp_sensor_range_bar.1",
+            self.hp_sensor_range_bar.1,
+            self.hp_sensor_range_bar.0 + 1.0,
+            1000.0,
+        )?;
+        check(
+            "lp_sensor_range_bar.1",
+            self.lp_sensor_range_bar.1,
+            self.lp_sensor_range_bar.0 + 1.0,
+            1000.0,
+        )?;
+        check(
+            "motor_sensor_max_rpm",
+            self.motor_sensor_max_rpm,
+            10.0,
+            10_000.0,
+        )?;
+        check("pressure_noise_bar", self.pressure_noise_bar, 0.001, 20.0)?;
+        check(
+            "process_noise_bar_per_sqrt_s",
+            self.process_noise_bar_per_sqrt_s,
+            0.001,
+            100.0,
+        )?;
+        check("gate_sigma", self.gate_sigma, 2.0, 50.0)?;
+        check("gate_reset_ms", self.gate_reset_ms, 1.0, 60_000.0)?;
+        check("trip_bar", self.trip_bar, 1.0, 400.0)?;
+        check("autonomy_min_rpm", self.autonomy_min_rpm, 1.0, 5000.0)?;
+        check("nominal_lp_bar", self.nominal_lp_bar, 0.0, 100.0)?;
+        Ok(())
+    }
+}

@@ -1,0 +1,116 @@
+//! Fixed-point quantities: one named type per physical quantity, all Q16.16 (`I16F16`).
+//!
+//! | type | unit | range used (saturation limits) | resolution |
+//! |---|---|---|---|
+//! | [`Pressure`] | bar (gauge) | −1 … 400 | 1.5e-5 bar |
+//! | [`Flow`] | L/min | ±1000 | 1.5e-5 L/min |
+//! | [`Torque`] | N·m | ±30 000 | 1.5e-5 N·m |
+//! | [`Angle`] | rad | ±π | 1.5e-5 rad (an encoder count of a 16 384-count encoder is 3.8e-4 rad) |
+//! | [`AngularSpeed`] | rad/s | ±100 | 1.5e-5 rad/s |
+//! | [`Rpm`] | rev/min | 0 … 10 000 | 1.5e-5 rpm |
+//! | [`Aperture`] | % of the valve stroke | 0 … 100 | 1.5e-5 % |
+//! | [`Seconds`] | s | 0 … 32 767 | 1.5e-5 s |
+//!
+//! Q16.16 holds every signal of the bench with headroom (the largest, restraining torque, peaks at
+//! ≈ 6 kN·m with all four cylinders at 130 bar). Products that could exceed it (Δp², K⁴β²) are
+//! never formed: the valve law comes from a precomputed table. Every sum and product in the step
+//! uses the saturating forms; the physical limits above are applied where a state is stored.
+
+use fixed::types::I16F16;
+
+/// The raw Q16.16 number every quantity wraps.
+pub type Fx = I16F16;
+
+/// 0.
+pub const ZERO: Fx = Fx::ZERO;
+/// 1.
+pub const ONE: Fx = Fx::ONE;
+
+macro_rules! quantity {
+    ($(#[$m:meta])* $name:ident, $unit:literal) => {
+        $(#[$m])*
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Default, Hash)]
+        #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+        #[repr(transparent)]
+        pub struct $name(pub Fx);
+
+        impl $name {
+            /// Zero.
+            pub const ZERO: Self = Self(Fx::ZERO);
+            #[doc = concat!("From a value in ", $unit, " (saturating; for configuration and host tools).")]
+            pub fn from_num(v: f32) -> Self {
+                Self(Fx::saturating_from_num(v))
+            }
+            #[doc = concat!("The value in ", $unit, " (for display and host tools).")]
+            pub fn to_f32(self) -> f32 {
+                self.0.to_num()
+            }
+            /// From raw Q16.16 bits.
+            pub const fn from_bits(bits: i32) -> Self {
+                Self(Fx::from_bits(bits))
+            }
+            /// Raw Q16.16 bits.
+            pub const fn to_bits(self) -> i32 {
+                self.0.to_bits()
+            }
+        }
+
+        #[cfg(feature = "defmt")]
+        impl defmt::Format for $name {
+            fn format(&self, f: defmt::Formatter) {
+                defmt::write!(f, "{=i32}/65536 {}", self.0.to_bits(), $unit)
+            }
+        }
+    };
+}
+
+quantity!(
+    /// Gauge pressure, bar.
+    Pressure, "bar"
+);
+quantity!(
+    /// Volumetric flow, L/min.
+    Flow, "L/min"
+);
+quantity!(
+    /// Torque, N·m.
+    Torque, "N·m"
+);
+quantity!(
+    /// Shaft angle, rad.
+    Angle, "rad"
+);
+quantity!(
+    /// Shaft speed, rad/s.
+    AngularSpeed, "rad/s"
+);
+quantity!(
+    /// Motor speed, rev/min.
+    Rpm, "rpm"
+);
+quantity!(
+    /// Control valve aperture, % of stroke.
+    Aperture, "%"
+);
+quantity!(
+    /// Time, s.
+    Seconds, "s"
+);
+
+/// Multiplication by dt = 2^−k: an arithmetic shift, exact and division-free.
+#[inline]
+pub fn mul_dt(x: Fx, dt_log2: u8) -> Fx {
+    Fx::from_bits(x.to_bits() >> dt_log2)
+}
+
+/// Saturating clamp to [lo, hi].
+#[inline]
+pub fn clamp(x: Fx, lo: Fx, hi: Fx) -> Fx {
+    x.max(lo).min(hi)
+}
+
+/// Square root that is 0 for negative input (no panic path).
+#[inline]
+pub fn sqrt0(x: Fx) -> Fx {
+    x.max(ZERO).checked_sqrt().unwrap_or(ZERO)
+}

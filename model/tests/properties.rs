@@ -1,0 +1,104 @@
+//! Invariants of the fixed-point model over the documented input ranges.
+
+use proptest::prelude::*;
+use pto_model::estimator::{self, Inputs, State};
+use pto_model::fx::{Aperture, Fx, Pressure, Rpm};
+use pto_model::scheduler::{self, Mode, SchedulerConfig, SchedulerState, aperture_for_flow};
+use pto_model::{Coefficients, ModelConfig};
+use std::sync::OnceLock;
+
+fn coeffs() -> &'static Coefficients {
+    static C: OnceLock<Coefficients> = OnceLock::new();
+    C.get_or_init(|| ModelConfig::reference().coefficients().unwrap())
+}
+
+fn opt<T: std::fmt::Debug + Clone>(
+    s: impl Strategy<Value = T>,
+) -> impl Strategy<Value = Option<T>> {
+    prop_oneof![1 => Just(None), 4 => s.prop_map(Some)]
+}
+
+prop_compose! {
+    fn inputs()(encoder in opt(-100_000i32..100_000),
+                hp in opt(-50.0f32..500.0), lp in opt(-50.0f32..200.0), motor in opt(-100.0f32..20_000.0),
+                ap in -20.0f32..150.0, on_duty in 0u8..=255, config in 0u8..6) -> Inputs {
+        Inputs {
+            encoder,
+            hp: hp.map(Pressure::from_num),
+            lp: lp.map(Pressure::from_num),
+            motor: motor.map(Rpm::from_num),
+            aperture_cmd: Aperture::from_num(ap),
+            on_duty,
+            config,
+        }
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+
+    /// Any sequence of readings, in range or not, never panics (overflow checks are on) and
+    /// keeps the state inside its physical limits.
+    #[test]
+    fn estimator_and_scheduler_never_panic(seq in prop::collection::vec(inputs(), 1..300),
+                                           p0 in 0.0f32..140.0, mode_sel in 0u8..4, set in 0.0f32..150.0) {
+        let k = coeffs();
+        let sc = SchedulerConfig::default().coefficients(k).unwrap();
+        let mut s = State::new(Pressure::from_num(p0), Pressure::from_num(8.0), Pressure::from_num(1.0));
+        let mut st = SchedulerState::default();
+        let mode = match mode_sel {
+            0 => Mode::Fixed(Aperture::from_num(set.min(100.0))),
+            1 => Mode::HoldPressure(Pressure::from_num(set)),
+            2 => Mode::HoldSpeed(Rpm::from_num(set * 3.0)),
+            _ => Mode::MaxAutonomy(Rpm::from_num(set)),
+        };
+        for inp in &seq {
+            let e = estimator::step(k, &mut s, inp);
+            prop_assert!(e.p2.to_f32() >= -1.0 && e.p2.to_f32() <= 400.0);
+            prop_assert!(e.p2_sigma.to_f32() >= 0.0);
+            let c = scheduler::step(k, &sc, &mut st, mode, &e, inp.motor);
+            prop_assert!((0.0..=100.0).contains(&c.aperture.to_f32()));
+        }
+    }
+
+    /// Valve flow grows with aperture and with pressure difference.
+    #[test]
+    fn valve_table_is_monotone(a in 0.0f32..99.0, da in 0.01f32..20.0, dp in 0.0f32..150.0, ddp in 0.01f32..20.0) {
+        let k = coeffs();
+        let f = |a: f32, dp: f32| k.valve_flow.at(Fx::from_num(a), Fx::from_num(dp));
+        prop_assert!(f((a + da).min(100.0), dp) >= f(a, dp));
+        prop_assert!(f(a, dp + ddp) >= f(a, dp));
+    }
+
+    /// The inverse valve table round-trips: flow(aperture_for_flow(q)) = q.
+    #[test]
+    fn inverse_valve_table_round_trips(a in 2.0f32..100.0, dp in 20.0f32..150.0) {
+        let k = coeffs();
+        let (a, dp) = (Fx::from_num(a), Fx::from_num(dp));
+        let q = k.valve_flow.at(a, dp);
+        let back = aperture_for_flow(k, q, dp);
+        let q_back = k.valve_flow.at(back, dp);
+        prop_assert!((q_back - q).abs() < Fx::from_num(0.002), "q {} back {}", q, q_back);
+        prop_assert!((back - a).abs() < Fx::from_num(0.05));
+    }
+}
+
+#[test]
+fn config_errors_name_the_field() {
+    let mut c = ModelConfig::reference();
+    c.dt_log2 = 3;
+    assert_eq!(
+        c.coefficients().unwrap_err().to_string(),
+        "dt_log2: 3 outside [6, 12]"
+    );
+    let mut c = ModelConfig::reference();
+    c.valve_area_mm2[4] = 1.0;
+    assert_eq!(c.validate().unwrap_err().field, "valve_area_mm2");
+}
+
+#[test]
+fn state_is_small() {
+    let n = std::mem::size_of::<State>() + std::mem::size_of::<SchedulerState>();
+    println!("estimator + scheduler state: {n} bytes");
+    assert!(n <= 1024);
+}
