@@ -6,7 +6,10 @@
 //! [`paper`] (the paper's facts) → [`plot`] / [`report`] (figures and tables).
 
 pub mod bench;
+pub mod estimation;
 pub mod figures;
+pub mod golden;
+pub mod model_cost;
 pub mod motion;
 pub mod paper;
 pub mod perf;
@@ -16,3 +19,4 @@ pub mod plot;
 pub mod runner;
 pub mod scenario;
 pub mod sim;
+pub mod validate;

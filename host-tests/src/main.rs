@@ -64,6 +64,30 @@ enum Cmd {
         #[arg(long)]
         no_plots: bool,
     },
+    /// Run the fixed-point model against the full simulation on every built-in scenario, and the
+    /// scheduler in closed loop; print the figures against the targets.
+    Validate {
+        /// Bench parameter file (default: the reference bench).
+        #[arg(long)]
+        bench: Option<PathBuf>,
+        /// Only scenarios whose name contains this.
+        #[arg(long, default_value = "")]
+        filter: String,
+        /// Skip the closed-loop runs.
+        #[arg(long)]
+        no_loop: bool,
+        /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Per-step cost of the fixed-point model: host ns/step, state and code size for both thumb
+    /// targets (builds pto-model for them; needs `rustup target add thumbv6m-none-eabi
+    /// thumbv7em-none-eabihf`).
+    ModelCost {
+        /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
     /// Wall time, real-time factor and accuracy of Test III and a 1000 s irregular sea.
     Bench {
         /// Bench parameter file (default: the reference bench).
@@ -100,6 +124,13 @@ fn main() -> ExitCode {
             repeats,
             json,
         } => bench_cmd(bench.as_ref(), repeats, json),
+        Cmd::Validate {
+            bench,
+            filter,
+            no_loop,
+            json,
+        } => validate_cmd(bench.as_ref(), &filter, !no_loop, json),
+        Cmd::ModelCost { json } => model_cost_cmd(json),
     };
     match result {
         Ok(true) => ExitCode::SUCCESS,
@@ -431,4 +462,116 @@ fn bench_cmd(bench_path: Option<&PathBuf>, repeats: usize, json: bool) -> Result
         }
     }
     Ok(rep.pass)
+}
+
+fn validate_cmd(
+    bench_path: Option<&PathBuf>,
+    filter: &str,
+    with_loop: bool,
+    json: bool,
+) -> Result<bool> {
+    use pto_host::validate::{self, target};
+    let bench = load_bench(bench_path)?;
+    let sel: Vec<_> = scenario::builtin()
+        .into_iter()
+        .filter(|s| s.name.contains(filter))
+        .collect();
+    if sel.is_empty() {
+        bail!("--filter {filter:?} matches no built-in scenario (see `pto scenarios`)");
+    }
+    if !json {
+        eprintln!(
+            "validating the model on {} scenarios{}…",
+            sel.len(),
+            if with_loop { " + closed loop" } else { "" }
+        );
+    }
+    let rep = validate::run(&bench, &sel, with_loop);
+    if json {
+        println!("{}", serde_json::to_string_pretty(&rep)?);
+        return Ok(rep.pass);
+    }
+    println!(
+        "{:<20} {:>9} {:>10} {:>10} {:>9} {:>10} {:>10}  ",
+        "scenario", "P2 RMS", "P2 no-HP", "torque", "motor", "fx-f64 P2", "fx-f64 T"
+    );
+    println!(
+        "{:<20} {:>9} {:>10} {:>10} {:>9} {:>10} {:>10}",
+        "(target)",
+        format!("≤{}", target::P2_RMS_BAR),
+        format!("≤{}", target::P2_MODEL_ONLY_MAX_BAR),
+        format!("≤{}%", target::TORQUE_RMS_OF_PEAK * 100.0),
+        format!("≤{}%", target::MOTOR_RMS_REL * 100.0),
+        format!("≤{}", target::FIXED_VS_F64_BAR),
+        format!("≤{}", target::FIXED_VS_F64_NM)
+    );
+    let pct = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{:.2}%", v * 100.0));
+    for r in &rep.rows {
+        println!(
+            "{:<20} {:>9.3} {:>10.3} {:>10} {:>9} {:>10.4} {:>10.3}  {}",
+            r.scenario,
+            r.p2_rms_bar,
+            r.p2_model_only_max_bar,
+            pct(r.torque_rms_of_peak),
+            pct(r.motor_rms_rel),
+            r.fixed_vs_f64_bar,
+            r.fixed_vs_f64_nm,
+            if r.pass { "ok" } else { "MISSED" }
+        );
+    }
+    for l in &rep.closed_loop {
+        println!(
+            "closed loop: {:<24} max deviation {:.4} (target {}) over {:.0}–{:.0} s: {}",
+            l.name,
+            l.max_deviation,
+            l.target,
+            l.window_s.0,
+            l.window_s.1,
+            if l.pass { "met" } else { "MISSED" }
+        );
+    }
+    for e in &rep.errors {
+        println!("error: {e}");
+    }
+    let ok = rep.rows.iter().filter(|r| r.pass).count();
+    println!(
+        "{ok}/{} scenarios meet every target; closed loop {}",
+        rep.rows.len(),
+        if rep.closed_loop.iter().all(|l| l.pass) {
+            "met"
+        } else {
+            "MISSED"
+        }
+    );
+    Ok(rep.pass)
+}
+
+fn model_cost_cmd(json: bool) -> Result<bool> {
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let cost = pto_host::model_cost::measure(&workspace).map_err(anyhow::Error::msg)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&cost)?);
+    } else {
+        println!(
+            "estimator + scheduler step on this host: {:.0} ns",
+            cost.host_ns_per_step
+        );
+        println!(
+            "state: {} bytes (target ≤ {}); coefficients (tables, RAM): {} bytes",
+            cost.state_bytes,
+            pto_host::model_cost::target::STATE_BYTES,
+            cost.coefficient_bytes
+        );
+        for c in &cost.code {
+            println!(
+                "{:<24} per-step code {:>6} B (target ≤ {} B); whole crate .text {:>6} B, .rodata {:>5} B",
+                c.target,
+                c.step_code_bytes,
+                pto_host::model_cost::target::FLASH_BYTES,
+                c.text_bytes,
+                c.rodata_bytes
+            );
+        }
+    }
+    Ok(cost.pass)
 }

@@ -58,7 +58,8 @@ pub fn mean_torque(
         let f_mean = dp.saturating_mul(Fx::from_bits((c.f_cap.to_bits() + c.f_ann.to_bits()) >> 1)); // kN
         total = total.saturating_add(d_mean.saturating_mul(f_mean));
     }
-    Torque(total.saturating_mul(Fx::from_bits(1000 << 16)))
+    // mm·kN = N·m.
+    Torque(total)
 }
 
 /// The candidate (4 geometries × 15 non-empty cylinder sets) whose mean torque is closest to

@@ -13,6 +13,9 @@ use libm::{cosf, expf, powf, sinf, sqrtf};
 pub const N_APERTURE: usize = 21;
 /// Columns (pressure, 0..160 bar in 5 bar steps) of the valve and autonomy tables.
 pub const N_PRESSURE: usize = 33;
+/// Points of the 1-D node tables over 0..160 bar (1.25 bar steps: the HP capacitance jumps by
+/// four orders of magnitude at the 25 bar precharge).
+pub const N_NODE: usize = 129;
 /// Points of the lever-arm tables over ±[`ARM_RANGE_RAD`].
 pub const N_ARM: usize = 65;
 /// Half-range of the lever-arm tables, rad (the design limit is ±30° = ±0.52 rad).
@@ -29,18 +32,24 @@ const P_ATM_BAR: f32 = 1.01325;
 pub struct CylinderCoeffs {
     /// ±1.
     pub side: Fx,
-    /// Cap-side flow per rod speed, L/min per m/s.
+    /// Cap-side flow per rod speed, L/min per mm/s.
     pub q_cap: Fx,
-    /// Rod-side flow per rod speed, L/min per m/s.
+    /// Rod-side flow per rod speed, L/min per mm/s.
     pub q_ann: Fx,
     /// Cap-side force per bar, kN/bar.
     pub f_cap: Fx,
     /// Rod-side force per bar, kN/bar.
     pub f_ann: Fx,
-    /// 1 / lag volume (free play + compression from LP to P2) of the cap chamber vs P2, 1/mL.
-    pub inv_lag_cap: Table1<17>,
-    /// Same for the rod chamber.
-    pub inv_lag_rod: Table1<17>,
+    /// Cap-chamber dead volume (with hose) as a length of cap area, mm.
+    pub dead_cap_mm: Fx,
+    /// Rod-chamber dead volume (with hose) as a length of annulus area, mm.
+    pub dead_rod_mm: Fx,
+    /// Stroke, mm.
+    pub stroke_mm: Fx,
+    /// A_ann / A_cap (new/old area after a reversal to extending).
+    pub ratio_ext: Fx,
+    /// A_cap / A_ann (new/old area after a reversal to retracting).
+    pub ratio_ret: Fx,
 }
 
 /// Everything the step functions read.
@@ -50,20 +59,27 @@ pub struct Coefficients {
     pub dt_log2: u8,
     /// Encoder count → rad, as Q32.32 (i64) so a 16 384-count encoder keeps full precision.
     pub rad_per_count_q32: i64,
-    /// α of the α–β shaft tracker.
-    pub alpha: Fx,
-    /// β/dt of the α–β shaft tracker, 1/s.
-    pub beta_over_dt: Fx,
+    /// α of the α–β shaft tracker, Q1.31. The tracker runs in Q32.32: at 1 kHz a shaft at
+    /// 0.2 rad/s advances 2e-4 rad per step, 13 LSB of Q16.16, and truncating that every step
+    /// biased the speed by +0.026 rad/s (10 %).
+    pub alpha_q31: i64,
+    /// β/dt of the α–β shaft tracker, 1/s, Q16.16 (as i64).
+    pub beta_over_dt_q16: i64,
     /// Cylinders.
     pub cyl: [CylinderCoeffs; 4],
-    /// Lever arm d (m) vs s·θ (rad), per geometry.
+    /// Lever arm d (mm) vs s·θ (rad), per geometry. In mm so that d·F stays exact to
+    /// 0.01 N·m (in m, Q16.16 would quantise the arm to 1e-4 of itself).
     pub arm: [Table1<N_ARM>; 4],
+    /// Rod-eye extension x (mm) vs s·θ (rad), per geometry.
+    pub ext: [Table1<N_ARM>; 4],
+    /// Compression strain from nominal LP to P2 (volume fraction) vs P2.
+    pub dstrain: Table1<N_NODE>,
     /// Valve (= motor) flow, L/min, vs (aperture %, P2 − LP bar), motor on its load line.
     pub valve_flow: Table2<N_APERTURE, N_PRESSURE>,
     /// Autonomy, s, vs (aperture %, P2 bar), input blocked, LP nominal.
     pub autonomy: Table2<N_APERTURE, N_PRESSURE>,
     /// dP2/dt per net HP inflow, bar/s per L/min, vs P2.
-    pub inv_c_hp: Table1<N_PRESSURE>,
+    pub inv_c_hp: Table1<N_NODE>,
     /// dLP/dt per net LP inflow, bar/s per L/min, vs LP.
     pub inv_c_lp: Table1<N_PRESSURE>,
     /// Motor speed per valve flow, rpm per L/min (Eq. 9 with the load line).
@@ -74,8 +90,10 @@ pub struct Coefficients {
     pub relief_setting: Fx,
     /// Relief gain, L/min per bar.
     pub relief_gain: Fx,
-    /// Process noise added to the P2 variance per step, bar².
-    pub q_step: Fx,
+    /// Process noise added to the P2 variance per step vs P2, bar²: the model's flow
+    /// uncertainty times the node's dP2/dV, so an empty accumulator (tiny capacitance) makes the
+    /// filter follow the transducer.
+    pub q_step: Table1<N_NODE>,
     /// Measurement variance, bar².
     pub r: Fx,
     /// Kalman gain vs prior variance on [0, r].
@@ -104,6 +122,10 @@ pub struct Coefficients {
     pub mean_gain: Fx,
     /// Motor speed → motor pressure drop, bar per rpm (load line).
     pub bar_per_rpm: Fx,
+    /// Rod-fixation free play, mm.
+    pub play_mm: Fx,
+    /// Open check-valve pressure drop, bar.
+    pub check_drop: Fx,
 }
 
 /// Trapped-air bulk modulus (physics.md), bar.
@@ -160,6 +182,14 @@ fn arm_m(g: &crate::config::GeometryConfig, stroke_mm: f32, theta: f32) -> f32 {
     let phi = libm::acosf(c0) + theta;
     let cb = sqrtf(r * r + oc * oc - 2.0 * r * oc * cosf(phi));
     r * oc * sinf(phi) / cb
+}
+
+/// Rod-eye extension x = CB − L, mm.
+fn ext_mm(g: &crate::config::GeometryConfig, stroke_mm: f32, theta: f32) -> f32 {
+    let (r, oc, mid) = (g.ob_mm, g.oc_mm, g.ac_mm + 0.5 * stroke_mm);
+    let c0 = ((r * r + oc * oc - mid * mid) / (2.0 * r * oc)).clamp(-1.0, 1.0);
+    let phi = libm::acosf(c0) + theta;
+    sqrtf(r * r + oc * oc - 2.0 * r * oc * cosf(phi)) - g.ac_mm
 }
 
 impl ModelConfig {
@@ -239,41 +269,47 @@ impl ModelConfig {
         let two_pi = 2.0 * core::f64::consts::PI;
         let rad_per_count_q32 =
             (two_pi / f64::from(self.encoder_counts_per_rev) * 4_294_967_296.0) as i64;
-        // Critically damped α–β tracker: r = exp(−ω_n dt), α = 1 − r², β = (1 − r)².
+        // Critically damped (fading-memory) α–β tracker: r = exp(−2π·bw·dt), α = 1 − r²,
+        // β = (1 − r)². Its speed lags the shaft by ≈2/(2π·bw) (64 ms at 5 Hz). An α–β–γ
+        // tracker removes that lag, but the reversal phases of the torque model below were
+        // tuned against the full simulation with it and came out worse (see the README).
         let rr = expf(-2.0 * core::f32::consts::PI * self.encoder_bandwidth_hz * dt);
         let alpha = 1.0 - rr * rr;
         let beta = (1.0 - rr) * (1.0 - rr);
         let lp_nom = self.nominal_lp_bar;
-        let play_mm = self.free_play_mm;
         let cyl = core::array::from_fn(|i| {
             let c = &self.cylinders[i];
             let a_cap = core::f32::consts::PI / 4.0 * c.bore_mm * c.bore_mm * 1e-6;
             let a_ann = a_cap - core::f32::consts::PI / 4.0 * c.rod_mm * c.rod_mm * 1e-6;
-            let lag = |area: f32| {
-                // Chamber at mid-stroke; volumes in mL.
-                let v_ch = self.chamber_dead_volume_cm3 + area * 1e6 * c.stroke_mm * 0.05;
-                let play = area * 1e6 * play_mm * 0.1;
-                Table1::sample(0.0, P_MAX_BAR, |p| {
-                    let comp = v_ch * (strain(self, p.max(lp_nom)) - strain(self, lp_nom));
-                    1.0 / (play + comp).max(0.01)
-                })
-            };
             CylinderCoeffs {
                 side: fx(f32::from(c.side)),
-                q_cap: fx(a_cap * 6e4),
-                q_ann: fx(a_ann * 6e4),
+                q_cap: fx(a_cap * 60.0),
+                q_ann: fx(a_ann * 60.0),
                 f_cap: fx(a_cap * 100.0),
                 f_ann: fx(a_ann * 100.0),
-                inv_lag_cap: lag(a_cap),
-                inv_lag_rod: lag(a_ann),
+                dead_cap_mm: fx(self.chamber_dead_volume_cm3 * 1e-6 / a_cap * 1e3),
+                dead_rod_mm: fx(self.chamber_dead_volume_cm3 * 1e-6 / a_ann * 1e3),
+                stroke_mm: fx(c.stroke_mm),
+                ratio_ext: fx(a_ann / a_cap),
+                ratio_ret: fx(a_cap / a_ann),
             }
         });
         let stroke = self.cylinders[0].stroke_mm;
         let arm = core::array::from_fn(|g| {
             let geo = self.geometries[g];
             Table1::sample(-ARM_RANGE_RAD, ARM_RANGE_RAD, move |th| {
-                arm_m(&geo, stroke, th)
+                1e3 * arm_m(&geo, stroke, th)
             })
+        });
+        let ext = core::array::from_fn(|g| {
+            let geo = self.geometries[g];
+            Table1::sample(-ARM_RANGE_RAD, ARM_RANGE_RAD, move |th| {
+                ext_mm(&geo, stroke, th)
+            })
+        });
+        let s_lp = strain(self, lp_nom);
+        let dstrain = Table1::sample(0.0, P_MAX_BAR, |p| {
+            (strain(self, p.max(lp_nom)) - s_lp).max(1e-4)
         });
         let valve_flow = Table2::sample((0.0, 100.0), (0.0, P_MAX_BAR), |a, dp| {
             self.steady_flow(a, dp)
@@ -289,16 +325,21 @@ impl ModelConfig {
             (dt / (self.spool_time_constant_ms * 1e-3)).min(1.0)
         };
         let r = self.pressure_noise_bar * self.pressure_noise_bar;
-        let q = self.process_noise_bar_per_sqrt_s * self.process_noise_bar_per_sqrt_s * dt;
+        // LP: steady-state gain for the flow uncertainty at nominal LP.
+        let ic_lp = 1.0 / (60.0 * capacitance(self, &self.lp, lp_nom));
+        let qf = self.process_noise_lpm_per_sqrt_s * ic_lp;
+        let q = qf * qf * dt;
         let gain = |v: f32| v / (v + r);
         let pp = 0.5 * (q + sqrtf(q * q + 4.0 * q * r));
         Ok(Coefficients {
             dt_log2: k,
             rad_per_count_q32,
-            alpha: fx(alpha),
-            beta_over_dt: fx(beta / dt),
+            alpha_q31: (f64::from(alpha) * 2_147_483_648.0) as i64,
+            beta_over_dt_q16: (f64::from(beta / dt) * 65_536.0) as i64,
             cyl,
             arm,
+            ext,
+            dstrain,
             valve_flow,
             autonomy,
             inv_c_hp,
@@ -307,7 +348,11 @@ impl ModelConfig {
             spool_gain: fx(spool_gain),
             relief_setting: fx(self.relief_setting_bar),
             relief_gain: fx(self.relief_gain_lpm_per_bar),
-            q_step: fx(q).max(Fx::DELTA),
+            q_step: Table1::sample(0.0, P_MAX_BAR, |p| {
+                let ic = 1.0 / (60.0 * capacitance(self, &self.hp, p));
+                let qf = self.process_noise_lpm_per_sqrt_s * ic;
+                (qf * qf * dt).max(1.0 / 65_536.0)
+            }),
             r: fx(r),
             gain_fine: Table1::sample(0.0, r, gain),
             gain_coarse: Table1::sample(0.0, 32.0 * r, gain),
@@ -328,6 +373,8 @@ impl ModelConfig {
             autonomy_min_rpm: fx(self.autonomy_min_rpm),
             mean_gain: fx(dt / 10.0).max(Fx::DELTA),
             bar_per_rpm: fx(self.bar_per_rpm()),
+            play_mm: fx(self.free_play_mm),
+            check_drop: fx(self.check_valve_drop_bar),
         })
     }
 }

@@ -77,6 +77,9 @@ pub struct ModelConfig {
     pub valve_area_mm2: [f32; 11],
     /// Spool time constant, ms (0 = ideal).
     pub spool_time_constant_ms: f32,
+    /// Pressure drop across an open bridge check valve, bar: the delivering chamber sits this
+    /// much above P2 and the sucking one this much below LP.
+    pub check_valve_drop_bar: f32,
     /// Relief setting, bar.
     pub relief_setting_bar: f32,
     /// Relief flow gained per bar above the setting, L/min/bar.
@@ -97,8 +100,9 @@ pub struct ModelConfig {
     pub motor_sensor_max_rpm: f32,
     /// HP/LP transducer noise (1σ), bar.
     pub pressure_noise_bar: f32,
-    /// Model (process) uncertainty growth of P2, bar per √s.
-    pub process_noise_bar_per_sqrt_s: f32,
+    /// Model (process) uncertainty of the net node flow, L/min per √s (P2's uncertainty grows
+    /// by this times dP2/dV of the HP node).
+    pub process_noise_lpm_per_sqrt_s: f32,
     /// Innovation gate, in standard deviations.
     pub gate_sigma: f32,
     /// After this long of consecutive rejected HP readings the estimate is reset to them, ms.
@@ -174,7 +178,7 @@ impl ModelConfig {
         ModelConfig {
             dt_log2: 10,
             encoder_counts_per_rev: 16_384,
-            encoder_bandwidth_hz: 2.0,
+            encoder_bandwidth_hz: 5.0,
             cylinders: [
                 small,
                 big,
@@ -214,9 +218,12 @@ impl ModelConfig {
                 0.0, 1.136, 2.756, 5.336, 8.876, 13.376, 18.836, 25.256, 32.636, 38.42, 44.18,
             ],
             spool_time_constant_ms: 50.0,
+            // Between cracking (0.5 bar) and full opening (1.5 bar) at the test flows.
+            check_valve_drop_bar: 0.7,
             relief_setting_bar: 130.0,
-            // Cd·A_max/range·sqrt(2·p/ρ): 0.7 × 10 mm² / 3 bar × sqrt(2 × 130 bar / 870) in L/min/bar.
-            relief_gain_lpm_per_bar: 16.8,
+            // Cd·A_max/range·sqrt(2·Δp/ρ) with Δp = 130 − 8 bar:
+            // 0.7 × 10 mm² / 3 bar × sqrt(2 × 122 bar / 870 kg/m³), in L/min per bar.
+            relief_gain_lpm_per_bar: 23.4457,
             motor_displacement_cm3: 8.0,
             // D·ω_nom·(1 − η_v)/p_nom = 12 L/min × 0.08 / 100 bar.
             motor_leak_lpm_per_bar: 0.0096,
@@ -226,7 +233,8 @@ impl ModelConfig {
             lp_sensor_range_bar: (-2.0, 40.0),
             motor_sensor_max_rpm: 3000.0,
             pressure_noise_bar: 0.5,
-            process_noise_bar_per_sqrt_s: 0.5,
+            // 0.8 L/min/√s ≈ 0.5 bar/√s at 100 bar.
+            process_noise_lpm_per_sqrt_s: 0.8,
             gate_sigma: 5.0,
             gate_reset_ms: 250.0,
             trip_bar: 140.0,
@@ -320,6 +328,7 @@ impl ModelConfig {
             0.0,
             5000.0,
         )?;
+        check("check_valve_drop_bar", self.check_valve_drop_bar, 0.0, 20.0)?;
         check("relief_setting_bar", self.relief_setting_bar, 1.0, 300.0)?;
         check(
             "relief_gain_lpm_per_bar",
@@ -366,8 +375,8 @@ impl ModelConfig {
         )?;
         check("pressure_noise_bar", self.pressure_noise_bar, 0.001, 20.0)?;
         check(
-            "process_noise_bar_per_sqrt_s",
-            self.process_noise_bar_per_sqrt_s,
+            "process_noise_lpm_per_sqrt_s",
+            self.process_noise_lpm_per_sqrt_s,
             0.001,
             100.0,
         )?;

@@ -10,11 +10,12 @@
 //! implied by the bridge (delivering chamber at P2, suction at LP) → motor speed (Eq. 9 on the
 //! load line) and autonomy (table).
 
-use crate::coeffs::Coefficients;
+use crate::coeffs::{Coefficients, CylinderCoeffs, N_ARM};
 use crate::fx::{
     Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, Rpm, Seconds, Torque, ZERO, clamp,
-    mul_dt, sqrt0,
+    mul_dt, recip, sqrt0,
 };
+use crate::table::Table1;
 
 /// Fault flags (bit set).
 pub mod fault {
@@ -103,18 +104,26 @@ pub struct Estimate {
 pub struct CylState {
     /// Direction of the rod: 1 extending, −1 retracting, 0 unknown.
     pub dir: i8,
-    /// Progress through the reversal lag, 0..1 (1 = delivering).
-    pub lag: Fx,
+    /// Eye travel since the last reversal, mm (stops counting once delivering).
+    pub travel: Fx,
+    /// This stroke's compression travel of the new delivering chamber, mm.
+    pub x_n: Fx,
+    /// Its reciprocal, 1/mm.
+    pub inv_x_n: Fx,
+    /// Reciprocal of the old chamber's decompression travel, 1/mm.
+    pub inv_x_o: Fx,
+    /// Rod travel at which the chamber forces balance, mm.
+    pub u_bal: Fx,
 }
 
 /// Estimator state (≈ 100 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct State {
-    /// Shaft angle estimate, rad.
-    pub theta: Fx,
-    /// Shaft speed estimate, rad/s.
-    pub omega: Fx,
+    /// Shaft angle estimate, rad, Q32.32.
+    pub theta_q32: i64,
+    /// Shaft speed estimate, rad/s, Q32.32.
+    pub omega_q32: i64,
     /// The tracker has seen an encoder reading.
     pub enc_init: bool,
     /// Last encoder count.
@@ -154,33 +163,34 @@ impl State {
 const P_MIN: Fx = Fx::from_bits(-65_536); // −1 bar
 const P_MAX: Fx = Fx::from_bits(400 << 16);
 const FLOW_LIM: Fx = Fx::from_bits(1000 << 16);
+const OMEGA_LIM_Q32: i64 = 100 << 32;
 
 /// Advances the estimator by one step. Cannot fail; every reading may be missing or wrong.
 pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let dtl = k.dt_log2;
     let mut faults = 0u16;
-    // --- Shaft: α–β tracker on the encoder angle.
-    let pred_theta = s.theta.saturating_add(mul_dt(s.omega, dtl));
+    // --- Shaft: α–β tracker on the encoder angle, in Q32.32 (i64).
+    let half = 1i64 << (dtl - 1);
+    let pred_theta = s.theta_q32.saturating_add((s.omega_q32 + half) >> dtl);
     match inp.encoder {
         Some(count) => {
-            let theta_meas = Fx::from_bits(
-                ((i64::from(count) * k.rad_per_count_q32) >> 16)
-                    .clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32,
-            );
+            let theta_meas = i64::from(count).saturating_mul(k.rad_per_count_q32);
             if !s.enc_init {
-                s.theta = theta_meas;
-                s.omega = ZERO;
+                s.theta_q32 = theta_meas;
+                s.omega_q32 = 0;
                 s.enc_init = true;
                 s.enc_last = count;
                 s.hp_at_enc_change = inp.hp.map_or(s.p2, |p| p.0);
             } else {
-                let r = theta_meas.saturating_sub(pred_theta);
-                s.theta = pred_theta.saturating_add(k.alpha.saturating_mul(r));
-                s.omega = clamp(
-                    s.omega.saturating_add(k.beta_over_dt.saturating_mul(r)),
-                    Fx::from_bits(-100 << 16),
-                    Fx::from_bits(100 << 16),
-                );
+                // Residual clamped to ±0.5 rad so the products stay inside 63 bits.
+                let r = theta_meas
+                    .saturating_sub(pred_theta)
+                    .clamp(-(1i64 << 31), 1i64 << 31);
+                s.theta_q32 = pred_theta.saturating_add((r * k.alpha_q31 + (1 << 30)) >> 31);
+                s.omega_q32 = s
+                    .omega_q32
+                    .saturating_add((r * k.beta_over_dt_q16 + (1 << 15)) >> 16)
+                    .clamp(-OMEGA_LIM_Q32, OMEGA_LIM_Q32);
             }
             if count != s.enc_last {
                 s.enc_last = count;
@@ -200,10 +210,14 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         None => {
             // No reading: assume the input has stopped (the safe side for autonomy).
             faults |= fault::ENCODER;
-            s.theta = pred_theta;
-            s.omega = ZERO;
+            s.theta_q32 = pred_theta;
+            s.omega_q32 = 0;
         }
     }
+    let theta = Fx::from_bits(
+        ((s.theta_q32 + (1 << 15)) >> 16).clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32,
+    );
+    let omega = Fx::from_bits(((s.omega_q32 + (1 << 15)) >> 16) as i32);
     // --- Spool lag.
     let cmd = clamp(inp.aperture_cmd.0, ZERO, Fx::from_num(100));
     s.aperture = s
@@ -211,11 +225,11 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         .saturating_add(k.spool_gain.saturating_mul(cmd.saturating_sub(s.aperture)));
     // --- Cylinders: delivered flow, suction flow, torque.
     let config = usize::from(inp.config);
-    let (arm_table, duty) = match k.arm.get(config) {
-        Some(t) => (t, inp.on_duty),
-        None => {
+    let (arm_table, ext_table, duty) = match (k.arm.get(config), k.ext.get(config)) {
+        (Some(a), Some(e)) => (a, e, inp.on_duty),
+        _ => {
             faults |= fault::BAD_CONFIG;
-            (&k.arm[0], 0)
+            (&k.arm[0], &k.ext[0], 0)
         }
     };
     let mut q_pump = ZERO;
@@ -223,78 +237,13 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let mut torque_cyl = [Torque::ZERO; 4];
     let mut torque = ZERO;
     for (i, (c, cs)) in k.cyl.iter().zip(s.cyl.iter_mut()).enumerate() {
-        let th = c.side.saturating_mul(s.theta);
-        let d = arm_table.at(th);
-        // Rod speed, m/s: v = s·d·θ̇.
-        let v = c.side.saturating_mul(d).saturating_mul(s.omega);
         let on = duty & (1 << i) != 0;
-        let tq;
-        if on {
-            let dir: i8 = if v > ZERO {
-                1
-            } else if v < ZERO {
-                -1
-            } else {
-                cs.dir
-            };
-            if dir != cs.dir {
-                cs.dir = dir;
-                cs.lag = ZERO;
-            }
-            let speed = v.abs();
-            // Extending: the rod chamber delivers, the cap chamber sucks.
-            let (q_del, q_suc, inv_lag) = if dir >= 0 {
-                (
-                    c.q_ann.saturating_mul(speed),
-                    c.q_cap.saturating_mul(speed),
-                    &c.inv_lag_rod,
-                )
-            } else {
-                (
-                    c.q_cap.saturating_mul(speed),
-                    c.q_ann.saturating_mul(speed),
-                    &c.inv_lag_cap,
-                )
-            };
-            if cs.lag < ONE {
-                // mL this step = L/min × 1000/60 × dt.
-                let ml = mul_dt(q_del.saturating_mul(Fx::from_bits(1_092_267)), dtl); // 16.6667
-                cs.lag = cs
-                    .lag
-                    .saturating_add(ml.saturating_mul(inv_lag.at(s.p2)))
-                    .min(ONE);
-            } else {
-                // After the lag both chambers exchange oil with the nodes; before it, the
-                // old delivering chamber decompresses into the growing volume instead of
-                // drawing from LP.
-                q_pump = q_pump.saturating_add(q_del);
-                q_lp_net = q_lp_net.saturating_add(q_suc);
-            }
-            // Delivering chamber pressure ramps from LP to P2 over the lag.
-            let p_del =
-                s.lp.saturating_add(cs.lag.saturating_mul(s.p2.saturating_sub(s.lp)));
-            let (p_cap, p_rod) = if dir >= 0 {
-                (s.lp, p_del)
-            } else {
-                (p_del, s.lp)
-            };
-            let f_hyd = p_cap
-                .saturating_mul(c.f_cap)
-                .saturating_sub(p_rod.saturating_mul(c.f_ann)); // kN
-            tq = c
-                .side
-                .saturating_mul(d)
-                .saturating_mul(f_hyd)
-                .saturating_neg();
-        } else {
-            // Idle: bypassed to LP; LP·A_rod pushes the rod out, the rod volume flows to LP.
-            let a_rod_q = c.q_cap.saturating_sub(c.q_ann);
-            q_lp_net = q_lp_net.saturating_add(a_rod_q.saturating_mul(v));
-            let f = s.lp.saturating_mul(c.f_cap.saturating_sub(c.f_ann));
-            tq = c.side.saturating_mul(d).saturating_mul(f).saturating_neg();
-        }
-        // kN·m → N·m.
-        let tq_nm = tq.saturating_mul(Fx::from_bits(1000 << 16));
+        let o = cylinder(k, c, cs, arm_table, ext_table, on, theta, omega, s.p2, s.lp);
+        q_pump = q_pump.saturating_add(o.q_pump);
+        q_lp_net = q_lp_net.saturating_add(o.q_lp);
+        let tq = o.torque_nm;
+        // mm·kN = N·m.
+        let tq_nm = tq;
         torque_cyl[i] = Torque(tq_nm);
         torque = torque.saturating_add(tq_nm);
     }
@@ -327,7 +276,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         P_MIN,
         P_MAX,
     );
-    s.var = s.var.saturating_add(k.q_step);
+    s.var = s.var.saturating_add(k.q_step.at(s.p2));
     s.q_mean = s
         .q_mean
         .saturating_add(k.mean_gain.saturating_mul(q_pump.saturating_sub(s.q_mean)));
@@ -380,8 +329,8 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         p2: Pressure(s.p2),
         p2_sigma: Pressure(sqrt0(s.var)),
         lp: Pressure(s.lp),
-        theta: Angle(s.theta),
-        omega: AngularSpeed(s.omega),
+        theta: Angle(theta),
+        omega: AngularSpeed(omega),
         q_pump: Flow(q_pump),
         q_pump_mean: Flow(s.q_mean),
         q_valve: Flow(q_valve),
@@ -393,4 +342,130 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         aperture: Aperture(s.aperture),
         faults,
     }
+}
+
+/// One cylinder's contribution to the step (kept out of line: the step would otherwise carry
+/// four unrolled copies of it, ×4 the flash).
+#[derive(Clone, Copy, Default)]
+struct CylOut {
+    q_pump: Fx,
+    q_lp: Fx,
+    torque_nm: Fx,
+}
+
+/// Flows (L/min) and torque (N·m) of one cylinder; advances its stroke state.
+#[allow(clippy::too_many_arguments)]
+#[inline(never)]
+fn cylinder(
+    k: &Coefficients,
+    c: &CylinderCoeffs,
+    cs: &mut CylState,
+    arm_table: &Table1<N_ARM>,
+    ext_table: &Table1<N_ARM>,
+    on: bool,
+    theta: Fx,
+    omega: Fx,
+    p2: Fx,
+    lp: Fx,
+) -> CylOut {
+    let dtl = k.dt_log2;
+    let mut out = CylOut::default();
+    let th = c.side.saturating_mul(theta);
+    let d = arm_table.at(th);
+    // Rod speed, mm/s: v = s·d·θ̇.
+    let v = c.side.saturating_mul(d).saturating_mul(omega);
+    let tq;
+    if on {
+        let dir: i8 = if v > ZERO {
+            1
+        } else if v < ZERO {
+            -1
+        } else {
+            cs.dir
+        };
+        // After a reversal (eye travel e since it, mm): the rod first follows the lever
+        // while the old delivering chamber decompresses and the new one compresses, until
+        // their forces balance at u_bal; the eye then crosses the free play with the rod
+        // standing; then the rod moves again until the new chamber reaches P2 and delivers.
+        // The rod's own travel u sets both chamber pressures, linear in u over each
+        // chamber's compression travel x = (dead length + chamber length)·Δstrain(P2),
+        // evaluated once per stroke at the reversal.
+        if dir != cs.dir {
+            let pos = ext_table.at(th);
+            let ds = k.dstrain.at(p2);
+            let x_cap = c.dead_cap_mm.saturating_add(pos).saturating_mul(ds);
+            let x_rod = c
+                .dead_rod_mm
+                .saturating_add(c.stroke_mm.saturating_sub(pos))
+                .saturating_mul(ds);
+            let (x_n, x_o, ratio) = if dir >= 0 {
+                (x_rod, x_cap, c.ratio_ext)
+            } else {
+                (x_cap, x_rod, c.ratio_ret)
+            };
+            cs.x_n = x_n;
+            cs.inv_x_n = recip(x_n);
+            cs.inv_x_o = recip(x_o);
+            // Forces balance where A_o(1 − u/x_o) = A_n·u/x_n: u = x_o·x_n/(x_n + r·x_o).
+            cs.u_bal = x_o
+                .saturating_mul(x_n)
+                .saturating_mul(recip(x_n.saturating_add(ratio.saturating_mul(x_o))));
+            // From rest (unknown direction) both chambers start at LP: skip to the play.
+            cs.travel = if cs.dir == 0 { cs.u_bal } else { ZERO };
+            cs.dir = dir;
+        }
+        let speed = v.abs();
+        let (q_del, q_suc) = if dir >= 0 {
+            (c.q_ann.saturating_mul(speed), c.q_cap.saturating_mul(speed))
+        } else {
+            (c.q_cap.saturating_mul(speed), c.q_ann.saturating_mul(speed))
+        };
+        let ub = cs.u_bal;
+        let e_end = cs.x_n.saturating_add(k.play_mm);
+        let u = if cs.travel <= ub {
+            cs.travel
+        } else if cs.travel <= ub.saturating_add(k.play_mm) {
+            ub
+        } else {
+            cs.travel.saturating_sub(k.play_mm)
+        };
+        let rise_new = clamp(u.saturating_mul(cs.inv_x_n), ZERO, ONE);
+        let rise_old = clamp(ONE.saturating_sub(u.saturating_mul(cs.inv_x_o)), ZERO, ONE);
+        if cs.travel < e_end {
+            // mm this step = mm/s × dt.
+            let mm = mul_dt(speed, dtl);
+            cs.travel = cs.travel.saturating_add(mm);
+        } else {
+            out.q_pump = q_del;
+        }
+        if rise_old == ZERO {
+            out.q_lp = q_suc;
+        }
+        // The chambers swing between LP − drop (sucking) and P2 + drop (delivering).
+        let lo = lp.saturating_sub(k.check_drop);
+        let dp_node = p2.saturating_add(k.check_drop).saturating_sub(lo);
+        let p_new = lo.saturating_add(rise_new.saturating_mul(dp_node));
+        let p_old = lo.saturating_add(rise_old.saturating_mul(dp_node));
+        let (p_cap, p_rod) = if dir >= 0 {
+            (p_old, p_new)
+        } else {
+            (p_new, p_old)
+        };
+        let f_hyd = p_cap
+            .saturating_mul(c.f_cap)
+            .saturating_sub(p_rod.saturating_mul(c.f_ann)); // kN
+        tq = c
+            .side
+            .saturating_mul(d)
+            .saturating_mul(f_hyd)
+            .saturating_neg();
+    } else {
+        // Idle: bypassed to LP; LP·A_rod pushes the rod out, the rod volume flows to LP.
+        let a_rod_q = c.q_cap.saturating_sub(c.q_ann);
+        out.q_lp = a_rod_q.saturating_mul(v);
+        let f = lp.saturating_mul(c.f_cap.saturating_sub(c.f_ann));
+        tq = c.side.saturating_mul(d).saturating_mul(f).saturating_neg();
+    }
+    out.torque_nm = tq;
+    out
 }

@@ -44,8 +44,9 @@ impl<const N: usize> Table1<N> {
         }
     }
 
-    /// Interpolated value at `x`.
-    #[inline]
+    /// Interpolated value at `x`. Out of line: it is called from ~20 places per step, and
+    /// inlining each copy cost more flash than the call.
+    #[inline(never)]
     pub fn at(&self, x: Fx) -> Fx {
         let (i, f) = locate(x, self.x0, self.inv_dx, N);
         let (a, b) = (self.y[i], self.y[i + 1]);
@@ -88,8 +89,8 @@ impl<const R: usize, const C: usize> Table2<R, C> {
         }
     }
 
-    /// Bilinear interpolation at (r, c).
-    #[inline]
+    /// Bilinear interpolation at (r, c) (out of line, like [`Table1::at`]).
+    #[inline(never)]
     pub fn at(&self, r: Fx, c: Fx) -> Fx {
         let (i, fr) = locate(r, self.r0, self.inv_dr, R);
         let (j, fc) = locate(c, self.c0, self.inv_dc, C);

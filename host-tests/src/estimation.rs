@@ -1,0 +1,487 @@
+//! The fixed-point model (`pto-model`) driven by sensor signals made from the full simulation,
+//! and an f64 implementation of the same reduced model to compare it with.
+
+use crate::bench::{BAR, Bench, Load};
+use crate::motion::Motion;
+use crate::scenario::{Scenario, ValveSpec};
+use crate::sim::{SimResult, Trace};
+use pto_model::config::{AccumulatorConfig, CylinderConfig, GeometryConfig};
+use pto_model::estimator::{self, Estimate, Inputs, State};
+use pto_model::fx::Fx;
+use pto_model::fx::{Aperture, Pressure, Rpm};
+use pto_model::table::{Table1, Table2};
+use pto_model::{Coefficients, ModelConfig};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+
+const RPM: f64 = 30.0 / std::f64::consts::PI;
+
+/// The model configuration of a bench (the firmware's is `ModelConfig::reference()`, which a test
+/// keeps equal to this for the reference bench).
+pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
+    let f = &b.file;
+    let load_nm_per_rpm = match b.load {
+        Load::Viscous(c) => c / RPM,
+        Load::Constant(_) => {
+            return Err("the reduced model supports the viscous generator load only".into());
+        }
+    };
+    let cylinders = std::array::from_fn(|i| CylinderConfig {
+        bore_mm: f.cylinder[i].bore_mm as f32,
+        rod_mm: f.cylinder[i].rod_mm as f32,
+        stroke_mm: f.cylinder[i].stroke_mm as f32,
+        side: f.cylinder[i].side as i8,
+    });
+    let geometries = std::array::from_fn(|i| GeometryConfig {
+        ob_mm: f.config[i].ob_mm as f32,
+        ac_mm: f.config[i].ac_mm as f32,
+        oc_mm: f.config[i].oc_mm as f32,
+    });
+    let acc = |a: &crate::bench::Accumulator, line: f64| AccumulatorConfig {
+        volume_l: (a.volume * 1e3) as f32,
+        precharge_bar: (a.precharge / BAR) as f32,
+        polytropic_index: a.index as f32,
+        line_volume_l: (line * 1e3) as f32,
+    };
+    let table = |v: &[f64]| -> Result<[f32; 11], String> {
+        let a: Vec<f32> = v.iter().map(|x| *x as f32).collect();
+        a.try_into()
+            .map_err(|_| "the reduced model needs an 11-point valve table".to_string())
+    };
+    // Relief: flow gained per bar above the setting, d/dp of Cd·A(p)·sqrt(2Δp/ρ) at the setting.
+    let relief_gain = b.relief_cd * b.relief_area / b.relief_range
+        * (2.0 * (b.relief_setting - 8.0 * BAR) / b.oil.density).sqrt()
+        * 6e4
+        * BAR;
+    let r = ModelConfig::reference();
+    let c = ModelConfig {
+        cylinders,
+        geometries,
+        free_play_mm: (b.free_play * 1e3) as f32,
+        chamber_dead_volume_cm3: (b.chamber_dead_volume * 1e6) as f32,
+        oil_bulk_modulus_mpa: (b.oil.liquid_modulus * 1e-6) as f32,
+        oil_density_kg_m3: b.oil.density as f32,
+        trapped_air_fraction: b.oil.air_fraction as f32,
+        hp: acc(&b.hp_acc, b.hp_line_volume),
+        lp: acc(&b.lp_acc, b.lp_line_volume),
+        valve_cd: b.valve_cd as f32,
+        valve_aperture_pct: table(&f.control_valve.aperture_pct)?,
+        valve_area_mm2: table(&f.control_valve.area_mm2)?,
+        spool_time_constant_ms: (b.spool_tau * 1e3) as f32,
+        relief_setting_bar: (b.relief_setting / BAR) as f32,
+        relief_gain_lpm_per_bar: relief_gain as f32,
+        motor_displacement_cm3: f.motor.displacement_cm3_per_rev as f32,
+        motor_leak_lpm_per_bar: (b.motor_leak * 6e4 * BAR) as f32,
+        motor_mech_efficiency: b.motor_eta_mech as f32,
+        load_nm_per_rpm: load_nm_per_rpm as f32,
+        ..r
+    };
+    c.validate().map_err(|e| e.to_string())?;
+    Ok(c)
+}
+
+/// How the bench's sensors see the plant.
+#[derive(Debug, Clone, Copy)]
+pub struct SensorSpec {
+    /// Encoder counts per shaft revolution.
+    pub counts_per_rev: u32,
+    /// 12-bit ADC full scale of the HP transducer, bar.
+    pub hp_full_scale_bar: f64,
+    /// Same for LP.
+    pub lp_full_scale_bar: f64,
+    /// ADC bits.
+    pub adc_bits: u32,
+    /// HP noise σ, bar.
+    pub hp_noise_bar: f64,
+    /// LP noise σ, bar.
+    pub lp_noise_bar: f64,
+    /// Motor speed noise σ, rpm.
+    pub motor_noise_rpm: f64,
+}
+
+impl Default for SensorSpec {
+    fn default() -> Self {
+        SensorSpec {
+            counts_per_rev: 16_384,
+            hp_full_scale_bar: 250.0,
+            lp_full_scale_bar: 40.0,
+            adc_bits: 12,
+            hp_noise_bar: 0.5,
+            lp_noise_bar: 0.2,
+            motor_noise_rpm: 2.0,
+        }
+    }
+}
+
+/// Plant values at one instant (linear interpolation of a trace).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Truth {
+    /// P2, bar.
+    pub p2: f64,
+    /// LP, bar.
+    pub lp: f64,
+    /// Restraining torque, N·m.
+    pub torque: f64,
+    /// Motor speed, rpm.
+    pub motor_rpm: f64,
+}
+
+/// Interpolates a trace.
+pub fn truth_at(tr: &Trace, t: f64) -> Truth {
+    let n = tr.len();
+    let k = tr.t.partition_point(|&x| x <= t).clamp(1, n - 1);
+    let (t0, t1) = (tr.t[k - 1], tr.t[k]);
+    let u = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0);
+    let l = |v: &[f64]| v[k - 1] + u * (v[k] - v[k - 1]);
+    Truth {
+        p2: l(&tr.p2) / BAR,
+        lp: l(&tr.lp) / BAR,
+        torque: l(&tr.torque),
+        motor_rpm: l(&tr.omega) * RPM,
+    }
+}
+
+/// Makes sensor readings: quantised encoder, 12-bit pressures with Gaussian noise.
+pub struct SensorSynth {
+    spec: SensorSpec,
+    rng: ChaCha8Rng,
+    hp_noise: Normal<f64>,
+    lp_noise: Normal<f64>,
+    motor_noise: Normal<f64>,
+}
+
+impl SensorSynth {
+    /// A seeded synthesiser.
+    pub fn new(spec: SensorSpec, seed: u64) -> Self {
+        SensorSynth {
+            spec,
+            rng: ChaCha8Rng::seed_from_u64(seed),
+            hp_noise: Normal::new(0.0, spec.hp_noise_bar.max(1e-12))
+                .unwrap_or_else(|_| unreachable!()),
+            lp_noise: Normal::new(0.0, spec.lp_noise_bar.max(1e-12))
+                .unwrap_or_else(|_| unreachable!()),
+            motor_noise: Normal::new(0.0, spec.motor_noise_rpm.max(1e-12))
+                .unwrap_or_else(|_| unreachable!()),
+        }
+    }
+
+    fn adc(&self, p: f64, full_scale: f64) -> f64 {
+        let lsb = full_scale / f64::from((1u32 << self.spec.adc_bits) - 1);
+        (p.clamp(0.0, full_scale) / lsb).round() * lsb
+    }
+
+    /// Encoder count of a shaft angle.
+    pub fn encoder(&self, theta: f64) -> i32 {
+        (theta / (2.0 * std::f64::consts::PI) * f64::from(self.spec.counts_per_rev)).round() as i32
+    }
+
+    /// Readings of the plant state `truth` at shaft angle `theta`.
+    pub fn read(&mut self, theta: f64, truth: &Truth) -> (i32, f64, f64, f64) {
+        let n_hp = self.hp_noise.sample(&mut self.rng);
+        let n_lp = self.lp_noise.sample(&mut self.rng);
+        let hp = self.adc(truth.p2 + n_hp, self.spec.hp_full_scale_bar);
+        let lp = self.adc(truth.lp + n_lp, self.spec.lp_full_scale_bar);
+        let motor = (truth.motor_rpm + self.motor_noise.sample(&mut self.rng)).max(0.0);
+        (self.encoder(theta), hp, lp, motor)
+    }
+}
+
+/// The aperture the scenario commands at time t (the trace holds the spool's lagged aperture).
+pub fn commanded_aperture_pct(s: &Scenario, res: &SimResult, t: f64) -> f64 {
+    match &s.valve {
+        ValveSpec::Constant { aperture_pct } => *aperture_pct,
+        ValveSpec::Threshold { aperture_pct, .. } => match res.valve_opened_at {
+            Some(t0) if t >= t0 => *aperture_pct,
+            _ if res.trace.aperture[0] > 0.0 => *aperture_pct,
+            _ => 0.0,
+        },
+        ValveSpec::Table {
+            time_s,
+            aperture_pct,
+        } => time_s
+            .iter()
+            .zip(aperture_pct)
+            .take_while(|(ts, _)| **ts <= t)
+            .last()
+            .map_or(0.0, |(_, a)| *a),
+    }
+}
+
+/// One step's inputs, in the model's types.
+pub fn inputs(
+    enc: Option<i32>,
+    hp: Option<f64>,
+    lp: Option<f64>,
+    motor: Option<f64>,
+    aperture_pct: f64,
+    on_duty: u8,
+    config: u8,
+) -> Inputs {
+    Inputs {
+        encoder: enc,
+        hp: hp.map(|v| Pressure::from_num(v as f32)),
+        lp: lp.map(|v| Pressure::from_num(v as f32)),
+        motor: motor.map(|v| Rpm::from_num(v as f32)),
+        aperture_cmd: Aperture::from_num(aperture_pct as f32),
+        on_duty,
+        config,
+    }
+}
+
+/// The duty mask of a boolean array.
+pub fn duty_mask(on: &[bool; 4]) -> u8 {
+    on.iter()
+        .enumerate()
+        .fold(0, |m, (i, b)| m | (u8::from(*b) << i))
+}
+
+/// The same reduced model as `pto_model::estimator` in f64 arithmetic: same equations, same
+/// table nodes (read from the coefficients and interpolated in f64), f64 state, exact divisions
+/// and square roots. The difference to the fixed-point estimator is its arithmetic error alone;
+/// the model's own error is what the comparison with the full simulation measures.
+pub struct Reference {
+    cfg: ModelConfig,
+    k: std::rc::Rc<Coefficients>,
+    dt: f64,
+    theta: f64,
+    omega: f64,
+    init: bool,
+    /// P2, bar.
+    pub p2: f64,
+    var: f64,
+    /// LP, bar.
+    pub lp: f64,
+    aperture: f64,
+    dir: [i8; 4],
+    lag: [f64; 4],
+    rejected: u32,
+    stroke: [(f64, f64, f64); 4],
+}
+
+/// f64 outputs of the reference.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct RefOut {
+    /// P2, bar.
+    pub p2: f64,
+    /// Torque, N·m.
+    pub torque: f64,
+    /// Motor speed, rpm.
+    pub motor_rpm: f64,
+}
+
+impl Reference {
+    /// Starts from known pressures.
+    pub fn new(cfg: &ModelConfig, k: &Coefficients, p2: f64, lp: f64, sigma: f64) -> Self {
+        Reference {
+            cfg: cfg.clone(),
+            k: std::rc::Rc::new(k.clone()),
+            dt: 2f64.powi(-i32::from(cfg.dt_log2)),
+            theta: 0.0,
+            omega: 0.0,
+            init: false,
+            p2,
+            var: sigma * sigma,
+            lp,
+            aperture: 0.0,
+            dir: [0; 4],
+            lag: [0.0; 4],
+            rejected: 0,
+            stroke: [(1.0, 1.0, 0.0); 4],
+        }
+    }
+
+    fn t1<const N: usize>(t: &Table1<N>, x: f64) -> f64 {
+        let (x0, inv) = (t.x0.to_num::<f64>(), t.inv_dx.to_num::<f64>());
+        let u = ((x - x0) * inv).clamp(0.0, (N - 1) as f64);
+        let i = (u as usize).min(N - 2);
+        let f = u - i as f64;
+        let (a, b) = (t.y[i].to_num::<f64>(), t.y[i + 1].to_num::<f64>());
+        a + f * (b - a)
+    }
+
+    fn t2<const R: usize, const C: usize>(t: &Table2<R, C>, r: f64, c: f64) -> f64 {
+        let loc = |x: f64, x0: Fx, inv: Fx, n: usize| {
+            let u = ((x - x0.to_num::<f64>()) * inv.to_num::<f64>()).clamp(0.0, (n - 1) as f64);
+            let i = (u as usize).min(n - 2);
+            (i, u - i as f64)
+        };
+        let (i, fr) = loc(r, t.r0, t.inv_dr, R);
+        let (j, fc) = loc(c, t.c0, t.inv_dc, C);
+        let y = |a: usize, b: usize| t.y[a][b].to_num::<f64>();
+        let lo = y(i, j) + fc * (y(i, j + 1) - y(i, j));
+        let hi = y(i + 1, j) + fc * (y(i + 1, j + 1) - y(i + 1, j));
+        lo + fr * (hi - lo)
+    }
+
+    /// One step, mirroring `pto_model::estimator::step`.
+    pub fn step(&mut self, inp: &Inputs) -> RefOut {
+        let c = self.cfg.clone();
+        let k = self.k.clone();
+        let k = &*k;
+        let dt = self.dt;
+        let rr = (-2.0 * std::f64::consts::PI * f64::from(c.encoder_bandwidth_hz) * dt).exp();
+        let (alpha, beta) = (1.0 - rr * rr, (1.0 - rr) * (1.0 - rr));
+        let pred = self.theta + self.omega * dt;
+        match inp.encoder {
+            Some(n) => {
+                let meas =
+                    f64::from(n) * 2.0 * std::f64::consts::PI / f64::from(c.encoder_counts_per_rev);
+                if !self.init {
+                    self.theta = meas;
+                    self.omega = 0.0;
+                    self.init = true;
+                } else {
+                    let r = meas - pred;
+                    self.theta = pred + alpha * r;
+                    self.omega += beta / dt * r;
+                }
+            }
+            None => {
+                self.theta = pred;
+                self.omega = 0.0;
+            }
+        }
+        let spool = if c.spool_time_constant_ms <= 0.0 {
+            1.0
+        } else {
+            (dt / (f64::from(c.spool_time_constant_ms) * 1e-3)).min(1.0)
+        };
+        self.aperture +=
+            spool * (f64::from(inp.aperture_cmd.to_f32()).clamp(0.0, 100.0) - self.aperture);
+        let config = usize::from(inp.config).min(3);
+        let (mut q_pump, mut q_lp, mut torque) = (0.0, 0.0, 0.0);
+        for i in 0..4 {
+            let cc = &k.cyl[i];
+            let f = |x: Fx| x.to_num::<f64>();
+            let side = f(cc.side);
+            let d = Self::t1(&k.arm[config], side * self.theta); // mm
+            let v = side * d * self.omega; // mm/s
+            if inp.on_duty & (1 << i) != 0 {
+                let dir: i8 = if v > 0.0 {
+                    1
+                } else if v < 0.0 {
+                    -1
+                } else {
+                    self.dir[i]
+                };
+                let play = f(k.play_mm);
+                if dir != self.dir[i] {
+                    let pos = Self::t1(&k.ext[config], side * self.theta);
+                    let ds = Self::t1(&k.dstrain, self.p2);
+                    let x_cap = (f(cc.dead_cap_mm) + pos) * ds;
+                    let x_rod = (f(cc.dead_rod_mm) + f(cc.stroke_mm) - pos) * ds;
+                    let (x_n, x_o, ratio) = if dir >= 0 {
+                        (x_rod, x_cap, f(cc.ratio_ext))
+                    } else {
+                        (x_cap, x_rod, f(cc.ratio_ret))
+                    };
+                    let ub = x_o * x_n / (x_n + ratio * x_o);
+                    self.stroke[i] = (x_n, x_o, ub);
+                    self.lag[i] = if self.dir[i] == 0 { ub } else { 0.0 };
+                    self.dir[i] = dir;
+                }
+                let (x_n, x_o, ub) = self.stroke[i];
+                let e = self.lag[i];
+                let u = if e <= ub {
+                    e
+                } else if e <= ub + play {
+                    ub
+                } else {
+                    e - play
+                };
+                let rise_new = (u / x_n).clamp(0.0, 1.0);
+                let rise_old = (1.0 - u / x_o).clamp(0.0, 1.0);
+                let (q_del, q_suc) = if dir >= 0 {
+                    (f(cc.q_ann) * v.abs(), f(cc.q_cap) * v.abs())
+                } else {
+                    (f(cc.q_cap) * v.abs(), f(cc.q_ann) * v.abs())
+                };
+                if e < x_n + play {
+                    self.lag[i] += v.abs() * dt;
+                } else {
+                    q_pump += q_del;
+                }
+                if rise_old == 0.0 {
+                    q_lp += q_suc;
+                }
+                let drop = f(k.check_drop);
+                let lo = self.lp - drop;
+                let p_new = lo + rise_new * (self.p2 + drop - lo);
+                let p_old = lo + rise_old * (self.p2 + drop - lo);
+                let (p_cap, p_rod) = if dir >= 0 {
+                    (p_old, p_new)
+                } else {
+                    (p_new, p_old)
+                };
+                torque -= side * d * (p_cap * f(cc.f_cap) - p_rod * f(cc.f_ann));
+            } else {
+                q_lp += (f(cc.q_cap) - f(cc.q_ann)) * v;
+                torque -= side * d * self.lp * (f(cc.f_cap) - f(cc.f_ann));
+            }
+        }
+        let q_valve = Self::t2(&k.valve_flow, self.aperture, (self.p2 - self.lp).max(0.0));
+        let q_relief =
+            (self.p2 - k.relief_setting.to_num::<f64>()).max(0.0) * k.relief_gain.to_num::<f64>();
+        let motor_rpm = q_valve * k.rpm_per_lpm.to_num::<f64>();
+        let inv_c_hp = Self::t1(&k.inv_c_hp, self.p2);
+        self.p2 = (self.p2 + (q_pump - q_valve - q_relief) * inv_c_hp * dt).clamp(-1.0, 400.0);
+        self.lp = (self.lp + (q_valve + q_relief - q_lp) * Self::t1(&k.inv_c_lp, self.lp) * dt)
+            .clamp(-1.0, 400.0);
+        let r = f64::from(c.pressure_noise_bar).powi(2);
+        self.var += Self::t1(&k.q_step, self.p2);
+        if let Some(z) = inp.hp.map(|p| f64::from(p.to_f32())).filter(|p| {
+            *p >= f64::from(c.hp_sensor_range_bar.0) && *p <= f64::from(c.hp_sensor_range_bar.1)
+        }) {
+            let innov = z - self.p2;
+            if innov * innov <= f64::from(c.gate_sigma).powi(2) * (self.var + r) {
+                let g = if self.var < k.r.to_num::<f64>() {
+                    Self::t1(&k.gain_fine, self.var)
+                } else {
+                    Self::t1(&k.gain_coarse, self.var).clamp(0.0, 1.0)
+                };
+                self.p2 += g * innov;
+                self.var *= 1.0 - g;
+                self.rejected = 0;
+            } else {
+                self.rejected += 1;
+                if f64::from(self.rejected) * dt * 1e3 >= f64::from(c.gate_reset_ms) {
+                    self.p2 = z;
+                    self.var = r;
+                    self.rejected = 0;
+                }
+            }
+        }
+        if let Some(z) = inp.lp.map(|p| f64::from(p.to_f32())).filter(|p| {
+            *p >= f64::from(c.lp_sensor_range_bar.0) && *p <= f64::from(c.lp_sensor_range_bar.1)
+        }) {
+            self.lp += k.gain_lp.to_num::<f64>() * (z - self.lp);
+        }
+        RefOut {
+            p2: self.p2,
+            torque,
+            motor_rpm,
+        }
+    }
+}
+
+/// Runs the fixed-point estimator over `n` steps with a closure producing the inputs.
+pub fn run_fixed(
+    k: &Coefficients,
+    state: &mut State,
+    n: usize,
+    mut f: impl FnMut(usize, &Estimate) -> Inputs,
+    mut out: impl FnMut(usize, &Inputs, &Estimate),
+) {
+    let mut last = Estimate::default();
+    for i in 0..n {
+        let inp = f(i, &last);
+        last = estimator::step(k, state, &inp);
+        out(i, &inp, &last);
+    }
+}
+
+/// The angle of the plant's motion at t.
+pub fn shaft_angle(m: &Motion, t: f64) -> f64 {
+    m.at(t).0
+}

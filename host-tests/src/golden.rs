@@ -1,0 +1,204 @@
+//! Golden vectors: a committed file of model inputs → exact fixed-point outputs (raw Q16.16
+//! bits), checked on the host by `cargo test` and, bit for bit, inside the firmware.
+//!
+//! The inputs are 2048 consecutive steps of Test III at 10 % around the valve opening, made by
+//! the full simulation and the sensor model, with faults injected: HP reading missing, an HP wire
+//! break (reads −60 bar), noise bursts, a missing encoder. The estimator and the scheduler
+//! (holding P2 at 100 bar) run from a known start.
+
+use crate::bench::Bench;
+use crate::estimation::{self, SensorSpec, SensorSynth, model_config, truth_at};
+use pto_model::estimator::{self, Estimate, Inputs, State};
+use pto_model::fx::{Aperture, Pressure, Rpm};
+use pto_model::scheduler::{self, Command, Mode, Override, SchedulerConfig, SchedulerState};
+use pto_model::{Coefficients, ModelConfig};
+use std::fmt::Write as _;
+use std::path::Path;
+
+/// Where the vectors live.
+pub const FILE: &str = "data/golden-vectors.csv";
+/// Setpoint of the scheduler in the vectors, bar.
+pub const SETPOINT_BAR: f32 = 100.0;
+const HEADER: &str = "step,encoder,hp,lp,motor,aperture_cmd,on_duty,config,p2,p2_sigma,lp_est,q_pump,q_valve,q_relief,torque,motor_rpm,autonomy,aperture,faults,cmd_aperture,safety";
+
+/// Makes the 2048 input steps from the full simulation.
+pub fn make_inputs(bench: &Bench) -> Result<(Vec<Inputs>, f32, f32), String> {
+    let mut s = crate::scenario::builtin()
+        .into_iter()
+        .find(|s| s.name == "test3-ap10")
+        .ok_or("test3-ap10 missing")?;
+    s.sample_interval_s = 1.0 / 128.0;
+    s.duration_s = 60.0;
+    let prep = s
+        .prepare(bench, Path::new("."))
+        .map_err(|e| e.to_string())?;
+    let res = prep
+        .run(Default::default(), None)
+        .map_err(|e| e.to_string())?;
+    let t_open = res.valve_opened_at.unwrap_or(50.0);
+    let t0 = t_open - 1.0;
+    let mut synth = SensorSynth::new(SensorSpec::default(), 42);
+    let dt = 1.0 / 1024.0;
+    let start = truth_at(&res.trace, t0);
+    let mut v = Vec::new();
+    for i in 0..2048usize {
+        let t = t0 + i as f64 * dt;
+        let truth = truth_at(&res.trace, t);
+        let (enc, hp, lp, motor) = synth.read(prep.plant.motion().at(t).0, &truth);
+        let hp = match i {
+            600..900 => None,
+            1200..1260 => Some(-60.0),
+            1500..1520 => Some(hp + if i % 2 == 0 { 30.0 } else { -30.0 }),
+            _ => Some(hp),
+        };
+        let enc = if (1700..1750).contains(&i) {
+            None
+        } else {
+            Some(enc)
+        };
+        let ap = estimation::commanded_aperture_pct(&s, &res, t);
+        v.push(estimation::inputs(
+            enc,
+            hp,
+            Some(lp),
+            Some(motor),
+            ap,
+            0b1001,
+            0,
+        ));
+    }
+    Ok((v, start.p2 as f32, start.lp as f32))
+}
+
+/// Runs the model over the inputs from the known start.
+pub fn run(
+    k: &Coefficients,
+    inputs: &[Inputs],
+    p2: f32,
+    lp: f32,
+) -> Result<Vec<(Estimate, Command)>, String> {
+    let sc = SchedulerConfig::default()
+        .coefficients(k)
+        .map_err(|e| e.to_string())?;
+    let mut s = State::new(
+        Pressure::from_num(p2),
+        Pressure::from_num(lp),
+        Pressure::from_num(1.0),
+    );
+    let mut st = SchedulerState::default();
+    Ok(inputs
+        .iter()
+        .map(|inp| {
+            let e = estimator::step(k, &mut s, inp);
+            let c = scheduler::step(
+                k,
+                &sc,
+                &mut st,
+                Mode::HoldPressure(Pressure::from_num(SETPOINT_BAR)),
+                &e,
+                inp.motor,
+            );
+            (e, c)
+        })
+        .collect())
+}
+
+fn opt(v: Option<i32>) -> String {
+    v.map_or(String::new(), |x| x.to_string())
+}
+
+/// The CSV text of a run (first line: `# start p2_bits lp_bits`).
+pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) -> String {
+    let mut s = format!(
+        "# start_p2_bits={} start_lp_bits={}\n{HEADER}\n",
+        Pressure::from_num(p2).to_bits(),
+        Pressure::from_num(lp).to_bits()
+    );
+    for (i, (inp, (e, c))) in inputs.iter().zip(out).enumerate() {
+        let _ = writeln!(
+            s,
+            "{i},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            opt(inp.encoder),
+            opt(inp.hp.map(|p| p.to_bits())),
+            opt(inp.lp.map(|p| p.to_bits())),
+            opt(inp.motor.map(|p| p.to_bits())),
+            inp.aperture_cmd.to_bits(),
+            inp.on_duty,
+            inp.config,
+            e.p2.to_bits(),
+            e.p2_sigma.to_bits(),
+            e.lp.to_bits(),
+            e.q_pump.to_bits(),
+            e.q_valve.to_bits(),
+            e.q_relief.to_bits(),
+            e.torque.to_bits(),
+            e.motor_rpm.to_bits(),
+            e.autonomy.to_bits(),
+            e.aperture.to_bits(),
+            e.faults,
+            c.aperture.to_bits(),
+            match c.safety {
+                Override::None => 0,
+                Override::Overpressure => 1,
+                Override::SensorFault => 2,
+            }
+        );
+    }
+    s
+}
+
+/// Parsed golden file: start pressures (bits), inputs and the expected CSV text.
+pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), String> {
+    let mut lines = text.lines();
+    let first = lines.next().ok_or("empty golden file")?;
+    let field = |key: &str| -> Result<i32, String> {
+        first
+            .split_whitespace()
+            .find_map(|w| w.strip_prefix(key))
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| format!("golden file line 1: missing {key}"))
+    };
+    let (p2, lp) = (field("start_p2_bits=")?, field("start_lp_bits=")?);
+    lines.next();
+    let mut inputs = Vec::new();
+    for (n, l) in lines.enumerate() {
+        let c: Vec<&str> = l.split(',').collect();
+        if c.len() != 21 {
+            return Err(format!(
+                "golden file line {}: {} columns, want 21",
+                n + 3,
+                c.len()
+            ));
+        }
+        let o = |s: &str| -> Result<Option<i32>, String> {
+            if s.is_empty() {
+                Ok(None)
+            } else {
+                s.parse()
+                    .map(Some)
+                    .map_err(|e| format!("line {}: {e}", n + 3))
+            }
+        };
+        let num = |s: &str| -> Result<i32, String> {
+            s.parse().map_err(|e| format!("line {}: {e}", n + 3))
+        };
+        inputs.push(Inputs {
+            encoder: o(c[1])?,
+            hp: o(c[2])?.map(Pressure::from_bits),
+            lp: o(c[3])?.map(Pressure::from_bits),
+            motor: o(c[4])?.map(Rpm::from_bits),
+            aperture_cmd: Aperture::from_bits(num(c[5])?),
+            on_duty: num(c[6])? as u8,
+            config: num(c[7])? as u8,
+        });
+    }
+    Ok((p2, lp, inputs))
+}
+
+/// The model configuration the vectors are made with (the firmware's).
+pub fn coefficients() -> Result<Coefficients, String> {
+    let _ = model_config; // the reference bench's config equals ModelConfig::reference()
+    ModelConfig::reference()
+        .coefficients()
+        .map_err(|e| e.to_string())
+}

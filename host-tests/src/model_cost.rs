@@ -1,0 +1,209 @@
+//! Cost of the fixed-point model: host nanoseconds per estimator + scheduler step, and code size
+//! of `pto-model` for both thumb targets (the `.text` of its release rlib).
+
+use crate::bench::Bench;
+use crate::estimation::{self, model_config};
+use pto_model::estimator::{self, State};
+use pto_model::fx::Pressure;
+use pto_model::scheduler::{self, Mode, SchedulerConfig, SchedulerState};
+use serde::Serialize;
+use std::path::Path;
+use std::process::Command;
+use std::time::Instant;
+
+/// Targets of the model-crate issue.
+pub mod target {
+    /// Flash for the model code, bytes.
+    pub const FLASH_BYTES: u64 = 8 * 1024;
+    /// Estimator + scheduler state, bytes.
+    pub const STATE_BYTES: usize = 1024;
+}
+
+/// One target's code size.
+#[derive(Debug, Clone, Serialize)]
+pub struct CodeSize {
+    /// Rust target triple.
+    pub target: String,
+    /// `.text*` bytes of the rlib.
+    pub text_bytes: u64,
+    /// `.rodata*` bytes of the rlib.
+    pub rodata_bytes: u64,
+    /// Code of the per-step path: `estimator::step` and its per-cylinder part,
+    /// `scheduler::step`, `aperture_for_flow`, `recip` and the table lookups (symbol sizes); the
+    /// rest of `.text` is configuration-time code (coefficient tables in soft or hard float),
+    /// validation, formatting and the advisor.
+    pub step_code_bytes: u64,
+}
+
+/// The report.
+#[derive(Debug, Clone, Serialize)]
+pub struct Cost {
+    /// Host nanoseconds per estimator + scheduler step (median of 5 runs of 200 000 steps).
+    pub host_ns_per_step: f64,
+    /// State bytes (estimator + scheduler).
+    pub state_bytes: usize,
+    /// Coefficient bytes (tables, in RAM on the target).
+    pub coefficient_bytes: usize,
+    /// Code sizes.
+    pub code: Vec<CodeSize>,
+    /// Targets met.
+    pub pass: bool,
+}
+
+/// Host nanoseconds per step on sensor inputs of a sine wave at 100 bar.
+pub fn host_ns_per_step() -> f64 {
+    let cfg =
+        model_config(&Bench::reference()).unwrap_or_else(|_| pto_model::ModelConfig::reference());
+    let Ok(k) = cfg.coefficients() else {
+        return f64::NAN;
+    };
+    let Ok(sc) = SchedulerConfig::default().coefficients(&k) else {
+        return f64::NAN;
+    };
+    let n = 200_000;
+    let inputs: Vec<_> = (0..4096)
+        .map(|i| {
+            let t = i as f64 / 1024.0;
+            let theta = 0.4167 * (0.2 * std::f64::consts::PI * t).sin();
+            let enc = (theta / (2.0 * std::f64::consts::PI) * 16384.0).round() as i32;
+            estimation::inputs(
+                Some(enc),
+                Some(100.0 + (t * 7.0).sin()),
+                Some(8.0),
+                Some(250.0),
+                10.0,
+                0b1001,
+                0,
+            )
+        })
+        .collect();
+    let mut runs = Vec::new();
+    for _ in 0..5 {
+        let mut s = State::new(
+            Pressure::from_num(100.0),
+            Pressure::from_num(8.0),
+            Pressure::from_num(1.0),
+        );
+        let mut st = SchedulerState::default();
+        let start = Instant::now();
+        let mut acc = 0i64;
+        for i in 0..n {
+            let inp = &inputs[i % inputs.len()];
+            let e = estimator::step(&k, &mut s, inp);
+            let c = scheduler::step(
+                &k,
+                &sc,
+                &mut st,
+                Mode::HoldPressure(Pressure::from_num(100.0)),
+                &e,
+                inp.motor,
+            );
+            acc = acc.wrapping_add(i64::from(c.aperture.to_bits()));
+        }
+        std::hint::black_box(acc);
+        runs.push(start.elapsed().as_secs_f64() * 1e9 / n as f64);
+    }
+    runs.sort_by(f64::total_cmp);
+    runs[2]
+}
+
+/// Builds `pto-model` for `target` (release, into `target/model-size`) and sums its sections.
+pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
+    let target_dir = workspace.join("target").join("model-size");
+    let out = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
+        .current_dir(workspace)
+        .args([
+            "build",
+            "--release",
+            "-p",
+            "pto-model",
+            "--target",
+            target,
+            "--target-dir",
+        ])
+        .arg(&target_dir)
+        .output()
+        .map_err(|e| format!("cannot run cargo: {e}"))?;
+    if !out.status.success() {
+        return Err(format!(
+            "cargo build -p pto-model --target {target} failed (is the target installed? `rustup target add {target}`):\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    let rlib = target_dir
+        .join(target)
+        .join("release")
+        .join("libpto_model.rlib");
+    let data = std::fs::read(&rlib).map_err(|e| format!("{}: {e}", rlib.display()))?;
+    let archive = object::read::archive::ArchiveFile::parse(&*data)
+        .map_err(|e| format!("{}: {e}", rlib.display()))?;
+    let (mut text, mut rodata, mut step) = (0u64, 0u64, 0u64);
+    for member in archive.members() {
+        let member = member.map_err(|e| e.to_string())?;
+        let name = String::from_utf8_lossy(member.name()).to_string();
+        if !name.ends_with(".o") {
+            continue;
+        }
+        let bytes = member.data(&*data).map_err(|e| e.to_string())?;
+        let Ok(file) = object::File::parse(bytes) else {
+            continue;
+        };
+        use object::{Object, ObjectSection, ObjectSymbol};
+        for sym in file.symbols() {
+            let n = sym.name().unwrap_or("");
+            // The per-step functions (legacy mangling: length-prefixed path segments).
+            const STEP: [&str; 7] = [
+                "9estimator4step",
+                "9estimator8cylinder",
+                "9scheduler4step",
+                "17aperture_for_flow",
+                "2fx5recip",
+                "2at17h",
+                "6locate",
+            ];
+            if n.contains("9pto_model") && STEP.iter().any(|m| n.contains(m)) {
+                step += sym.size();
+            }
+        }
+        for s in file.sections() {
+            let n = s.name().unwrap_or("");
+            if n.starts_with(".text") {
+                text += s.size();
+            } else if n.starts_with(".rodata") {
+                rodata += s.size();
+            }
+        }
+    }
+    Ok(CodeSize {
+        target: target.into(),
+        text_bytes: text,
+        rodata_bytes: rodata,
+        step_code_bytes: step,
+    })
+}
+
+/// The full report. `workspace` is the repository root (for the nested cargo builds).
+pub fn measure(workspace: &Path) -> Result<Cost, String> {
+    let ns = host_ns_per_step();
+    let k = pto_model::ModelConfig::reference()
+        .coefficients()
+        .map_err(|e| e.to_string())?;
+    let mut code = Vec::new();
+    for t in ["thumbv6m-none-eabi", "thumbv7em-none-eabihf"] {
+        code.push(code_size(workspace, t)?);
+    }
+    let state_bytes = std::mem::size_of::<State>() + std::mem::size_of::<SchedulerState>();
+    // The flash target is the bench MCU's (Cortex-M4F); thumbv6m is reported for the record.
+    let pass = state_bytes <= target::STATE_BYTES
+        && code
+            .iter()
+            .filter(|c| c.target.starts_with("thumbv7em"))
+            .all(|c| c.step_code_bytes <= target::FLASH_BYTES);
+    Ok(Cost {
+        host_ns_per_step: ns,
+        state_bytes,
+        coefficient_bytes: std::mem::size_of_val(&k),
+        code,
+        pass,
+    })
+}

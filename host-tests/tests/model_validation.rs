@@ -1,0 +1,69 @@
+//! The fixed-point model against the full simulation (the `pto validate` harness, reduced to a
+//! representative set so `cargo test` stays quick), and the scheduler in closed loop.
+//!
+//! Asserted here: the P2 targets (with and without the HP transducer), the motor-speed target,
+//! fixed point vs f64 for P2, and both closed-loop targets. The torque target (RMS ≤ 5 % of the
+//! peak) and the Test I runs (HP accumulator below its precharge) are printed, not asserted:
+//! the model does not meet them yet; `pto validate` shows the full table.
+
+use pto_host::bench::Bench;
+use pto_host::validate::{self, target};
+
+#[test]
+fn model_tracks_the_full_simulation_on_representative_runs() {
+    let names = [
+        "test3-ap10",
+        "test3-ap25",
+        "torque-cfg3-c14",
+        "exp-charge-67.2",
+        "exp-discharge-84",
+        "irregular-sea",
+    ];
+    let sel: Vec<_> = pto_host::scenario::builtin()
+        .into_iter()
+        .filter(|s| names.contains(&s.name.as_str()))
+        .collect();
+    assert_eq!(sel.len(), names.len());
+    let rep = validate::run(&Bench::reference(), &sel, false);
+    assert!(rep.errors.is_empty(), "{:?}", rep.errors);
+    for r in &rep.rows {
+        println!(
+            "{:<18} P2 RMS {:.3} bar, no-HP max {:.3} bar, torque {:?}, motor {:?}, fx-f64 {:.4} bar / {:.3} N·m",
+            r.scenario,
+            r.p2_rms_bar,
+            r.p2_model_only_max_bar,
+            r.torque_rms_of_peak,
+            r.motor_rms_rel,
+            r.fixed_vs_f64_bar,
+            r.fixed_vs_f64_nm
+        );
+        assert!(r.p2_rms_bar <= target::P2_RMS_BAR, "{}", r.scenario);
+        assert!(
+            r.p2_model_only_max_bar <= target::P2_MODEL_ONLY_MAX_BAR,
+            "{}",
+            r.scenario
+        );
+        assert!(
+            r.motor_rms_rel.is_none_or(|m| m <= target::MOTOR_RMS_REL),
+            "{}",
+            r.scenario
+        );
+        assert!(
+            r.fixed_vs_f64_bar <= target::FIXED_VS_F64_BAR,
+            "{}",
+            r.scenario
+        );
+    }
+}
+
+#[test]
+fn scheduler_holds_p2_and_motor_speed_in_closed_loop_with_the_full_simulation() {
+    for row in validate::closed_loop_rows(&Bench::reference()) {
+        let row = row.unwrap();
+        println!(
+            "{}: max deviation {:.4} (target {})",
+            row.name, row.max_deviation, row.target
+        );
+        assert!(row.pass, "{}", row.name);
+    }
+}
