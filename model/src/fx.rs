@@ -111,8 +111,9 @@ pub fn clamp(x: Fx, lo: Fx, hi: Fx) -> Fx {
     x.max(lo).min(hi)
 }
 
-/// Square root that is 0 for negative input (no panic path).
-#[inline]
+/// Square root that is 0 for negative input (no panic path). Out of line: one copy serves
+/// every caller.
+#[inline(never)]
 pub fn sqrt0(x: Fx) -> Fx {
     x.max(ZERO).checked_sqrt().unwrap_or(ZERO)
 }
@@ -120,7 +121,9 @@ pub fn sqrt0(x: Fx) -> Fx {
 /// Reciprocal of a positive number without a division instruction: normalise to m ∈ [1, 2),
 /// start from the linear estimate 24/17 − 8/17·m (error ≤ 1/17), refine with three
 /// Newton–Raphson steps y ← y(2 − m·y) in Q2.30 (error < 1e-9), scale back. Returns
-/// `Fx::MAX` for x ≤ 2^−16 (saturation at the physical limit of the callers).
+/// `Fx::MAX` for x ≤ 2^−16 (saturation at the physical limit of the callers). Out of line:
+/// it runs three times per stroke reversal, not per step.
+#[inline(never)]
 pub fn recip(x: Fx) -> Fx {
     let bits = x.to_bits();
     if bits <= 1 {
