@@ -165,6 +165,18 @@ const P_MAX: Fx = Fx::from_bits(400 << 16);
 const FLOW_LIM: Fx = Fx::from_bits(1000 << 16);
 const OMEGA_LIM_Q32: i64 = 100 << 32;
 
+/// One explicit step of a pressure node: p += net inflow (L/min, clamped) × dP/dV × dt, held
+/// inside the physical pressure range.
+#[inline]
+fn node_step(p: Fx, net_inflow: Fx, dp_per_flow: Fx, dtl: u8) -> Fx {
+    let q = clamp(net_inflow, -FLOW_LIM, FLOW_LIM);
+    clamp(
+        p.saturating_add(mul_dt(q.saturating_mul(dp_per_flow), dtl)),
+        P_MIN,
+        P_MAX,
+    )
+}
+
 /// Advances the estimator by one step. Cannot fail; every reading may be missing or wrong.
 pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let dtl = k.dt_log2;
@@ -256,26 +268,10 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
             .saturating_mul(k.relief_gain);
     let motor_rpm = q_valve.saturating_mul(k.rpm_per_lpm);
     // --- Predict.
-    let net_hp = clamp(
-        q_pump.saturating_sub(q_valve).saturating_sub(q_relief),
-        -FLOW_LIM,
-        FLOW_LIM,
-    );
-    s.p2 = clamp(
-        s.p2.saturating_add(mul_dt(net_hp.saturating_mul(k.inv_c_hp.at(s.p2)), dtl)),
-        P_MIN,
-        P_MAX,
-    );
-    let net_lp = clamp(
-        q_valve.saturating_add(q_relief).saturating_sub(q_lp_net),
-        -FLOW_LIM,
-        FLOW_LIM,
-    );
-    s.lp = clamp(
-        s.lp.saturating_add(mul_dt(net_lp.saturating_mul(k.inv_c_lp.at(s.lp)), dtl)),
-        P_MIN,
-        P_MAX,
-    );
+    let net_hp = q_pump.saturating_sub(q_valve).saturating_sub(q_relief);
+    s.p2 = node_step(s.p2, net_hp, k.inv_c_hp.at(s.p2), dtl);
+    let net_lp = q_valve.saturating_add(q_relief).saturating_sub(q_lp_net);
+    s.lp = node_step(s.lp, net_lp, k.inv_c_lp.at(s.lp), dtl);
     s.var = s.var.saturating_add(k.q_step.at(s.p2));
     s.q_mean = s
         .q_mean
