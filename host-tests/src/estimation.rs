@@ -246,6 +246,7 @@ pub struct Reference {
     dt: f64,
     theta: f64,
     omega: f64,
+    accel: f64,
     init: bool,
     /// P2, bar.
     pub p2: f64,
@@ -256,8 +257,12 @@ pub struct Reference {
     dir: [i8; 4],
     lag: [f64; 4],
     rejected: u32,
-    stroke: [(f64, f64, f64); 4],
+    stroke: [Stroke; 4],
 }
+
+/// Per-stroke constants of the reference: ((ms_new0, ms_old0, ms/mm new, ms/mm old), u_bal,
+/// u_end, u_suc).
+type Stroke = ((f64, f64, f64, f64), f64, f64, f64);
 
 /// f64 outputs of the reference.
 #[derive(Debug, Clone, Copy, Default)]
@@ -279,6 +284,7 @@ impl Reference {
             dt: 2f64.powi(-i32::from(cfg.dt_log2)),
             theta: 0.0,
             omega: 0.0,
+            accel: 0.0,
             init: false,
             p2,
             var: sigma * sigma,
@@ -287,7 +293,7 @@ impl Reference {
             dir: [0; 4],
             lag: [0.0; 4],
             rejected: 0,
-            stroke: [(1.0, 1.0, 0.0); 4],
+            stroke: [((0.0, 0.0, 0.0, 0.0), 0.0, 0.0, 0.0); 4],
         }
     }
 
@@ -321,8 +327,14 @@ impl Reference {
         let k = &*k;
         let dt = self.dt;
         let rr = (-2.0 * std::f64::consts::PI * f64::from(c.encoder_bandwidth_hz) * dt).exp();
-        let (alpha, beta) = (1.0 - rr * rr, (1.0 - rr) * (1.0 - rr));
-        let pred = self.theta + self.omega * dt;
+        let om = 1.0 - rr;
+        let (alpha, beta, gamma) = (
+            1.0 - rr * rr * rr,
+            1.5 * om * om * (1.0 + rr),
+            0.5 * om * om * om,
+        );
+        let pred = self.theta + self.omega * dt + 0.5 * self.accel * dt * dt;
+        let pred_w = self.omega + self.accel * dt;
         match inp.encoder {
             Some(n) => {
                 let meas =
@@ -330,16 +342,19 @@ impl Reference {
                 if !self.init {
                     self.theta = meas;
                     self.omega = 0.0;
+                    self.accel = 0.0;
                     self.init = true;
                 } else {
                     let r = meas - pred;
                     self.theta = pred + alpha * r;
-                    self.omega += beta / dt * r;
+                    self.omega = pred_w + beta / dt * r;
+                    self.accel += 2.0 * gamma / (dt * dt) * r;
                 }
             }
             None => {
                 self.theta = pred;
                 self.omega = 0.0;
+                self.accel = 0.0;
             }
         }
         let spool = if c.spool_time_constant_ms <= 0.0 {
@@ -366,22 +381,46 @@ impl Reference {
                     self.dir[i]
                 };
                 let play = f(k.play_mm);
+                let drop = f(k.check_drop);
+                let (lo, hi) = (self.lp - drop, self.p2 + drop);
+                let pressures = |st: &(f64, f64, f64, f64), u: f64| {
+                    let (ms_n0, ms_o0, kn, ko) = *st;
+                    let pn = Self::t1(&k.p_of_ms, ms_n0 + u * kn).max(lo).min(hi);
+                    let po = Self::t1(&k.p_of_ms, ms_o0 - u * ko).max(lo).min(hi);
+                    (pn, po)
+                };
                 if dir != self.dir[i] {
                     let pos = Self::t1(&k.ext[config], side * self.theta);
-                    let ds = Self::t1(&k.dstrain, self.p2);
-                    let x_cap = (f(cc.dead_cap_mm) + pos) * ds;
-                    let x_rod = (f(cc.dead_rod_mm) + f(cc.stroke_mm) - pos) * ds;
-                    let (x_n, x_o, ratio) = if dir >= 0 {
-                        (x_rod, x_cap, f(cc.ratio_ext))
+                    let l_cap = f(cc.dead_cap_mm) + pos;
+                    let l_rod = f(cc.dead_rod_mm) + f(cc.stroke_mm) - pos;
+                    let (l_n, l_o, ratio) = if dir >= 0 {
+                        (l_rod, l_cap, f(cc.ratio_ext))
                     } else {
-                        (x_cap, x_rod, f(cc.ratio_ret))
+                        (l_cap, l_rod, f(cc.ratio_ret))
                     };
-                    let ub = x_o * x_n / (x_n + ratio * x_o);
-                    self.stroke[i] = (x_n, x_o, ub);
-                    self.lag[i] = if self.dir[i] == 0 { ub } else { 0.0 };
+                    let st = (
+                        Self::t1(&k.ms_of_p, lo),
+                        Self::t1(&k.ms_of_p, hi),
+                        1000.0 / l_n,
+                        1000.0 / l_o,
+                    );
+                    let span = st.1 - st.0;
+                    let (u_end, u_suc) = (span / st.2, span / st.3);
+                    let (mut a, mut b) = (0.0, u_end.min(u_suc));
+                    for _ in 0..12 {
+                        let m = 0.5 * (a + b);
+                        let (pn, po) = pressures(&st, m);
+                        if po - ratio * pn > 0.0 {
+                            a = m;
+                        } else {
+                            b = m;
+                        }
+                    }
+                    self.stroke[i] = (st, a, u_end, u_suc);
+                    self.lag[i] = if self.dir[i] == 0 { a } else { 0.0 };
                     self.dir[i] = dir;
                 }
-                let (x_n, x_o, ub) = self.stroke[i];
+                let (st, ub, u_end, u_suc) = self.stroke[i];
                 let e = self.lag[i];
                 let u = if e <= ub {
                     e
@@ -390,25 +429,20 @@ impl Reference {
                 } else {
                     e - play
                 };
-                let rise_new = (u / x_n).clamp(0.0, 1.0);
-                let rise_old = (1.0 - u / x_o).clamp(0.0, 1.0);
                 let (q_del, q_suc) = if dir >= 0 {
                     (f(cc.q_ann) * v.abs(), f(cc.q_cap) * v.abs())
                 } else {
                     (f(cc.q_cap) * v.abs(), f(cc.q_ann) * v.abs())
                 };
-                if e < x_n + play {
+                if e < u_end + play {
                     self.lag[i] += v.abs() * dt;
                 } else {
                     q_pump += q_del;
                 }
-                if rise_old == 0.0 {
+                if u >= u_suc {
                     q_lp += q_suc;
                 }
-                let drop = f(k.check_drop);
-                let lo = self.lp - drop;
-                let p_new = lo + rise_new * (self.p2 + drop - lo);
-                let p_old = lo + rise_old * (self.p2 + drop - lo);
+                let (p_new, p_old) = pressures(&st, u);
                 let (p_cap, p_rod) = if dir >= 0 {
                     (p_old, p_new)
                 } else {

@@ -49,7 +49,7 @@ pub struct ModelConfig {
     pub dt_log2: u8,
     /// Shaft encoder counts per revolution (after quadrature decoding).
     pub encoder_counts_per_rev: u32,
-    /// Bandwidth of the α–β tracker that turns encoder counts into shaft speed, Hz.
+    /// Bandwidth of the α–β–γ tracker that turns encoder counts into shaft speed, Hz.
     pub encoder_bandwidth_hz: f32,
     /// HC3.1 … HC3.4.
     pub cylinders: [CylinderConfig; 4],
@@ -178,7 +178,7 @@ impl ModelConfig {
         ModelConfig {
             dt_log2: 10,
             encoder_counts_per_rev: 16_384,
-            encoder_bandwidth_hz: 5.0,
+            encoder_bandwidth_hz: 4.0,
             cylinders: [
                 small,
                 big,

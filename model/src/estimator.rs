@@ -106,14 +106,20 @@ pub struct CylState {
     pub dir: i8,
     /// Eye travel since the last reversal, mm (stops counting once delivering).
     pub travel: Fx,
-    /// This stroke's compression travel of the new delivering chamber, mm.
-    pub x_n: Fx,
-    /// Its reciprocal, 1/mm.
-    pub inv_x_n: Fx,
-    /// Reciprocal of the old chamber's decompression travel, 1/mm.
-    pub inv_x_o: Fx,
+    /// This stroke's milli-strain per mm of rod travel, new delivering chamber.
+    pub ms_per_mm_n: Fx,
+    /// Same for the old (now sucking) chamber.
+    pub ms_per_mm_o: Fx,
+    /// Milli-strain of the new chamber at the reversal (LP − drop).
+    pub ms_new0: Fx,
+    /// Milli-strain of the old chamber at the reversal (P2 + drop).
+    pub ms_old0: Fx,
     /// Rod travel at which the chamber forces balance, mm.
     pub u_bal: Fx,
+    /// Rod travel at which the new chamber reaches P2 and delivers, mm.
+    pub u_end: Fx,
+    /// Rod travel at which the old chamber reaches LP and sucks, mm.
+    pub u_suc: Fx,
 }
 
 /// Estimator state (≈ 100 bytes).
@@ -124,6 +130,8 @@ pub struct State {
     pub theta_q32: i64,
     /// Shaft speed estimate, rad/s, Q32.32.
     pub omega_q32: i64,
+    /// Shaft acceleration estimate, rad/s², Q32.32.
+    pub accel_q32: i64,
     /// The tracker has seen an encoder reading.
     pub enc_init: bool,
     /// Last encoder count.
@@ -164,6 +172,7 @@ const P_MIN: Fx = Fx::from_bits(-65_536); // −1 bar
 const P_MAX: Fx = Fx::from_bits(400 << 16);
 const FLOW_LIM: Fx = Fx::from_bits(1000 << 16);
 const OMEGA_LIM_Q32: i64 = 100 << 32;
+const ACCEL_LIM_Q32: i64 = 1000 << 32;
 
 /// One explicit step of a pressure node: p += net inflow (L/min, clamped) × dP/dV × dt, held
 /// inside the physical pressure range.
@@ -181,15 +190,20 @@ fn node_step(p: Fx, net_inflow: Fx, dp_per_flow: Fx, dtl: u8) -> Fx {
 pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let dtl = k.dt_log2;
     let mut faults = 0u16;
-    // --- Shaft: α–β tracker on the encoder angle, in Q32.32 (i64).
+    // --- Shaft: α–β–γ tracker on the encoder angle, in Q32.32 (i64).
     let half = 1i64 << (dtl - 1);
-    let pred_theta = s.theta_q32.saturating_add((s.omega_q32 + half) >> dtl);
+    let pred_theta = s
+        .theta_q32
+        .saturating_add((s.omega_q32 + half) >> dtl)
+        .saturating_add((s.accel_q32 + (1i64 << (2 * dtl))) >> (2 * dtl + 1));
+    let pred_omega = s.omega_q32.saturating_add((s.accel_q32 + half) >> dtl);
     match inp.encoder {
         Some(count) => {
             let theta_meas = i64::from(count).saturating_mul(k.rad_per_count_q32);
             if !s.enc_init {
                 s.theta_q32 = theta_meas;
                 s.omega_q32 = 0;
+                s.accel_q32 = 0;
                 s.enc_init = true;
                 s.enc_last = count;
                 s.hp_at_enc_change = inp.hp.map_or(s.p2, |p| p.0);
@@ -199,10 +213,13 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
                     .saturating_sub(pred_theta)
                     .clamp(-(1i64 << 31), 1i64 << 31);
                 s.theta_q32 = pred_theta.saturating_add((r * k.alpha_q31 + (1 << 30)) >> 31);
-                s.omega_q32 = s
-                    .omega_q32
+                s.omega_q32 = pred_omega
                     .saturating_add((r * k.beta_over_dt_q16 + (1 << 15)) >> 16)
                     .clamp(-OMEGA_LIM_Q32, OMEGA_LIM_Q32);
+                s.accel_q32 = s
+                    .accel_q32
+                    .saturating_add((r * k.gamma_over_dt2_q16 + (1 << 15)) >> 16)
+                    .clamp(-ACCEL_LIM_Q32, ACCEL_LIM_Q32);
             }
             if count != s.enc_last {
                 s.enc_last = count;
@@ -224,6 +241,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
             faults |= fault::ENCODER;
             s.theta_q32 = pred_theta;
             s.omega_q32 = 0;
+            s.accel_q32 = 0;
         }
     }
     let theta = Fx::from_bits(
@@ -340,6 +358,18 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     }
 }
 
+/// (new, old) chamber pressures after `u` mm of rod travel since the reversal, bar.
+#[inline]
+fn chamber_pressures(k: &Coefficients, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> (Fx, Fx) {
+    let p_new = k
+        .p_of_ms
+        .at(cs.ms_new0.saturating_add(u.saturating_mul(cs.ms_per_mm_n)));
+    let p_old = k
+        .p_of_ms
+        .at(cs.ms_old0.saturating_sub(u.saturating_mul(cs.ms_per_mm_o)));
+    (clamp(p_new, lo, hi), clamp(p_old, lo, hi))
+}
+
 /// One cylinder's contribution to the step (kept out of line: the step would otherwise carry
 /// four unrolled copies of it, ×4 the flash).
 #[derive(Clone, Copy, Default)]
@@ -380,32 +410,50 @@ fn cylinder(
             cs.dir
         };
         // After a reversal (eye travel e since it, mm): the rod first follows the lever
-        // while the old delivering chamber decompresses and the new one compresses, until
-        // their forces balance at u_bal; the eye then crosses the free play with the rod
-        // standing; then the rod moves again until the new chamber reaches P2 and delivers.
-        // The rod's own travel u sets both chamber pressures, linear in u over each
-        // chamber's compression travel x = (dead length + chamber length)·Δstrain(P2),
-        // evaluated once per stroke at the reversal.
+        // while the old delivering chamber relaxes and the new one compresses, until their
+        // forces balance at u_bal; the eye then crosses the free play with the rod standing;
+        // then the rod moves again until the new chamber reaches P2 and delivers. The rod's own
+        // travel u sets both chamber pressures through the oil's strain law: a chamber of
+        // length L (dead volume + chamber, at the reversal position) moved by u changes its
+        // strain by u/L, and p = P(strain) from the inverse strain table. (A linear
+        // pressure–travel law put the new chamber at ~45 bar instead of ~19 bar when the
+        // forces balance, so the torque built up too early.)
+        let lo = lp.saturating_sub(k.check_drop);
+        let hi = p2.saturating_add(k.check_drop);
         if dir != cs.dir {
             let pos = ext_table.at(th);
-            let ds = k.dstrain.at(p2);
-            let x_cap = c.dead_cap_mm.saturating_add(pos).saturating_mul(ds);
-            let x_rod = c
+            let l_cap = c.dead_cap_mm.saturating_add(pos);
+            let l_rod = c
                 .dead_rod_mm
-                .saturating_add(c.stroke_mm.saturating_sub(pos))
-                .saturating_mul(ds);
-            let (x_n, x_o, ratio) = if dir >= 0 {
-                (x_rod, x_cap, c.ratio_ext)
+                .saturating_add(c.stroke_mm.saturating_sub(pos));
+            let (l_n, l_o, ratio) = if dir >= 0 {
+                (l_rod, l_cap, c.ratio_ext)
             } else {
-                (x_cap, x_rod, c.ratio_ret)
+                (l_cap, l_rod, c.ratio_ret)
             };
-            cs.x_n = x_n;
-            cs.inv_x_n = recip(x_n);
-            cs.inv_x_o = recip(x_o);
-            // Forces balance where A_o(1 − u/x_o) = A_n·u/x_n: u = x_o·x_n/(x_n + r·x_o).
-            cs.u_bal = x_o
-                .saturating_mul(x_n)
-                .saturating_mul(recip(x_n.saturating_add(ratio.saturating_mul(x_o))));
+            // 1000/L: milli-strain per mm of travel, as (1024/L)·(1000/1024) so the reciprocal
+            // keeps 1e-5 precision (1/L itself is only ~256 LSB of Q16.16).
+            let kms = Fx::from_bits(64_000); // 1000/1024, exact
+            cs.ms_per_mm_n = recip(Fx::from_bits(l_n.to_bits() >> 10)).saturating_mul(kms);
+            cs.ms_per_mm_o = recip(Fx::from_bits(l_o.to_bits() >> 10)).saturating_mul(kms);
+            cs.ms_new0 = k.ms_of_p.at(lo);
+            cs.ms_old0 = k.ms_of_p.at(hi);
+            // Travel for the new chamber to reach P2 (delivery) and the old one LP (suction).
+            let span = cs.ms_old0.saturating_sub(cs.ms_new0);
+            cs.u_end = span.saturating_mul(recip(cs.ms_per_mm_n));
+            cs.u_suc = span.saturating_mul(recip(cs.ms_per_mm_o));
+            // Force balance A_o·p_old(u) = A_n·p_new(u) (p_old falls, p_new rises): bisection.
+            let (mut a, mut b) = (ZERO, cs.u_end.min(cs.u_suc));
+            for _ in 0..12 {
+                let m = Fx::from_bits((a.to_bits() + b.to_bits()) >> 1);
+                let (pn, po) = chamber_pressures(k, cs, m, lo, hi);
+                if po.saturating_sub(ratio.saturating_mul(pn)) > ZERO {
+                    a = m;
+                } else {
+                    b = m;
+                }
+            }
+            cs.u_bal = a;
             // From rest (unknown direction) both chambers start at LP: skip to the play.
             cs.travel = if cs.dir == 0 { cs.u_bal } else { ZERO };
             cs.dir = dir;
@@ -417,7 +465,7 @@ fn cylinder(
             (c.q_cap.saturating_mul(speed), c.q_ann.saturating_mul(speed))
         };
         let ub = cs.u_bal;
-        let e_end = cs.x_n.saturating_add(k.play_mm);
+        let e_end = cs.u_end.saturating_add(k.play_mm);
         let u = if cs.travel <= ub {
             cs.travel
         } else if cs.travel <= ub.saturating_add(k.play_mm) {
@@ -425,8 +473,6 @@ fn cylinder(
         } else {
             cs.travel.saturating_sub(k.play_mm)
         };
-        let rise_new = clamp(u.saturating_mul(cs.inv_x_n), ZERO, ONE);
-        let rise_old = clamp(ONE.saturating_sub(u.saturating_mul(cs.inv_x_o)), ZERO, ONE);
         if cs.travel < e_end {
             // mm this step = mm/s × dt.
             let mm = mul_dt(speed, dtl);
@@ -434,14 +480,10 @@ fn cylinder(
         } else {
             out.q_pump = q_del;
         }
-        if rise_old == ZERO {
+        if u >= cs.u_suc {
             out.q_lp = q_suc;
         }
-        // The chambers swing between LP − drop (sucking) and P2 + drop (delivering).
-        let lo = lp.saturating_sub(k.check_drop);
-        let dp_node = p2.saturating_add(k.check_drop).saturating_sub(lo);
-        let p_new = lo.saturating_add(rise_new.saturating_mul(dp_node));
-        let p_old = lo.saturating_add(rise_old.saturating_mul(dp_node));
+        let (p_new, p_old) = chamber_pressures(k, cs, u, lo, hi);
         let (p_cap, p_rod) = if dir >= 0 {
             (p_old, p_new)
         } else {
