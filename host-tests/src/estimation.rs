@@ -442,7 +442,13 @@ impl Reference {
                 if u >= u_suc {
                     q_lp += q_suc;
                 }
-                let (p_new, p_old) = pressures(&st, u);
+                let (mut p_new, mut p_old) = pressures(&st, u);
+                if self.lag[i] >= u_end + play {
+                    p_new = hi;
+                }
+                if u >= u_suc {
+                    p_old = lo;
+                }
                 let (p_cap, p_rod) = if dir >= 0 {
                     (p_old, p_new)
                 } else {

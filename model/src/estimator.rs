@@ -483,7 +483,15 @@ fn cylinder(
         if u >= cs.u_suc {
             out.q_lp = q_suc;
         }
-        let (p_new, p_old) = chamber_pressures(k, cs, u, lo, hi);
+        // Once delivering (sucking) the chamber follows P2 (LP), which may have moved since the
+        // reversal the strain constants were taken at.
+        let (mut p_new, mut p_old) = chamber_pressures(k, cs, u, lo, hi);
+        if cs.travel >= e_end {
+            p_new = hi;
+        }
+        if u >= cs.u_suc {
+            p_old = lo;
+        }
         let (p_cap, p_rod) = if dir >= 0 {
             (p_old, p_new)
         } else {
