@@ -258,6 +258,7 @@ pub struct Reference {
     lag: [f64; 4],
     rejected: u32,
     stroke: [Stroke; 4],
+    last_p: [(f64, f64); 4],
 }
 
 /// Per-stroke constants of the reference: ((ms_new0, ms_old0, ms/mm new, ms/mm old), u_bal,
@@ -294,6 +295,7 @@ impl Reference {
             lag: [0.0; 4],
             rejected: 0,
             stroke: [((0.0, 0.0, 0.0, 0.0), 0.0, 0.0, 0.0); 4],
+            last_p: [(0.0, 0.0); 4],
         }
     }
 
@@ -398,15 +400,23 @@ impl Reference {
                     } else {
                         (l_cap, l_rod, f(cc.ratio_ret))
                     };
+                    let (p_new0, p_old0) = if self.dir[i] == 0 {
+                        (lo, lo)
+                    } else if dir >= 0 {
+                        (self.last_p[i].1, self.last_p[i].0)
+                    } else {
+                        (self.last_p[i].0, self.last_p[i].1)
+                    };
                     let st = (
-                        Self::t1(&k.ms_of_p, lo),
-                        Self::t1(&k.ms_of_p, hi),
+                        Self::t1(&k.ms_of_p, p_new0.max(lo).min(hi)),
+                        Self::t1(&k.ms_of_p, p_old0.max(lo).min(hi)),
                         1000.0 / l_n,
                         1000.0 / l_o,
                     );
-                    let span = st.1 - st.0;
-                    let (u_end, u_suc) = (span / st.2, span / st.3);
-                    let (mut a, mut b) = (0.0, u_end.min(u_suc));
+                    let to_hi = (Self::t1(&k.ms_of_p, hi) - st.0).max(0.0);
+                    let to_lo = (st.1 - Self::t1(&k.ms_of_p, lo)).max(0.0);
+                    let (u_end, u_suc) = (to_hi / st.2, to_lo / st.3);
+                    let (mut a, mut b) = (0.0, u_end.max(u_suc));
                     for _ in 0..12 {
                         let m = 0.5 * (a + b);
                         let (pn, po) = pressures(&st, m);
@@ -454,6 +464,7 @@ impl Reference {
                 } else {
                     (p_new, p_old)
                 };
+                self.last_p[i] = (p_cap, p_rod);
                 torque -= side * d * (p_cap * f(cc.f_cap) - p_rod * f(cc.f_ann));
             } else {
                 q_lp += (f(cc.q_cap) - f(cc.q_ann)) * v;

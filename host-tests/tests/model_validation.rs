@@ -2,10 +2,9 @@
 //! representative set so `cargo test` stays quick), and the scheduler in closed loop.
 //!
 //! Asserted here: the P2 targets (with and without the HP transducer), the motor-speed target,
-//! fixed point vs f64 for P2, the torque target (RMS ≤ 5 % of the peak) except in the irregular
-//! sea, and both closed-loop targets. Not yet met, so printed only: the irregular sea's torque,
-//! fixed vs f64 torque (0.5 N·m), and the Test I runs (HP accumulator below its precharge);
-//! `pto validate` shows the full table.
+//! the torque target (RMS ≤ 5 % of the peak), fixed point vs f64 for P2, and both closed-loop
+//! targets. Printed only, as not every scenario meets it yet: fixed vs f64 torque (0.5 N·m).
+//! The Test I runs with the HP accumulator below its precharge are left to `pto validate`.
 
 use pto_host::bench::Bench;
 use pto_host::validate::{self, target};

@@ -120,6 +120,10 @@ pub struct CylState {
     pub u_end: Fx,
     /// Rod travel at which the old chamber reaches LP and sucks, mm.
     pub u_suc: Fx,
+    /// Cap-chamber pressure of the last step, bar.
+    pub p_cap: Fx,
+    /// Rod-chamber pressure of the last step, bar.
+    pub p_rod: Fx,
 }
 
 /// Estimator state (≈ 100 bytes).
@@ -436,14 +440,24 @@ fn cylinder(
             let kms = Fx::from_bits(64_000); // 1000/1024, exact
             cs.ms_per_mm_n = recip(Fx::from_bits(l_n.to_bits() >> 10)).saturating_mul(kms);
             cs.ms_per_mm_o = recip(Fx::from_bits(l_o.to_bits() >> 10)).saturating_mul(kms);
-            cs.ms_new0 = k.ms_of_p.at(lo);
-            cs.ms_old0 = k.ms_of_p.at(hi);
+            // Start from the chambers' pressures at this instant, not from P2/LP: in an
+            // irregular sea the shaft can turn back before a stroke has built up its pressure.
+            let (p_new0, p_old0) = if cs.dir == 0 {
+                (lo, lo)
+            } else if dir >= 0 {
+                (cs.p_rod, cs.p_cap)
+            } else {
+                (cs.p_cap, cs.p_rod)
+            };
+            cs.ms_new0 = k.ms_of_p.at(clamp(p_new0, lo, hi));
+            cs.ms_old0 = k.ms_of_p.at(clamp(p_old0, lo, hi));
             // Travel for the new chamber to reach P2 (delivery) and the old one LP (suction).
-            let span = cs.ms_old0.saturating_sub(cs.ms_new0);
-            cs.u_end = span.saturating_mul(recip(cs.ms_per_mm_n));
-            cs.u_suc = span.saturating_mul(recip(cs.ms_per_mm_o));
+            let to_hi = k.ms_of_p.at(hi).saturating_sub(cs.ms_new0).max(ZERO);
+            let to_lo = cs.ms_old0.saturating_sub(k.ms_of_p.at(lo)).max(ZERO);
+            cs.u_end = to_hi.saturating_mul(recip(cs.ms_per_mm_n));
+            cs.u_suc = to_lo.saturating_mul(recip(cs.ms_per_mm_o));
             // Force balance A_o·p_old(u) = A_n·p_new(u) (p_old falls, p_new rises): bisection.
-            let (mut a, mut b) = (ZERO, cs.u_end.min(cs.u_suc));
+            let (mut a, mut b) = (ZERO, cs.u_end.max(cs.u_suc));
             for _ in 0..12 {
                 let m = Fx::from_bits((a.to_bits() + b.to_bits()) >> 1);
                 let (pn, po) = chamber_pressures(k, cs, m, lo, hi);
@@ -497,6 +511,8 @@ fn cylinder(
         } else {
             (p_new, p_old)
         };
+        cs.p_cap = p_cap;
+        cs.p_rod = p_rod;
         let f_hyd = p_cap
             .saturating_mul(c.f_cap)
             .saturating_sub(p_rod.saturating_mul(c.f_ann)); // kN
