@@ -2,13 +2,11 @@
 //! and an f64 implementation of the same reduced model to compare it with.
 
 use crate::bench::{BAR, Bench, Load};
-use crate::motion::Motion;
 use crate::scenario::{Scenario, ValveSpec};
 use crate::sim::{SimResult, Trace};
 use pto_model::config::{AccumulatorConfig, CylinderConfig, GeometryConfig};
-use pto_model::estimator::{self, Estimate, Inputs, State};
-use pto_model::fx::Fx;
-use pto_model::fx::{Aperture, Pressure, Rpm};
+use pto_model::estimator::Inputs;
+use pto_model::fx::{Aperture, Fx, Pressure, Rpm};
 use pto_model::table::{Table1, Table2};
 use pto_model::{Coefficients, ModelConfig};
 use rand::SeedableRng;
@@ -514,25 +512,4 @@ impl Reference {
             motor_rpm,
         }
     }
-}
-
-/// Runs the fixed-point estimator over `n` steps with a closure producing the inputs.
-pub fn run_fixed(
-    k: &Coefficients,
-    state: &mut State,
-    n: usize,
-    mut f: impl FnMut(usize, &Estimate) -> Inputs,
-    mut out: impl FnMut(usize, &Inputs, &Estimate),
-) {
-    let mut last = Estimate::default();
-    for i in 0..n {
-        let inp = f(i, &last);
-        last = estimator::step(k, state, &inp);
-        out(i, &inp, &last);
-    }
-}
-
-/// The angle of the plant's motion at t.
-pub fn shaft_angle(m: &Motion, t: f64) -> f64 {
-    m.at(t).0
 }

@@ -7,7 +7,7 @@
 //! (holding P2 at 100 bar) run from a known start.
 
 use crate::bench::Bench;
-use crate::estimation::{self, SensorSpec, SensorSynth, model_config, truth_at};
+use crate::estimation::{self, SensorSpec, SensorSynth, truth_at};
 use pto_model::estimator::{self, Estimate, Inputs, State};
 use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::scheduler::{self, Command, Mode, Override, SchedulerConfig, SchedulerState};
@@ -195,9 +195,9 @@ pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), String> {
     Ok((p2, lp, inputs))
 }
 
-/// The model configuration the vectors are made with (the firmware's).
+/// The model configuration the vectors are made with: the firmware's `ModelConfig::reference()`
+/// (a test keeps it equal to `estimation::model_config` of the reference bench).
 pub fn coefficients() -> Result<Coefficients, String> {
-    let _ = model_config; // the reference bench's config equals ModelConfig::reference()
     ModelConfig::reference()
         .coefficients()
         .map_err(|e| e.to_string())
