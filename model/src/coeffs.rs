@@ -59,7 +59,7 @@ pub struct Coefficients {
     pub dt_log2: u8,
     /// Encoder count → rad, as Q32.32 (i64) so a 16 384-count encoder keeps full precision.
     pub rad_per_count_q32: i64,
-    /// α of the α–β shaft tracker, Q1.31. The tracker runs in Q32.32: at 1 kHz a shaft at
+    /// α of the α–β–γ shaft tracker, Q1.31. The tracker runs in Q32.32: at 1 kHz a shaft at
     /// 0.2 rad/s advances 2e-4 rad per step, 13 LSB of Q16.16, and truncating that every step
     /// biased the speed by +0.026 rad/s (10 %).
     pub alpha_q31: i64,

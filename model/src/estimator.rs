@@ -1,14 +1,14 @@
 //! The HP-pressure / restraining-torque estimator: the reduced-order node model of physics.md §2
 //! as the prediction, corrected by the pressure transducers when they are valid.
 //!
-//! Per step: shaft angle and speed from the encoder (α–β tracker) → per cylinder on duty, rod
-//! speed from the lever-arm table, delivered flow after the stroke-reversal lag (free play, then
-//! compression of the chamber from LP to P2) → valve/motor flow from the steady valve table,
-//! relief flow → P2 and LP predicted through the nodes' capacitance tables → scalar Kalman
-//! correction of P2 (gain from a table of the prior variance, innovation gating, reset after a
-//! run of rejections) and a fixed-gain correction of LP → torque from the chamber pressures
-//! implied by the bridge (delivering chamber at P2, suction at LP) → motor speed (Eq. 9 on the
-//! load line) and autonomy (table).
+//! Per step: shaft angle and speed from the encoder (α–β–γ tracker) → per cylinder on duty, rod
+//! speed from the lever-arm table and the stroke-reversal phases (both chambers follow the oil's
+//! strain law from their pressures at the reversal until their forces balance, the eye crosses
+//! the free play, the new chamber compresses to P2 and delivers) → valve/motor flow from the
+//! steady valve table, relief flow → P2 and LP predicted through the nodes' capacitance tables →
+//! scalar Kalman correction of P2 (gain from a table of the prior variance, innovation gating,
+//! reset after a run of rejections) and a fixed-gain correction of LP → torque from the chamber
+//! pressures → motor speed (Eq. 9 on the load line) and autonomy (table).
 
 use crate::coeffs::{Coefficients, CylinderCoeffs, N_ARM};
 use crate::fx::{
