@@ -23,18 +23,10 @@ const HEADER: &str = "step,encoder,hp,lp,motor,aperture_cmd,on_duty,config,p2,p2
 
 /// Makes the 2048 input steps from the full simulation.
 pub fn make_inputs(bench: &Bench) -> Result<(Vec<Inputs>, f32, f32), String> {
-    let mut s = crate::scenario::builtin()
-        .into_iter()
-        .find(|s| s.name == "test3-ap10")
-        .ok_or("test3-ap10 missing")?;
+    let mut s = crate::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
     s.sample_interval_s = 1.0 / 128.0;
     s.duration_s = 60.0;
-    let prep = s
-        .prepare(bench, Path::new("."))
-        .map_err(|e| e.to_string())?;
-    let res = prep
-        .run(Default::default(), None)
-        .map_err(|e| e.to_string())?;
+    let (prep, res) = s.simulate(bench, Path::new("."), Default::default(), None)?;
     let t_open = res.valve_opened_at.unwrap_or(50.0);
     let t0 = t_open - 1.0;
     let mut synth = SensorSynth::new(SensorSpec::default(), 42);

@@ -49,8 +49,7 @@ pub struct BenchReport {
 
 fn run(bench: &Bench, name: &str, solver: SolverOptions) -> Result<SimResult, String> {
     let (s, base) = scenario::resolve(name).map_err(|e| e.to_string())?;
-    let p = s.prepare(bench, &base).map_err(|e| e.to_string())?;
-    p.run(solver, None).map_err(|e| e.to_string())
+    s.simulate(bench, &base, solver, None).map(|(_, r)| r)
 }
 
 fn timed(bench: &Bench, name: &str, repeats: usize, compare: bool) -> Result<BenchRow, String> {

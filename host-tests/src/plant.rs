@@ -247,10 +247,10 @@ impl Plant {
     /// Per-state absolute tolerance in state units for a given scale factor.
     pub fn atol(&self, scale: f64) -> Vec<f64> {
         let mut a = vec![1e-3 * scale; self.n];
+        // Pressures (bar), motor speed (rad/s), aperture (%): 1e-3; rod positions (mm): 1e-4.
         for c in &self.active {
-            a[c.at + 2] = 1e-4 * scale; // mm
+            a[c.at + 2] = 1e-4 * scale;
         }
-        a[self.i_w] = 1e-3 * scale; // rad/s
         a
     }
 

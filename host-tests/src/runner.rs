@@ -45,12 +45,8 @@ pub fn run_all(
             pb.set_style(style.clone());
             pb.set_prefix(s.name.clone());
             let result = s
-                .prepare(bench, Path::new("."))
-                .map_err(|e| e.to_string())
-                .and_then(|p| {
-                    p.run(solver, Some(pb.clone()))
-                        .map_err(|e| format!("{}: {e}", s.name))
-                });
+                .simulate(bench, Path::new("."), solver, Some(pb.clone()))
+                .map(|(_, r)| r);
             pb.finish_and_clear();
             multi.remove(&pb);
             overall.inc(1);

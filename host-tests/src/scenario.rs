@@ -298,6 +298,23 @@ fn steady_p2(
     Some(0.5 * (lo + hi))
 }
 
+impl Scenario {
+    /// Prepares and runs the scenario; errors name it.
+    pub fn simulate(
+        &self,
+        bench: &Bench,
+        base: &Path,
+        solver: SolverOptions,
+        progress: Option<ProgressBar>,
+    ) -> Result<(Prepared, SimResult), String> {
+        let prep = self.prepare(bench, base).map_err(|e| e.to_string())?;
+        let res = prep
+            .run(solver, progress)
+            .map_err(|e| format!("{}: {e}", self.name))?;
+        Ok((prep, res))
+    }
+}
+
 impl Prepared {
     /// Runs it.
     pub fn run(
@@ -567,9 +584,14 @@ pub fn builtin() -> Vec<Scenario> {
     v
 }
 
+/// The built-in scenario called `name`.
+pub fn builtin_named(name: &str) -> Option<Scenario> {
+    builtin().into_iter().find(|s| s.name == name)
+}
+
 /// A built-in by name, or a scenario file by path.
 pub fn resolve(name_or_file: &str) -> Result<(Scenario, PathBuf), ScenarioError> {
-    if let Some(s) = builtin().into_iter().find(|s| s.name == name_or_file) {
+    if let Some(s) = builtin_named(name_or_file) {
         return Ok((s, PathBuf::from(".")));
     }
     let p = Path::new(name_or_file);

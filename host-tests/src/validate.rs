@@ -104,12 +104,7 @@ fn validate_scenario(
 ) -> Result<Row, String> {
     let mut s = s.clone();
     s.sample_interval_s = TRACE_DT;
-    let prep = s
-        .prepare(bench, Path::new("."))
-        .map_err(|e| e.to_string())?;
-    let res = prep
-        .run(SolverOptions::default(), None)
-        .map_err(|e| e.to_string())?;
+    let (prep, res) = s.simulate(bench, Path::new("."), SolverOptions::default(), None)?;
     let tr = &res.trace;
     let motion = prep.plant.motion();
     let dt = 2f64.powi(-i32::from(mcfg.dt_log2));
@@ -285,10 +280,7 @@ pub fn closed_loop(
 ) -> Result<(crate::sim::SimResult, ModelController), String> {
     let mut mcfg = model_config(bench)?;
     mcfg.dt_log2 = dt_log2;
-    let s = crate::scenario::builtin()
-        .into_iter()
-        .find(|s| s.name == "test3-ap10")
-        .ok_or("test3-ap10 missing")?;
+    let s = crate::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
     let prep = s
         .prepare(bench, Path::new("."))
         .map_err(|e| e.to_string())?;
@@ -433,10 +425,8 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
     let results: Vec<Result<Row, String>> = scenarios
         .par_iter()
         .enumerate()
-        .map(|(i, s)| {
-            validate_scenario(bench, &mcfg, &k, s, 1000 + i as u64)
-                .map_err(|e| format!("{}: {e}", s.name))
-        })
+        // Errors from `Scenario::simulate` already name the scenario.
+        .map(|(i, s)| validate_scenario(bench, &mcfg, &k, s, 1000 + i as u64))
         .collect();
     let loops = if with_loop {
         closed_loop_rows(bench)
