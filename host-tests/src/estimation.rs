@@ -176,12 +176,19 @@ impl SensorSynth {
 
     /// Readings of the plant state `truth` at shaft angle `theta`.
     pub fn read(&mut self, theta: f64, truth: &Truth) -> (i32, f64, f64, f64) {
+        let (enc, hp, lp, motor) = self.read_analog(theta, truth);
+        let hp = self.adc(hp, self.spec.hp_full_scale_bar);
+        let lp = self.adc(lp, self.spec.lp_full_scale_bar);
+        (enc, hp, lp, motor)
+    }
+
+    /// Like [`SensorSynth::read`] with the pressures noisy but not yet quantised (for a front
+    /// end that quantises them itself, e.g. the firmware's 4–20 mA loops).
+    pub fn read_analog(&mut self, theta: f64, truth: &Truth) -> (i32, f64, f64, f64) {
         let n_hp = self.hp_noise.sample(&mut self.rng);
         let n_lp = self.lp_noise.sample(&mut self.rng);
-        let hp = self.adc(truth.p2 + n_hp, self.spec.hp_full_scale_bar);
-        let lp = self.adc(truth.lp + n_lp, self.spec.lp_full_scale_bar);
         let motor = (truth.motor_rpm + self.motor_noise.sample(&mut self.rng)).max(0.0);
-        (self.encoder(theta), hp, lp, motor)
+        (self.encoder(theta), truth.p2 + n_hp, truth.lp + n_lp, motor)
     }
 }
 

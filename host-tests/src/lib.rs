@@ -16,6 +16,7 @@ pub mod perf;
 pub mod physics;
 pub mod plant;
 pub mod plot;
+pub mod qemu;
 pub mod runner;
 pub mod scenario;
 pub mod sim;

@@ -58,7 +58,13 @@ macro_rules! quantity {
         #[cfg(feature = "defmt")]
         impl defmt::Format for $name {
             fn format(&self, f: defmt::Formatter) {
-                defmt::write!(f, "{=i32}/65536 {}", self.0.to_bits(), $unit)
+                // Decimal with 4 digits, in integers (no float formatting on the target).
+                let b = i64::from(self.0.to_bits());
+                let a = b.unsigned_abs();
+                let frac = ((a & 0xffff) * 10_000 + 0x8000) >> 16;
+                let (int, frac) = if frac == 10_000 { ((a >> 16) + 1, 0) } else { (a >> 16, frac) };
+                let sign = if b < 0 { "-" } else { "" };
+                defmt::write!(f, "{=str}{=u64}.{=u64:04} {=str}", sign, int, frac, $unit)
             }
         }
     };

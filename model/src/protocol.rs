@@ -11,19 +11,20 @@ pub const MAX_FRAME: usize = 256;
 const MAX_PAYLOAD: usize = 240;
 const CRC: crc::Crc<u16> = crc::Crc::<u16>::new(&crc::CRC_16_KERMIT);
 
-/// One sensor sample, stamped with virtual time in model steps.
+/// One raw sensor sample, stamped with virtual time in model steps. The firmware converts it
+/// exactly as it converts its own ADC and timer readings on the bench.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct SensorFrame {
     /// Step counter (virtual time = tick · dt).
     pub tick: u32,
-    /// Encoder count.
-    pub encoder: Option<i32>,
-    /// HP transducer.
-    pub hp: Option<Pressure>,
-    /// LP transducer.
-    pub lp: Option<Pressure>,
-    /// Motor speed.
+    /// Shaft encoder timer count (32-bit timer in encoder mode, 0 at the neutral angle).
+    pub encoder: i32,
+    /// HP transducer loop, 12-bit ADC counts (4–20 mA across the shunt).
+    pub hp_adc: u16,
+    /// LP transducer loop, 12-bit ADC counts.
+    pub lp_adc: u16,
+    /// Motor speed from the pickup's input capture; `None` when no pulse was seen.
     pub motor: Option<Rpm>,
 }
 
@@ -33,7 +34,8 @@ pub struct SensorFrame {
 pub enum ToFirmware {
     /// Answer with `Pong` carrying the same number.
     Ping(u32),
-    /// Full estimator inputs for a bit-exact replay (the firmware uses the given aperture).
+    /// Full estimator inputs for a bit-exact replay (the firmware uses the given aperture and
+    /// its actuator stage is bypassed).
     Replay {
         /// Step counter.
         tick: u32,
@@ -51,7 +53,7 @@ pub enum ToFirmware {
         /// 0..=3.
         config: u8,
     },
-    /// Restart the estimator from known pressures.
+    /// Restart the estimator from known pressures (and clear the scheduler and the trip latch).
     Reset {
         /// P2.
         p2: Pressure,
@@ -60,6 +62,9 @@ pub enum ToFirmware {
     },
     /// Ask for the link statistics.
     GetStatus,
+    /// Watchdog self-test: the control task stops answering (it waits forever); the supervisor
+    /// must then stop feeding the watchdog, which resets the controller.
+    Stall,
     /// Stop (QEMU: exit with this code).
     Exit(u8),
 }
@@ -70,14 +75,31 @@ pub enum ToFirmware {
 pub struct Status {
     /// Frames decoded.
     pub frames_ok: u32,
-    /// Frames dropped (bad COBS, CRC or payload, or overflow).
+    /// Frames dropped: bad COBS, CRC or payload, or longer than a frame.
     pub frames_dropped: u32,
+    /// Sensor frames dropped because the control loop had not taken the previous ones.
+    pub frames_overrun: u32,
+    /// Received bytes lost because the receive buffer was full.
+    pub bytes_lost: u32,
     /// Estimator steps run.
     pub steps: u32,
     /// OR of every fault flag seen.
     pub faults_seen: u16,
-    /// Last valve command.
+    /// Steps run with the HP transducer out of its 4–20 mA window (wire break or short).
+    pub hp_loop_faults: u32,
+    /// Times the overpressure trip latched.
+    pub trips: u32,
+    /// Trip latch state.
+    pub tripped: bool,
+    /// Dump valve output state.
+    pub dump_valve: bool,
+    /// Last valve aperture applied by the actuator stage.
     pub aperture: Aperture,
+    /// Instructions (QEMU under `-icount shift=0`) or cycles (bench, DWT) of the last
+    /// estimator + scheduler step.
+    pub step_cost_last: u32,
+    /// Largest of those.
+    pub step_cost_max: u32,
 }
 
 /// Firmware → host.
@@ -101,6 +123,11 @@ pub enum FromFirmware {
         estimate: Estimate,
         /// Scheduler output.
         command: Command,
+        /// Aperture the actuator stage applied to the valve (after its slew limit and the trip
+        /// latch).
+        applied: Aperture,
+        /// Dump (safe) valve output.
+        dump: bool,
     },
     /// Reply to `GetStatus`.
     Status(Status),

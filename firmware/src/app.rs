@@ -1,0 +1,306 @@
+//! The embassy tasks, shared by both boards. Hardware comes from `board` through embedded-hal and
+//! embedded-io-async traits; the logic lives in the host-tested library.
+
+use crate::board;
+use core::sync::atomic::{AtomicU32, Ordering};
+use embassy_executor::Spawner;
+use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::channel::Channel;
+use embassy_sync::signal::Signal;
+use embassy_time::{Duration, Timer, with_timeout};
+use embedded_hal::digital::OutputPin;
+use embedded_hal::pwm::SetDutyCycle;
+use embedded_io_async::{Read, Write};
+use pto_firmware::control::{ControlConfig, Controller};
+use pto_firmware::link::{self, FrameAssembler};
+use pto_firmware::supervisor::{Heartbeats, Supervisor, Task, Watchdog as _};
+use pto_firmware::{HEARTBEAT_MS, SUPERVISOR_PERIOD_MS, VERSION};
+use pto_model::protocol::{FromFirmware, MAX_FRAME, SensorFrame, ToFirmware};
+use pto_model::scheduler::SchedulerConfig;
+use pto_model::{ModelConfig, fx::Aperture};
+use static_cell::StaticCell;
+
+/// What the control task is given.
+pub enum ToControl {
+    /// A sensor sample (from the link under QEMU, from the sampling task on the bench).
+    Sample(SensorFrame),
+    /// A host command, in arrival order.
+    Command(ToFirmware),
+}
+
+/// What the transmit task is given.
+pub enum ToTx {
+    /// A message to send.
+    Send(FromFirmware),
+    /// Send everything queued, then stop (QEMU: exit with this code).
+    Exit(u8),
+}
+
+/// Actuator outputs.
+#[derive(Clone, Copy)]
+pub struct Outputs {
+    /// Valve aperture.
+    pub aperture: Aperture,
+    /// Dump valve open.
+    pub dump: bool,
+    /// Solenoids of the cylinders on duty (bit i = HC3.(i+1)).
+    pub on_duty: u8,
+}
+
+/// Samples and commands for the control task. Samples are dropped (and counted) when it is full.
+pub static TO_CONTROL: Channel<CriticalSectionRawMutex, ToControl, 4> = Channel::new();
+static TO_TX: Channel<CriticalSectionRawMutex, ToTx, 8> = Channel::new();
+static ACTUATE: Signal<CriticalSectionRawMutex, Outputs> = Signal::new();
+static HEARTBEATS: Heartbeats = Heartbeats::new();
+/// Frames decoded / dropped by the receive task; samples the control task had no room for.
+static FRAMES_OK: AtomicU32 = AtomicU32::new(0);
+static FRAMES_DROPPED: AtomicU32 = AtomicU32::new(0);
+/// Sensor samples dropped because the control task was behind.
+pub static FRAMES_OVERRUN: AtomicU32 = AtomicU32::new(0);
+static CONTROLLER: StaticCell<Controller> = StaticCell::new();
+
+/// Boots the board, checks the configuration, spawns the tasks.
+pub fn start(spawner: Spawner) {
+    let b = board::init(spawner);
+    let model = ModelConfig::reference();
+    let sched = SchedulerConfig::default();
+    let cc = ControlConfig::default();
+    let ctl = match Controller::new(&model, &sched, &cc) {
+        Ok(c) => CONTROLLER.init(c),
+        Err(e) => {
+            defmt::error!("configuration rejected: {}", defmt::Display2Format(&e));
+            board::fail(2)
+        }
+    };
+    defmt::info!(
+        "pto-firmware {}.{} board={} dt=2^-{} s trip={} bar on_duty={=u8:#06b} telemetry every {} steps",
+        VERSION >> 8,
+        VERSION & 0xff,
+        board::NAME,
+        ctl.dt_log2(),
+        ctl.trip().to_f32(),
+        ctl.duty().0,
+        board::TELEMETRY_EVERY
+    );
+    defmt::info!(
+        "scheduler: {}; safe apertures {} % (overpressure), {} % (sensor fault); watchdog {} ms",
+        ctl.mode(),
+        sched.overpressure_aperture_pct,
+        sched.sensor_fault_aperture_pct,
+        pto_firmware::WATCHDOG_TIMEOUT_MS
+    );
+    let ready = FromFirmware::Ready {
+        version: VERSION,
+        dt_log2: ctl.dt_log2(),
+    };
+    if TO_TX.try_send(ToTx::Send(ready)).is_err() {
+        defmt::error!("transmit queue full at boot");
+    }
+    spawner.spawn(rx_task(b.rx).expect("one rx task"));
+    spawner.spawn(tx_task(b.tx).expect("one tx task"));
+    spawner.spawn(control_task(ctl, b.clock).expect("one control task"));
+    spawner.spawn(actuator_task(b.valve, b.dump, b.solenoids).expect("one actuator task"));
+    spawner.spawn(supervisor_task(b.watchdog).expect("one supervisor task"));
+    board::spawn_sampling(spawner);
+}
+
+#[embassy_executor::task]
+async fn rx_task(mut rx: board::Rx) {
+    let mut asm = FrameAssembler::new();
+    let mut buf = [0u8; 64];
+    loop {
+        HEARTBEATS.beat(Task::Rx);
+        let n = match with_timeout(Duration::from_millis(HEARTBEAT_MS), Read::read(&mut rx, &mut buf)).await {
+            Ok(Ok(n)) => n,
+            Ok(Err(_)) => {
+                // Framing/overrun errors: the frame in progress fails its CRC and is counted.
+                continue;
+            }
+            Err(_) => continue,
+        };
+        for b in &buf[..n] {
+            if let Some(msg) = asm.push(*b) {
+                match msg {
+                    ToFirmware::Sensors(f) => {
+                        if TO_CONTROL.try_send(ToControl::Sample(f)).is_err() {
+                            FRAMES_OVERRUN.fetch_add(1, Ordering::Relaxed);
+                        }
+                    }
+                    other => TO_CONTROL.send(ToControl::Command(other)).await,
+                }
+            }
+        }
+        FRAMES_OK.store(asm.ok, Ordering::Relaxed);
+        FRAMES_DROPPED.store(asm.dropped, Ordering::Relaxed);
+    }
+}
+
+#[embassy_executor::task]
+async fn tx_task(mut tx: board::Tx) {
+    let mut buf = [0u8; MAX_FRAME];
+    loop {
+        HEARTBEATS.beat(Task::Tx);
+        match with_timeout(Duration::from_millis(HEARTBEAT_MS), TO_TX.receive()).await {
+            Err(_) => {}
+            Ok(ToTx::Send(msg)) => match link::encode(&msg, &mut buf) {
+                Some(n) => {
+                    if tx.write_all(&buf[..n]).await.is_err() {
+                        defmt::warn!("link write failed");
+                    }
+                }
+                None => defmt::error!("reply does not fit a frame"),
+            },
+            Ok(ToTx::Exit(code)) => {
+                let _ = tx.flush().await;
+                defmt::info!("exit {=u8} on command", code);
+                board::exit(code)
+            }
+        }
+    }
+}
+
+async fn send(msg: FromFirmware) {
+    TO_TX.send(ToTx::Send(msg)).await;
+}
+
+#[embassy_executor::task]
+async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
+    let mut faults_prev = 0u16;
+    let mut tripped_prev = false;
+    loop {
+        HEARTBEATS.beat(Task::Control);
+        let Ok(msg) =
+            with_timeout(Duration::from_millis(HEARTBEAT_MS), TO_CONTROL.receive()).await
+        else {
+            continue;
+        };
+        match msg {
+            ToControl::Sample(f) => {
+                let o = ctl.sample(&f, &mut clock);
+                ACTUATE.signal(Outputs {
+                    aperture: o.applied,
+                    dump: o.dump,
+                    on_duty: ctl.duty().0,
+                });
+                let new = o.estimate.faults & !faults_prev;
+                if new != 0 {
+                    defmt::warn!(
+                        "tick {}: new faults {=u16:#06x}, P2 {} bar ± {}",
+                        f.tick,
+                        new,
+                        o.estimate.p2.to_f32(),
+                        o.estimate.p2_sigma.to_f32()
+                    );
+                }
+                faults_prev = o.estimate.faults;
+                if o.dump != tripped_prev {
+                    if o.dump {
+                        defmt::error!("tick {}: overpressure trip, valve and dump open", f.tick);
+                    } else {
+                        defmt::info!("tick {}: trip released", f.tick);
+                    }
+                    tripped_prev = o.dump;
+                }
+                if f.tick % board::TELEMETRY_EVERY == 0 {
+                    send(FromFirmware::Output {
+                        tick: f.tick,
+                        estimate: o.estimate,
+                        command: o.command,
+                        applied: o.applied,
+                        dump: o.dump,
+                    })
+                    .await;
+                }
+            }
+            ToControl::Command(cmd) => match cmd {
+                ToFirmware::Replay { tick, inputs } => {
+                    let (estimate, command) = ctl.replay(&inputs, &mut clock);
+                    send(FromFirmware::Output {
+                        tick,
+                        estimate,
+                        command,
+                        applied: ctl.status.aperture,
+                        dump: ctl.status.dump_valve,
+                    })
+                    .await;
+                }
+                ToFirmware::Sensors(f) => {
+                    // Routed as a sample by the receive task; kept for completeness.
+                    let _ = TO_CONTROL.try_send(ToControl::Sample(f));
+                }
+                ToFirmware::Ping(n) => send(FromFirmware::Pong(n)).await,
+                ToFirmware::SetMode(m) => {
+                    defmt::info!("mode {}", m);
+                    ctl.set_mode(m);
+                }
+                ToFirmware::SetDuty { on_duty, config } => {
+                    defmt::info!("on duty {=u8:#06b}, config {}", on_duty, config + 1);
+                    ctl.set_duty(on_duty, config);
+                }
+                ToFirmware::Reset { p2, lp } => {
+                    defmt::info!("reset: P2 {} bar, LP {} bar", p2.to_f32(), lp.to_f32());
+                    ctl.reset(p2, lp);
+                    faults_prev = 0;
+                }
+                ToFirmware::GetStatus => {
+                    let mut s = ctl.status;
+                    s.frames_ok = FRAMES_OK.load(Ordering::Relaxed);
+                    s.frames_dropped = FRAMES_DROPPED.load(Ordering::Relaxed);
+                    s.frames_overrun = FRAMES_OVERRUN.load(Ordering::Relaxed);
+                    s.bytes_lost = board::bytes_lost();
+                    send(FromFirmware::Status(s)).await;
+                }
+                ToFirmware::Stall => {
+                    defmt::warn!("watchdog test: the control task stops");
+                    core::future::pending::<()>().await;
+                }
+                ToFirmware::Exit(code) => TO_TX.send(ToTx::Exit(code)).await,
+            },
+        }
+    }
+}
+
+#[embassy_executor::task]
+async fn actuator_task(mut valve: board::Valve, mut dump: board::Pin, mut sol: [board::Pin; 4]) {
+    loop {
+        let o = ACTUATE.wait().await;
+        // Aperture % → duty: Q16.16 percent × max / 100, computed in integers.
+        let max = u64::from(valve.max_duty_cycle());
+        let bits = u64::try_from(o.aperture.to_bits().max(0)).unwrap_or(0);
+        let duty = ((bits * max) / (100u64 << 16)).min(max) as u16;
+        let _ = valve.set_duty_cycle(duty);
+        let _ = if o.dump {
+            dump.set_high()
+        } else {
+            dump.set_low()
+        };
+        for (i, s) in sol.iter_mut().enumerate() {
+            let _ = if o.on_duty & (1 << i) != 0 {
+                s.set_high()
+            } else {
+                s.set_low()
+            };
+        }
+    }
+}
+
+#[embassy_executor::task]
+async fn supervisor_task(mut wdg: board::Watchdog) {
+    let mut sup = Supervisor::default();
+    let mut starving = false;
+    loop {
+        Timer::after_millis(SUPERVISOR_PERIOD_MS).await;
+        match sup.check(&HEARTBEATS) {
+            None => {
+                wdg.feed();
+                starving = false;
+            }
+            Some(t) => {
+                if !starving {
+                    defmt::error!("task {} silent: watchdog no longer fed", t as u8);
+                }
+                starving = true;
+            }
+        }
+    }
+}

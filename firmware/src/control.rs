@@ -1,0 +1,374 @@
+//! The control step shared by both boards: raw sample → transducer conversion → estimator →
+//! scheduler → overpressure trip latch → actuator stage (slew limit, safe state).
+//!
+//! Configuration ([`ControlConfig`], [`ModelConfig`], [`SchedulerConfig`]) is validated once by
+//! [`Controller::new`]; the per-step functions cannot fail.
+
+use crate::frontend::{LoopSpec, SpecError, Transducer};
+use pto_model::estimator::{self, Estimate, Inputs, State, fault};
+use pto_model::fx::{Aperture, Fx, Pressure, ZERO, clamp, mul_dt};
+use pto_model::protocol::{SensorFrame, Status};
+use pto_model::scheduler::{self, Command, Mode, Override, SchedulerCoeffs, SchedulerConfig};
+use pto_model::{Coefficients, ConfigError, ModelConfig, SchedulerState};
+
+/// Measures the cost of the model step: instructions under QEMU `-icount shift=0` (TIM2), cycles
+/// on the bench (DWT). Implementations run `f` with interrupts masked so the count is the step's
+/// own.
+pub trait StepClock {
+    /// Runs `f` and returns its result and its cost.
+    fn measure<R>(&mut self, f: impl FnOnce() -> R) -> (R, u32);
+}
+
+/// A clock that does not measure (host tools, tests).
+#[derive(Debug, Default, Clone, Copy)]
+pub struct NoClock;
+
+impl StepClock for NoClock {
+    fn measure<R>(&mut self, f: impl FnOnce() -> R) -> (R, u32) {
+        (f(), 0)
+    }
+}
+
+/// Cylinders on duty at boot, until the host or the operator says otherwise: HC3.1 and HC3.4,
+/// the pair of the paper's Test III.
+pub const BOOT_ON_DUTY: u8 = 0b1001;
+
+/// Firmware settings beyond the model and the scheduler.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ControlConfig {
+    /// HP transducer loop.
+    pub hp: LoopSpec,
+    /// LP transducer loop.
+    pub lp: LoopSpec,
+    /// The trip latch releases when the P2 estimate falls this far below the trip pressure, bar.
+    pub trip_release_margin_bar: f32,
+    /// Actuator slew limit (a second line behind the scheduler's rate limit), %/s. Safety
+    /// overrides are applied at once.
+    pub valve_slew_pct_per_s: f32,
+    /// Start P2 standard deviation at boot (P2 unknown), bar.
+    pub boot_sigma_bar: f32,
+}
+
+impl Default for ControlConfig {
+    fn default() -> Self {
+        ControlConfig {
+            hp: LoopSpec::HP,
+            lp: LoopSpec::LP,
+            trip_release_margin_bar: 15.0,
+            valve_slew_pct_per_s: 100.0,
+            boot_sigma_bar: 50.0,
+        }
+    }
+}
+
+/// Why the controller cannot start.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum SetupError {
+    /// Model or scheduler configuration.
+    Model(ConfigError),
+    /// Transducer loop.
+    Loop(SpecError),
+    /// A [`ControlConfig`] field outside its range.
+    Control {
+        /// Field.
+        field: &'static str,
+        /// Value.
+        value: f32,
+    },
+}
+
+impl core::fmt::Display for SetupError {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            SetupError::Model(e) => write!(f, "{e}"),
+            SetupError::Loop(e) => write!(f, "{e}"),
+            SetupError::Control { field, value } => {
+                write!(f, "control config: {field} = {value} is outside its range")
+            }
+        }
+    }
+}
+
+/// What one closed-loop step produced.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepOut {
+    /// Estimator output.
+    pub estimate: Estimate,
+    /// Scheduler output.
+    pub command: Command,
+    /// Aperture applied to the valve.
+    pub applied: Aperture,
+    /// Dump valve open.
+    pub dump: bool,
+}
+
+/// The controller: model coefficients, estimator and scheduler state, trip latch, actuator.
+#[derive(Debug, Clone)]
+pub struct Controller {
+    k: Coefficients,
+    sc: SchedulerCoeffs,
+    st: State,
+    sst: SchedulerState,
+    mode: Mode,
+    on_duty: u8,
+    config: u8,
+    hp: Transducer,
+    lp: Transducer,
+    safe_op: Fx,
+    release: Fx,
+    slew_step: Fx,
+    applied: Fx,
+    /// Health counters (the link counters are filled in by the receive task).
+    pub status: Status,
+}
+
+impl Controller {
+    /// Validates the configuration and precomputes everything; the estimator starts with P2
+    /// unknown (large uncertainty) until [`Controller::reset`].
+    pub fn new(
+        model: &ModelConfig,
+        sched: &SchedulerConfig,
+        cc: &ControlConfig,
+    ) -> Result<Self, SetupError> {
+        let k = model.coefficients().map_err(SetupError::Model)?;
+        let sc = sched.coefficients(&k).map_err(SetupError::Model)?;
+        let hp = Transducer::new(cc.hp).map_err(SetupError::Loop)?;
+        let lp = Transducer::new(cc.lp).map_err(SetupError::Loop)?;
+        let check = |field, v: f32, lo: f32, hi: f32| {
+            if v.is_finite() && v >= lo && v <= hi {
+                Ok(())
+            } else {
+                Err(SetupError::Control { field, value: v })
+            }
+        };
+        check("trip_release_margin_bar", cc.trip_release_margin_bar, 1.0, 100.0)?;
+        check("valve_slew_pct_per_s", cc.valve_slew_pct_per_s, 1.0, 10_000.0)?;
+        check("boot_sigma_bar", cc.boot_sigma_bar, 0.1, 200.0)?;
+        let release = k
+            .trip
+            .saturating_sub(Fx::saturating_from_num(cc.trip_release_margin_bar));
+        let slew_step = mul_dt(Fx::saturating_from_num(cc.valve_slew_pct_per_s), k.dt_log2);
+        let mut c = Controller {
+            sc,
+            st: State::default(),
+            sst: SchedulerState::default(),
+            mode: Mode::Fixed(Aperture::ZERO),
+            on_duty: BOOT_ON_DUTY,
+            config: 0,
+            hp,
+            lp,
+            safe_op: Fx::saturating_from_num(sched.overpressure_aperture_pct),
+            release,
+            slew_step,
+            applied: ZERO,
+            status: Status::default(),
+            k,
+        };
+        c.st = State::new(
+            Pressure::ZERO,
+            Pressure::ZERO,
+            Pressure(Fx::saturating_from_num(cc.boot_sigma_bar)),
+        );
+        Ok(c)
+    }
+
+    /// Model step, dt = 2^−dt_log2 s.
+    pub fn dt_log2(&self) -> u8 {
+        self.k.dt_log2
+    }
+
+    /// Trip pressure, bar.
+    pub fn trip(&self) -> Pressure {
+        Pressure(self.k.trip)
+    }
+
+    /// Scheduler mode.
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+
+    /// Cylinders on duty (bit i = HC3.(i+1)) and geometry (0..=3).
+    pub fn duty(&self) -> (u8, u8) {
+        (self.on_duty, self.config)
+    }
+
+    /// Restarts the estimator from known pressures; clears the scheduler and the trip latch.
+    pub fn reset(&mut self, p2: Pressure, lp: Pressure) {
+        self.st = State::new(p2, lp, Pressure(Fx::ONE));
+        self.sst = SchedulerState::default();
+        self.status.tripped = false;
+        self.status.dump_valve = false;
+    }
+
+    /// Switches the scheduler mode (bumpless: the integrator keeps its value).
+    pub fn set_mode(&mut self, mode: Mode) {
+        self.mode = mode;
+    }
+
+    /// Cylinders on duty and geometry; out-of-range values are ignored and flagged by the
+    /// estimator's `BAD_CONFIG` fault.
+    pub fn set_duty(&mut self, on_duty: u8, config: u8) {
+        self.on_duty = on_duty;
+        self.config = config;
+    }
+
+    fn model_step<C: StepClock>(&mut self, inp: &Inputs, clock: &mut C) -> (Estimate, Command) {
+        let (k, sc, st, sst, mode) = (&self.k, &self.sc, &mut self.st, &mut self.sst, self.mode);
+        let ((e, c), cost) = clock.measure(|| {
+            let e = estimator::step(k, st, inp);
+            let c = scheduler::step(k, sc, sst, mode, &e, inp.motor);
+            (e, c)
+        });
+        let s = &mut self.status;
+        s.steps = s.steps.wrapping_add(1);
+        s.faults_seen |= e.faults;
+        s.step_cost_last = cost;
+        s.step_cost_max = s.step_cost_max.max(cost);
+        (e, c)
+    }
+
+    /// Bit-exact replay of given estimator inputs; the actuator stage is bypassed.
+    pub fn replay<C: StepClock>(&mut self, inp: &Inputs, clock: &mut C) -> (Estimate, Command) {
+        self.model_step(inp, clock)
+    }
+
+    /// One closed-loop step from a raw sample.
+    pub fn sample<C: StepClock>(&mut self, f: &SensorFrame, clock: &mut C) -> StepOut {
+        let hp = self.hp.pressure(f.hp_adc);
+        if hp.is_none() {
+            self.status.hp_loop_faults = self.status.hp_loop_faults.wrapping_add(1);
+        }
+        let inp = Inputs {
+            encoder: Some(f.encoder),
+            hp,
+            lp: self.lp.pressure(f.lp_adc),
+            motor: f.motor,
+            aperture_cmd: Aperture(self.applied),
+            on_duty: self.on_duty,
+            config: self.config,
+        };
+        let (e, c) = self.model_step(&inp, clock);
+        // Trip latch: set by an overpressure, released once both the estimate and the reading
+        // (when there is one) are well below the trip.
+        let below = e.p2.0 < self.release && hp.is_none_or(|p| p.0 < self.release);
+        let s = &mut self.status;
+        if e.faults & fault::OVERPRESSURE != 0 {
+            if !s.tripped {
+                s.trips = s.trips.wrapping_add(1);
+            }
+            s.tripped = true;
+        } else if s.tripped && below {
+            s.tripped = false;
+        }
+        // Actuator stage: safety at once, otherwise slew-limited.
+        self.applied = if s.tripped {
+            self.safe_op
+        } else if c.safety != Override::None {
+            c.aperture.0
+        } else {
+            clamp(
+                c.aperture.0,
+                self.applied.saturating_sub(self.slew_step),
+                self.applied.saturating_add(self.slew_step),
+            )
+        };
+        s.dump_valve = s.tripped;
+        s.aperture = Aperture(self.applied);
+        StepOut {
+            estimate: e,
+            command: c,
+            applied: Aperture(self.applied),
+            dump: s.dump_valve,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ctl() -> Controller {
+        Controller::new(
+            &ModelConfig::reference(),
+            &SchedulerConfig::default(),
+            &ControlConfig::default(),
+        )
+        .unwrap()
+    }
+
+    fn frame(c: &Controller, tick: u32, hp_bar: f32) -> SensorFrame {
+        let t = Transducer::new(LoopSpec::HP).unwrap();
+        let l = Transducer::new(LoopSpec::LP).unwrap();
+        let _ = c;
+        SensorFrame {
+            tick,
+            encoder: 0,
+            hp_adc: t.counts_at_bar(hp_bar),
+            lp_adc: l.counts_at_bar(8.0),
+            motor: Some(pto_model::fx::Rpm::from_num(200.0)),
+        }
+    }
+
+    #[test]
+    fn overpressure_latches_the_safe_state_in_the_same_step_and_releases_with_margin() {
+        let mut c = ctl();
+        c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0));
+        c.set_mode(Mode::Fixed(Aperture::from_num(5.0)));
+        let trip = c.trip().to_f32();
+        for i in 0..50 {
+            let o = c.sample(&frame(&c, i, 100.0), &mut NoClock);
+            assert!(!o.dump);
+        }
+        let o = c.sample(&frame(&c, 50, trip + 1.0), &mut NoClock);
+        assert!(o.dump, "dump valve on in the step that sees the overpressure");
+        assert_eq!(o.applied.to_f32(), 100.0, "valve at its safe aperture at once");
+        // Still latched a little below the trip.
+        let o = c.sample(&frame(&c, 51, trip - 5.0), &mut NoClock);
+        assert!(o.dump && o.applied.to_f32() == 100.0);
+        // Released once P2 is 15 bar below, then the valve slews back (100 %/s, 2^-10 s).
+        let mut n = 0;
+        let mut last = 100.0;
+        for i in 52..2000 {
+            let o = c.sample(&frame(&c, i, trip - 30.0), &mut NoClock);
+            if !o.dump {
+                let a = o.applied.to_f32();
+                assert!(last - a <= 100.0 / 1024.0 + 1e-3, "slew {last} -> {a}");
+                last = a;
+                n += 1;
+            }
+        }
+        assert!(n > 0 && c.status.trips == 1 && !c.status.tripped);
+    }
+
+    #[test]
+    fn a_wire_break_is_counted_and_the_estimate_runs_on_the_model() {
+        let mut c = ctl();
+        c.reset(Pressure::from_num(90.0), Pressure::from_num(8.0));
+        let mut f = frame(&c, 0, 90.0);
+        f.hp_adc = 0;
+        let o = c.sample(&f, &mut NoClock);
+        assert_ne!(o.estimate.faults & fault::HP_SENSOR, 0);
+        assert_eq!(c.status.hp_loop_faults, 1);
+        assert!((o.estimate.p2.to_f32() - 90.0).abs() < 1.0);
+    }
+
+    #[test]
+    fn bad_settings_name_their_field() {
+        let e = Controller::new(
+            &ModelConfig::reference(),
+            &SchedulerConfig::default(),
+            &ControlConfig {
+                valve_slew_pct_per_s: 0.0,
+                ..Default::default()
+            },
+        )
+        .unwrap_err();
+        assert_eq!(
+            e,
+            SetupError::Control {
+                field: "valve_slew_pct_per_s",
+                value: 0.0
+            }
+        );
+    }
+}

@@ -1,0 +1,36 @@
+//! Hardware-independent logic of the PTO bench controller.
+//!
+//! Everything here compiles for the host and is unit-tested there; the firmware binary
+//! (`src/main.rs`) adds the embassy tasks and one thin board module (`board/bench.rs` for the
+//! STM32F405 bench, `board/qemu.rs` for QEMU `netduinoplus2`).
+//!
+//! - [`frontend`]: 4–20 mA transducer loops read by the 12-bit ADC (wire-break window).
+//! - [`link`]: COBS frame assembly with drop counting, reply encoding.
+//! - [`control`]: the control step: raw sample → estimator → scheduler → trip latch → actuator
+//!   stage, with the cost of the model step measured by a [`control::StepClock`].
+//! - [`supervisor`]: task heartbeats and the watchdog-feed decision.
+#![cfg_attr(not(test), no_std)]
+#![forbid(unsafe_code)]
+
+pub mod control;
+pub mod frontend;
+pub mod link;
+pub mod supervisor;
+
+/// Firmware version, major·256 + minor (reported in `Ready`).
+pub const VERSION: u16 = 0x0100;
+
+/// QEMU exit code when the watchdog expires (the bench MCU resets instead).
+pub const EXIT_WATCHDOG: u8 = 3;
+/// QEMU exit code after a panic.
+pub const EXIT_PANIC: u8 = 101;
+/// QEMU exit code after a hard fault.
+pub const EXIT_HARDFAULT: u8 = 102;
+
+/// Watchdog timeout, ms: the supervisor checks the heartbeats every [`SUPERVISOR_PERIOD_MS`].
+pub const WATCHDOG_TIMEOUT_MS: u32 = 250;
+/// Supervisor period, ms.
+pub const SUPERVISOR_PERIOD_MS: u64 = 50;
+/// Tasks wake at least this often even with nothing to do, so that their heartbeat shows they
+/// are not stuck, ms.
+pub const HEARTBEAT_MS: u64 = 20;
