@@ -55,7 +55,8 @@ static HEARTBEATS: Heartbeats = Heartbeats::new();
 /// Frames decoded / dropped by the receive task; samples the control task had no room for.
 static FRAMES_OK: AtomicU32 = AtomicU32::new(0);
 static FRAMES_DROPPED: AtomicU32 = AtomicU32::new(0);
-/// Sensor samples dropped because the control task was behind.
+/// Sensor samples dropped because the control task's queue was full (repeated or stale ticks
+/// are counted by the controller).
 pub static FRAMES_OVERRUN: AtomicU32 = AtomicU32::new(0);
 static CONTROLLER: StaticCell<Controller> = StaticCell::new();
 
@@ -176,6 +177,9 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
         };
         match msg {
             ToControl::Sample(f) => {
+                if !ctl.fresh(f.tick) {
+                    continue;
+                }
                 let o = ctl.sample(&f, &mut clock);
                 ACTUATE.signal(Outputs {
                     aperture: o.applied,
@@ -246,7 +250,9 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                     let mut s = ctl.status;
                     s.frames_ok = FRAMES_OK.load(Ordering::Relaxed);
                     s.frames_dropped = FRAMES_DROPPED.load(Ordering::Relaxed);
-                    s.frames_overrun = FRAMES_OVERRUN.load(Ordering::Relaxed);
+                    s.frames_overrun = s
+                        .frames_overrun
+                        .wrapping_add(FRAMES_OVERRUN.load(Ordering::Relaxed));
                     s.bytes_lost = board::bytes_lost();
                     send(FromFirmware::Status(s)).await;
                 }

@@ -118,6 +118,7 @@ pub struct Controller {
     release: Fx,
     slew_step: Fx,
     applied: Fx,
+    last_tick: Option<u32>,
     /// Health counters (the link counters are filled in by the receive task).
     pub status: Status,
 }
@@ -161,6 +162,7 @@ impl Controller {
             release,
             slew_step,
             applied: ZERO,
+            last_tick: None,
             status: Status::default(),
             k,
         };
@@ -198,6 +200,21 @@ impl Controller {
         self.sst = SchedulerState::default();
         self.status.tripped = false;
         self.status.dump_valve = false;
+        self.last_tick = None;
+    }
+
+    /// Whether a sample stamped `tick` is newer than the last one stepped (the loop steps once
+    /// per period: a repeated or older tick is an overrun and is dropped and counted).
+    pub fn fresh(&mut self, tick: u32) -> bool {
+        let ok = self
+            .last_tick
+            .is_none_or(|last| (1..=u32::MAX / 2).contains(&tick.wrapping_sub(last)));
+        if ok {
+            self.last_tick = Some(tick);
+        } else {
+            self.status.frames_overrun = self.status.frames_overrun.wrapping_add(1);
+        }
+        ok
     }
 
     /// Switches the scheduler mode (bumpless: the integrator keeps its value).
@@ -338,6 +355,18 @@ mod tests {
             }
         }
         assert!(n > 0 && c.status.trips == 1 && !c.status.tripped);
+    }
+
+    #[test]
+    fn repeated_and_stale_ticks_are_overruns() {
+        let mut c = ctl();
+        assert!(c.fresh(10) && c.fresh(11) && c.fresh(13));
+        assert!(!c.fresh(13) && !c.fresh(12));
+        assert!(c.fresh(14));
+        assert_eq!(c.status.frames_overrun, 2);
+        c.reset(Pressure::ZERO, Pressure::ZERO);
+        assert!(c.fresh(0), "a reset restarts the tick count");
+        assert!(c.fresh(u32::MAX / 2) && c.fresh(u32::MAX - 5) && c.fresh(3), "ticks wrap");
     }
 
     #[test]

@@ -21,33 +21,50 @@ pub const FILE: &str = "data/golden-vectors.csv";
 pub const SETPOINT_BAR: f32 = 100.0;
 const HEADER: &str = "step,encoder,hp,lp,motor,aperture_cmd,on_duty,config,p2,p2_sigma,lp_est,q_pump,q_valve,q_relief,torque,motor_rpm,autonomy,aperture,faults,cmd_aperture,safety";
 
-/// Makes the 2048 input steps from the full simulation.
-pub fn make_inputs(bench: &Bench) -> Result<(Vec<Inputs>, f32, f32), String> {
-    let mut s = crate::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
+/// Which steps of a replay get a fault injected.
+pub type Faults = fn(usize, Option<i32>, f64) -> (Option<i32>, Option<f64>);
+
+fn golden_faults(i: usize, enc: Option<i32>, hp: f64) -> (Option<i32>, Option<f64>) {
+    let hp = match i {
+        600..900 => None,
+        1200..1260 => Some(-60.0),
+        1500..1520 => Some(hp + if i % 2 == 0 { 30.0 } else { -30.0 }),
+        _ => Some(hp),
+    };
+    let enc = if (1700..1750).contains(&i) { None } else { enc };
+    (enc, hp)
+}
+
+fn no_faults(_: usize, enc: Option<i32>, hp: f64) -> (Option<i32>, Option<f64>) {
+    (enc, Some(hp))
+}
+
+/// Model inputs made from a full-simulation run of scenario `name`: `steps` steps of 2^−10 s
+/// from `t_start` s (or from 1 s before the valve opens), through the sensor model (seed 42),
+/// with `faults` applied; plus the plant's P2 and LP at the start, bar.
+pub fn scenario_inputs(
+    bench: &Bench,
+    name: &str,
+    t_start: Option<f64>,
+    steps: usize,
+    faults: Faults,
+) -> Result<(Vec<Inputs>, f32, f32), String> {
+    let mut s = crate::scenario::builtin_named(name).ok_or(format!("{name} missing"))?;
     s.sample_interval_s = 1.0 / 128.0;
-    s.duration_s = 60.0;
-    let (prep, res) = s.simulate(bench, Path::new("."), Default::default(), None)?;
-    let t_open = res.valve_opened_at.unwrap_or(50.0);
-    let t0 = t_open - 1.0;
-    let mut synth = SensorSynth::new(SensorSpec::default(), 42);
     let dt = 1.0 / 1024.0;
+    let t_need = t_start.unwrap_or(s.duration_s) + steps as f64 * dt + 1.0;
+    s.duration_s = s.duration_s.min(t_need);
+    let (prep, res) = s.simulate(bench, Path::new("."), Default::default(), None)?;
+    let t0 = t_start.unwrap_or_else(|| res.valve_opened_at.unwrap_or(50.0) - 1.0);
+    let mut synth = SensorSynth::new(SensorSpec::default(), 42);
     let start = truth_at(&res.trace, t0);
-    let mut v = Vec::new();
-    for i in 0..2048usize {
+    let duty = estimation::duty_mask(&prep.on_duty);
+    let mut v = Vec::with_capacity(steps);
+    for i in 0..steps {
         let t = t0 + i as f64 * dt;
         let truth = truth_at(&res.trace, t);
         let (enc, hp, lp, motor) = synth.read(prep.plant.motion().at(t).0, &truth);
-        let hp = match i {
-            600..900 => None,
-            1200..1260 => Some(-60.0),
-            1500..1520 => Some(hp + if i % 2 == 0 { 30.0 } else { -30.0 }),
-            _ => Some(hp),
-        };
-        let enc = if (1700..1750).contains(&i) {
-            None
-        } else {
-            Some(enc)
-        };
+        let (enc, hp) = faults(i, Some(enc), hp);
         let ap = estimation::commanded_aperture_pct(&s, &res, t);
         v.push(estimation::inputs(
             enc,
@@ -55,11 +72,26 @@ pub fn make_inputs(bench: &Bench) -> Result<(Vec<Inputs>, f32, f32), String> {
             Some(lp),
             Some(motor),
             ap,
-            0b1001,
-            0,
+            duty,
+            prep.config as u8,
         ));
     }
     Ok((v, start.p2 as f32, start.lp as f32))
+}
+
+/// Makes the 2048 golden input steps (Test III at 10 %, faults injected).
+pub fn make_inputs(bench: &Bench) -> Result<(Vec<Inputs>, f32, f32), String> {
+    scenario_inputs(bench, "test3-ap10", None, 2048, golden_faults)
+}
+
+/// A fault-free replay of `steps` steps of scenario `name` from `t_start`.
+pub fn clean_inputs(
+    bench: &Bench,
+    name: &str,
+    t_start: Option<f64>,
+    steps: usize,
+) -> Result<(Vec<Inputs>, f32, f32), String> {
+    scenario_inputs(bench, name, t_start, steps, no_faults)
 }
 
 /// Runs the model over the inputs from the known start.

@@ -14,6 +14,7 @@ pub mod motion;
 pub mod paper;
 pub mod perf;
 pub mod physics;
+pub mod pil;
 pub mod plant;
 pub mod plot;
 pub mod qemu;

@@ -271,10 +271,12 @@ impl ValveController for ModelController {
     }
 }
 
-/// Closed-loop Test III-like run (HC3.1 + HC3.4, Config 1, ±40 mm at 0.1 Hz, from 60 bar).
+/// Closed-loop Test III-like run (HC3.1 + HC3.4, Config 1, ±40 mm at 0.1 Hz, from `p2_start`
+/// bar, LP 8 bar).
 pub fn closed_loop(
     bench: &Bench,
     mode: Mode,
+    p2_start: f64,
     duration: f64,
     dt_log2: u8,
 ) -> Result<(crate::sim::SimResult, ModelController), String> {
@@ -287,7 +289,7 @@ pub fn closed_loop(
     let ctrl = ModelController::new(
         &mcfg,
         mode,
-        60.0,
+        p2_start,
         8.0,
         estimation::duty_mask(&prep.on_duty),
         prep.config as u8,
@@ -308,7 +310,7 @@ pub fn closed_loop(
         plant: &prep.plant,
         valve: ValveSchedule::Controller(Box::new(Shim(shared.clone()))),
         initial: Initial {
-            p2: 60.0 * BAR,
+            p2: p2_start * BAR,
             lp: 8.0 * BAR,
         },
         duration,
@@ -368,7 +370,7 @@ pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
     cases
         .into_par_iter()
         .map(|(name, mode)| {
-            let (res, _) = closed_loop(bench, mode, 400.0, 8)?;
+            let (res, _) = closed_loop(bench, mode, 60.0, 400.0, 8)?;
             let tr = &res.trace;
             Ok(match mode {
                 Mode::HoldPressure(p) => {

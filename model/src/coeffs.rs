@@ -110,6 +110,9 @@ pub struct Coefficients {
     pub gate_sq: Fx,
     /// Consecutive rejected steps before the estimate is reset to the sensor.
     pub gate_reset_steps: u16,
+    /// Ceiling of the variance a rejected reading adds (fading memory): 16 r, i.e. a P2 σ of
+    /// 4 measurement σ, so the gate never opens wider than ≈ 20 measurement σ.
+    pub var_fade_max: Fx,
     /// HP sensor range, bar.
     pub hp_range: (Fx, Fx),
     /// LP sensor range, bar.
@@ -375,6 +378,7 @@ impl ModelConfig {
             gain_lp: fx(pp / (pp + r)),
             gate_sq: fx(self.gate_sigma * self.gate_sigma),
             gate_reset_steps: (self.gate_reset_ms * 1e-3 / dt).clamp(1.0, 60_000.0) as u16,
+            var_fade_max: fx(16.0 * r),
             hp_range: (
                 fx(self.hp_sensor_range_bar.0),
                 fx(self.hp_sensor_range_bar.1),

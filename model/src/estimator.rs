@@ -314,6 +314,12 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
                 s.rejected = 0;
             } else {
                 faults |= fault::INNOVATION;
+                // Fading memory: each rejection widens the gate and raises the next gain, so a
+                // persistent model error (e.g. a stuck encoder hiding the pump flow) is taken in
+                // within a few steps; the ceiling keeps a burst of outliers outside the gate.
+                if s.var < k.var_fade_max {
+                    s.var = s.var.saturating_add(k.r).min(k.var_fade_max);
+                }
                 s.rejected = s.rejected.saturating_add(1);
                 if s.rejected >= k.gate_reset_steps {
                     faults |= fault::INNOVATION_RESET;

@@ -1,0 +1,77 @@
+//! Bit-exact replay: the golden vectors and ≥ 10 000-step full-simulation traces (Test III and
+//! an irregular sea) streamed to the QEMU firmware give, step for step, the same estimate and
+//! scheduler output as the model crate run on the host.
+
+use pto_host::bench::Bench;
+use pto_host::golden;
+use pto_host::pil;
+use pto_host::qemu::{self, Build, Qemu};
+use pto_model::fx::Pressure;
+use pto_model::scheduler::Mode;
+use std::time::{Duration, Instant};
+
+#[test]
+fn firmware_matches_the_host_model_bit_for_bit() {
+    let elf = qemu::build(Build::Qemu).unwrap();
+    let mut q = Qemu::boot(&elf, false).unwrap();
+    let k = golden::coefficients().unwrap();
+    let mode = Mode::HoldPressure(Pressure::from_num(golden::SETPOINT_BAR));
+
+    // 1. The committed golden vectors.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(golden::FILE);
+    let text = std::fs::read_to_string(&path).unwrap();
+    let (p2, lp, inputs) = golden::parse(&text).unwrap();
+    let (p2, lp) = (
+        Pressure::from_bits(p2).to_f32(),
+        Pressure::from_bits(lp).to_f32(),
+    );
+    let t0 = Instant::now();
+    let fw = pil::replay(&mut q, &inputs, p2, lp, mode).unwrap();
+    let dt = t0.elapsed().as_secs_f64();
+    let csv = golden::to_csv(&inputs, &fw, p2, lp);
+    let bad = text
+        .lines()
+        .zip(csv.lines())
+        .filter(|(a, b)| a != b)
+        .count();
+    println!(
+        "golden vectors: {} steps, {bad} mismatching lines, {:.1} µs per round trip",
+        inputs.len(),
+        dt / inputs.len() as f64 * 1e6
+    );
+    assert_eq!(bad, 0);
+    assert_eq!(text.lines().count(), csv.lines().count());
+
+    // 2. Long traces from the full simulation.
+    let bench = Bench::reference();
+    for (name, start) in [("test3-ap10", None), ("irregular-sea", Some(200.0))] {
+        let (inputs, p2, lp) = golden::clean_inputs(&bench, name, start, 12_000).unwrap();
+        let host = golden::run(&k, &inputs, p2, lp).unwrap();
+        let t0 = Instant::now();
+        let fw = pil::replay(&mut q, &inputs, p2, lp, mode).unwrap();
+        let first_diff = host.iter().zip(&fw).position(|(a, b)| a != b);
+        let torque_span = host
+            .iter()
+            .map(|(e, _)| e.torque.to_f32().abs())
+            .fold(0.0f32, f32::max);
+        println!(
+            "{name}: {} steps replayed in {:.1} s, first difference at {:?} (|torque| up to {:.0} N·m)",
+            fw.len(),
+            t0.elapsed().as_secs_f64(),
+            first_diff,
+            torque_span
+        );
+        assert_eq!(fw.len(), inputs.len());
+        assert!(inputs.len() >= 10_000);
+        assert_eq!(first_diff, None, "{name}: firmware and host differ");
+        assert!(torque_span > 100.0, "{name}: the trace exercises the pump");
+    }
+    let st = pil::status(&mut q).unwrap();
+    println!(
+        "status: {} frames ok, {} dropped, {} steps, step cost {} (max {}) instructions",
+        st.frames_ok, st.frames_dropped, st.steps, st.step_cost_last, st.step_cost_max
+    );
+    assert_eq!(st.frames_dropped, 0);
+    q.link.send(&pto_model::protocol::ToFirmware::Exit(0)).unwrap();
+    assert_eq!(q.wait_exit(Duration::from_secs(10)).unwrap(), 0);
+}
