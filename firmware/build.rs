@@ -13,8 +13,8 @@ fn main() {
     if env::var("CARGO_CFG_TARGET_OS").as_deref() != Ok("none") {
         return;
     }
-    let text = fs::read(&memory)
-        .unwrap_or_else(|e| panic!("cannot read {}: {e}", memory.display()));
+    let text =
+        fs::read(&memory).unwrap_or_else(|e| panic!("cannot read {}: {e}", memory.display()));
     fs::write(out.join("memory.x"), text).expect("OUT_DIR is writable");
     println!("cargo:rustc-link-search={}", out.display());
     println!("cargo:rustc-link-arg-bins=--nmagic");

@@ -11,7 +11,7 @@ use embassy_time::{Duration, Timer, with_timeout};
 use embedded_hal::digital::OutputPin;
 use embedded_hal::pwm::SetDutyCycle;
 use embedded_io_async::{Read, Write};
-use pto_firmware::control::{ControlConfig, Controller};
+use pto_firmware::control::{ControlConfig, Controller, SetupError};
 use pto_firmware::link::{self, FrameAssembler};
 use pto_firmware::supervisor::{Heartbeats, Supervisor, Task, Watchdog as _};
 use pto_firmware::{HEARTBEAT_MS, SUPERVISOR_PERIOD_MS, VERSION};
@@ -58,6 +58,8 @@ static FRAMES_DROPPED: AtomicU32 = AtomicU32::new(0);
 /// Sensor samples dropped because the control task's queue was full (repeated or stale ticks
 /// are counted by the controller).
 pub static FRAMES_OVERRUN: AtomicU32 = AtomicU32::new(0);
+/// Receive errors (overrun, framing) reported by the UART driver.
+static RX_ERRORS: AtomicU32 = AtomicU32::new(0);
 static CONTROLLER: StaticCell<Controller> = StaticCell::new();
 
 /// Boots the board, checks the configuration, spawns the tasks.
@@ -69,7 +71,21 @@ pub fn start(spawner: Spawner) {
     let ctl = match Controller::new(&model, &sched, &cc) {
         Ok(c) => CONTROLLER.init(c),
         Err(e) => {
-            defmt::error!("configuration rejected: {}", defmt::Display2Format(&e));
+            match e {
+                SetupError::Model(m) => defmt::error!(
+                    "configuration rejected: {=str} = {} outside [{}, {}]",
+                    m.field,
+                    m.value,
+                    m.min,
+                    m.max
+                ),
+                SetupError::Loop(l) => {
+                    defmt::error!("transducer loop rejected: {=str} = {}", l.field, l.value)
+                }
+                SetupError::Control { field, value } => {
+                    defmt::error!("control config rejected: {=str} = {}", field, value)
+                }
+            }
             board::fail(2)
         }
     };
@@ -102,7 +118,6 @@ pub fn start(spawner: Spawner) {
     spawner.spawn(control_task(ctl, b.clock).expect("one control task"));
     spawner.spawn(actuator_task(b.valve, b.dump, b.solenoids).expect("one actuator task"));
     spawner.spawn(supervisor_task(b.watchdog).expect("one supervisor task"));
-    board::spawn_sampling(spawner);
 }
 
 #[embassy_executor::task]
@@ -111,10 +126,16 @@ async fn rx_task(mut rx: board::Rx) {
     let mut buf = [0u8; 64];
     loop {
         HEARTBEATS.beat(Task::Rx);
-        let n = match with_timeout(Duration::from_millis(HEARTBEAT_MS), Read::read(&mut rx, &mut buf)).await {
+        let n = match with_timeout(
+            Duration::from_millis(HEARTBEAT_MS),
+            Read::read(&mut rx, &mut buf),
+        )
+        .await
+        {
             Ok(Ok(n)) => n,
             Ok(Err(_)) => {
                 // Framing/overrun errors: the frame in progress fails its CRC and is counted.
+                RX_ERRORS.fetch_add(1, Ordering::Relaxed);
                 continue;
             }
             Err(_) => continue,
@@ -170,8 +191,7 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
     let mut tripped_prev = false;
     loop {
         HEARTBEATS.beat(Task::Control);
-        let Ok(msg) =
-            with_timeout(Duration::from_millis(HEARTBEAT_MS), TO_CONTROL.receive()).await
+        let Ok(msg) = with_timeout(Duration::from_millis(HEARTBEAT_MS), TO_CONTROL.receive()).await
         else {
             continue;
         };
@@ -205,7 +225,7 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                     }
                     tripped_prev = o.dump;
                 }
-                if f.tick % board::TELEMETRY_EVERY == 0 {
+                if f.tick.is_multiple_of(board::TELEMETRY_EVERY) {
                     send(FromFirmware::Output {
                         tick: f.tick,
                         estimate: o.estimate,
@@ -253,7 +273,7 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                     s.frames_overrun = s
                         .frames_overrun
                         .wrapping_add(FRAMES_OVERRUN.load(Ordering::Relaxed));
-                    s.bytes_lost = board::bytes_lost();
+                    s.bytes_lost = board::bytes_lost() + RX_ERRORS.load(Ordering::Relaxed);
                     send(FromFirmware::Status(s)).await;
                 }
                 ToFirmware::Stall => {
@@ -271,21 +291,13 @@ async fn actuator_task(mut valve: board::Valve, mut dump: board::Pin, mut sol: [
     loop {
         let o = ACTUATE.wait().await;
         // Aperture % → duty: Q16.16 percent × max / 100, computed in integers.
-        let max = u64::from(valve.max_duty_cycle());
+        let max = u64::from(SetDutyCycle::max_duty_cycle(&valve));
         let bits = u64::try_from(o.aperture.to_bits().max(0)).unwrap_or(0);
         let duty = ((bits * max) / (100u64 << 16)).min(max) as u16;
-        let _ = valve.set_duty_cycle(duty);
-        let _ = if o.dump {
-            dump.set_high()
-        } else {
-            dump.set_low()
-        };
+        let _ = SetDutyCycle::set_duty_cycle(&mut valve, duty);
+        let _ = OutputPin::set_state(&mut dump, o.dump.into());
         for (i, s) in sol.iter_mut().enumerate() {
-            let _ = if o.on_duty & (1 << i) != 0 {
-                s.set_high()
-            } else {
-                s.set_low()
-            };
+            let _ = OutputPin::set_state(s, (o.on_duty & (1 << i) != 0).into());
         }
     }
 }

@@ -142,8 +142,18 @@ impl Controller {
                 Err(SetupError::Control { field, value: v })
             }
         };
-        check("trip_release_margin_bar", cc.trip_release_margin_bar, 1.0, 100.0)?;
-        check("valve_slew_pct_per_s", cc.valve_slew_pct_per_s, 1.0, 10_000.0)?;
+        check(
+            "trip_release_margin_bar",
+            cc.trip_release_margin_bar,
+            1.0,
+            100.0,
+        )?;
+        check(
+            "valve_slew_pct_per_s",
+            cc.valve_slew_pct_per_s,
+            1.0,
+            10_000.0,
+        )?;
         check("boot_sigma_bar", cc.boot_sigma_bar, 0.1, 200.0)?;
         let release = k
             .trip
@@ -241,6 +251,7 @@ impl Controller {
         s.faults_seen |= e.faults;
         s.step_cost_last = cost;
         s.step_cost_max = s.step_cost_max.max(cost);
+        s.step_cost_sum = s.step_cost_sum.wrapping_add(u64::from(cost));
         (e, c)
     }
 
@@ -337,8 +348,15 @@ mod tests {
             assert!(!o.dump);
         }
         let o = c.sample(&frame(&c, 50, trip + 1.0), &mut NoClock);
-        assert!(o.dump, "dump valve on in the step that sees the overpressure");
-        assert_eq!(o.applied.to_f32(), 100.0, "valve at its safe aperture at once");
+        assert!(
+            o.dump,
+            "dump valve on in the step that sees the overpressure"
+        );
+        assert_eq!(
+            o.applied.to_f32(),
+            100.0,
+            "valve at its safe aperture at once"
+        );
         // Still latched a little below the trip.
         let o = c.sample(&frame(&c, 51, trip - 5.0), &mut NoClock);
         assert!(o.dump && o.applied.to_f32() == 100.0);
@@ -366,7 +384,10 @@ mod tests {
         assert_eq!(c.status.frames_overrun, 2);
         c.reset(Pressure::ZERO, Pressure::ZERO);
         assert!(c.fresh(0), "a reset restarts the tick count");
-        assert!(c.fresh(u32::MAX / 2) && c.fresh(u32::MAX - 5) && c.fresh(3), "ticks wrap");
+        assert!(
+            c.fresh(u32::MAX / 2) && c.fresh(u32::MAX - 5) && c.fresh(3),
+            "ticks wrap"
+        );
     }
 
     #[test]

@@ -83,7 +83,12 @@ impl Transducer {
         check("shunt_ohm", spec.shunt_ohm, 10.0, 1000.0)?;
         check("vref_v", spec.vref_v, 1.0, 5.0)?;
         let per_ma = Self::counts_per_ma(&spec);
-        check("shunt_ohm", spec.shunt_ohm, 10.0, f32::from(ADC_MAX) / (SHORT_MA * per_ma) * spec.shunt_ohm)?;
+        check(
+            "shunt_ohm",
+            spec.shunt_ohm,
+            10.0,
+            f32::from(ADC_MAX) / (SHORT_MA * per_ma) * spec.shunt_ohm,
+        )?;
         let round = |x: f32| (x + 0.5) as u16;
         Ok(Transducer {
             counts_at_4ma: Fx::from_num(4.0 * per_ma),
@@ -135,6 +140,32 @@ impl Transducer {
     }
 }
 
+/// Extends a 16-bit timer count (encoder mode) to 32 bits: the counter must not move by more
+/// than ±32 767 counts between two updates (≈ 2 shaft revolutions at 16 384 counts per turn).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Unwrap16 {
+    last: u16,
+    total: i32,
+}
+
+impl Unwrap16 {
+    /// Starts at 0 from the counter's current value.
+    pub const fn new(now: u16) -> Self {
+        Unwrap16 {
+            last: now,
+            total: 0,
+        }
+    }
+
+    /// The extended count after the counter reads `now`.
+    pub fn update(&mut self, now: u16) -> i32 {
+        let step = now.wrapping_sub(self.last) as i16;
+        self.last = now;
+        self.total = self.total.wrapping_add(i32::from(step));
+        self.total
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -157,6 +188,20 @@ mod tests {
         assert!(t.pressure(t.counts_at_ma(3.7)).is_some());
         assert_eq!(t.pressure(t.counts_at_ma(22.0)), None, "short");
         assert_eq!(t.pressure(ADC_MAX), None);
+    }
+
+    #[test]
+    fn sixteen_bit_counts_unwrap_across_the_wrap() {
+        let mut u = Unwrap16::new(65_530);
+        assert_eq!(u.update(65_535), 5);
+        assert_eq!(u.update(4), 10);
+        assert_eq!(u.update(65_000), 10 - 540);
+        let mut v = Unwrap16::new(0);
+        let mut raw = 0u16;
+        for i in 1..=200_000i32 {
+            raw = raw.wrapping_add(7);
+            assert_eq!(v.update(raw), 7 * i);
+        }
     }
 
     #[test]

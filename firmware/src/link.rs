@@ -154,6 +154,7 @@ mod tests {
             aperture: Aperture(big),
             step_cost_last: u32::MAX,
             step_cost_max: u32::MAX,
+            step_cost_sum: u64::MAX,
         });
         let m = encode(&st, &mut b).expect("Status fits");
         println!("largest Output frame {n} B, Status {m} B (limit {MAX_FRAME})");

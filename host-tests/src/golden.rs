@@ -28,7 +28,7 @@ fn golden_faults(i: usize, enc: Option<i32>, hp: f64) -> (Option<i32>, Option<f6
     let hp = match i {
         600..900 => None,
         1200..1260 => Some(-60.0),
-        1500..1520 => Some(hp + if i % 2 == 0 { 30.0 } else { -30.0 }),
+        1500..1520 => Some(hp + if i.is_multiple_of(2) { 30.0 } else { -30.0 }),
         _ => Some(hp),
     };
     let enc = if (1700..1750).contains(&i) { None } else { enc };

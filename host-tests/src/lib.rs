@@ -8,6 +8,7 @@
 pub mod bench;
 pub mod estimation;
 pub mod figures;
+pub mod fw_cost;
 pub mod golden;
 pub mod model_cost;
 pub mod motion;

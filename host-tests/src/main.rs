@@ -88,6 +88,30 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+    /// Boot the QEMU firmware, ping it, print its decoded defmt log and its counters, stop it.
+    /// Needs qemu-system-arm and the thumbv7em-none-eabihf target (it builds the firmware).
+    Qemu {
+        /// Also print the log lines as they arrive.
+        #[arg(long)]
+        follow: bool,
+    },
+    /// Processor-in-the-loop: the full simulation as the plant, the QEMU firmware as the
+    /// controller in lockstep (hold P2, hold motor speed, overpressure trip).
+    Pil {
+        /// Bench parameter file (default: the reference bench).
+        #[arg(long)]
+        bench: Option<PathBuf>,
+        /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Firmware cost: instructions per estimator + scheduler step (QEMU, -icount shift=0,
+    /// TIM2), flash and static RAM of the bench and QEMU builds.
+    FwCost {
+        /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
     /// Wall time, real-time factor and accuracy of Test III and a 1000 s irregular sea.
     Bench {
         /// Bench parameter file (default: the reference bench).
@@ -131,6 +155,9 @@ fn main() -> ExitCode {
             json,
         } => validate_cmd(bench.as_ref(), &filter, !no_loop, json),
         Cmd::ModelCost { json } => model_cost_cmd(json),
+        Cmd::Qemu { follow } => qemu_cmd(follow),
+        Cmd::Pil { bench, json } => pil_cmd(bench.as_ref(), json),
+        Cmd::FwCost { json } => fw_cost_cmd(json),
     };
     match result {
         Ok(true) => ExitCode::SUCCESS,
@@ -574,4 +601,111 @@ fn model_cost_cmd(json: bool) -> Result<bool> {
         }
     }
     Ok(cost.pass)
+}
+
+fn qemu_cmd(follow: bool) -> Result<bool> {
+    use pto_host::qemu::{self, Build, Qemu};
+    use pto_model::protocol::{FromFirmware, ToFirmware};
+    eprintln!("building the QEMU firmware…");
+    let elf = qemu::build(Build::Qemu).map_err(anyhow::Error::msg)?;
+    let mut q = Qemu::boot(&elf, follow).map_err(anyhow::Error::msg)?;
+    let t0 = std::time::Instant::now();
+    q.link
+        .request(&ToFirmware::Ping(1), |r| {
+            matches!(r, FromFirmware::Pong(1)).then_some(())
+        })
+        .map_err(anyhow::Error::msg)?;
+    let ping = t0.elapsed();
+    let st = pto_host::pil::status(&mut q).map_err(anyhow::Error::msg)?;
+    q.link
+        .send(&ToFirmware::Exit(0))
+        .map_err(anyhow::Error::msg)?;
+    let code = q
+        .wait_exit(std::time::Duration::from_secs(10))
+        .map_err(anyhow::Error::msg)?;
+    if !follow {
+        for l in q.log() {
+            println!("{l}");
+        }
+    }
+    println!(
+        "ping answered in {:.2} ms; status: {st:?}; QEMU exit code {code}",
+        ping.as_secs_f64() * 1e3
+    );
+    Ok(code == 0)
+}
+
+fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
+    use pto_host::qemu::{self, Build, Qemu};
+    let bench = load_bench(bench)?;
+    eprintln!("building the QEMU firmware…");
+    let elf = qemu::build(Build::Qemu).map_err(anyhow::Error::msg)?;
+    let checks: [(&str, pto_host::pil::CheckFn); 3] = [
+        ("hold P2", pto_host::pil::check_hold_p2),
+        ("hold speed", pto_host::pil::check_hold_speed),
+        ("trip", pto_host::pil::check_trip),
+    ];
+    let mut out = Vec::new();
+    for (name, f) in checks {
+        eprintln!("PIL {name}: running in lockstep with the firmware (≈ 2 ms per step)…");
+        let q = Qemu::boot(&elf, false).map_err(anyhow::Error::msg)?;
+        let (mut q, c) = f(q, &bench).map_err(anyhow::Error::msg)?;
+        let _ = q.link.send(&pto_model::protocol::ToFirmware::Exit(0));
+        if !json {
+            println!(
+                "{:<24} {:>8.3} {:<13} target {:<6} {}  ({} steps, {:.0} s)\n    {}",
+                c.name,
+                c.measured,
+                c.unit,
+                c.target,
+                if c.pass { "ok" } else { "MISSED" },
+                c.steps,
+                c.wall_s,
+                c.detail
+            );
+        }
+        out.push(c);
+    }
+    let pass = out.iter().all(|c| c.pass);
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({ "checks": out, "pass": pass }))?
+        );
+    }
+    Ok(pass)
+}
+
+fn fw_cost_cmd(json: bool) -> Result<bool> {
+    eprintln!("building both firmwares and replaying the golden vectors under QEMU…");
+    let r = pto_host::fw_cost::measure().map_err(anyhow::Error::msg)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        use pto_host::fw_cost::target;
+        for s in &r.step {
+            println!(
+                "step ({:<14}) {} steps: mean {:.0}, max {} instructions (target ≤ {})",
+                s.mode,
+                s.steps,
+                s.mean,
+                s.max,
+                target::STEP_INSTRUCTIONS
+            );
+        }
+        for s in &r.size {
+            println!(
+                "{:<6} build: flash {} B, static RAM {} B{}",
+                s.build,
+                s.flash,
+                s.ram,
+                if s.build == "bench" {
+                    format!(" (targets ≤ {} B, ≤ {} B)", target::FLASH, target::RAM)
+                } else {
+                    String::new()
+                }
+            );
+        }
+    }
+    Ok(r.pass)
 }

@@ -36,12 +36,9 @@ pub fn replay(
     let mut out = Vec::with_capacity(inputs.len());
     for (i, inp) in inputs.iter().enumerate() {
         let tick = i as u32;
-        let r = q.link.request(
-            &ToFirmware::Replay {
-                tick,
-                inputs: *inp,
-            },
-            |r| match r {
+        let r = q
+            .link
+            .request(&ToFirmware::Replay { tick, inputs: *inp }, |r| match r {
                 FromFirmware::Output {
                     tick: t,
                     estimate,
@@ -49,8 +46,7 @@ pub fn replay(
                     ..
                 } if *t == tick => Some((*estimate, *command)),
                 _ => None,
-            },
-        )?;
+            })?;
         out.push(r);
     }
     Ok(out)
@@ -157,7 +153,7 @@ impl FirmwareController {
         let (mut enc, mut hp, lp, motor) = self.synth.read_analog(p.theta, &truth);
         match inj {
             Injection::EncoderStuck => enc = self.last_enc,
-            Injection::HpNoise(a) => hp += if self.tick % 2 == 0 { a } else { -a },
+            Injection::HpNoise(a) => hp += if self.tick.is_multiple_of(2) { a } else { -a },
             _ => {}
         }
         self.last_enc = enc;
@@ -191,14 +187,12 @@ impl FirmwareController {
                 // No output is due: a ping marks where the dropped frame's answer would be.
                 let ping = ToFirmware::Ping(f.tick);
                 link.send(&ping)?;
-                loop {
-                    match link.recv()? {
-                        FromFirmware::Pong(n) if n == f.tick => return Ok(None),
-                        FromFirmware::Output { tick, .. } if tick == f.tick => {
-                            return Err(format!("tick {tick}: a damaged frame was accepted"));
-                        }
-                        other => return Err(format!("unexpected {other:?}")),
+                match link.recv()? {
+                    FromFirmware::Pong(n) if n == f.tick => Ok(None),
+                    FromFirmware::Output { tick, .. } if tick == f.tick => {
+                        Err(format!("tick {tick}: a damaged frame was accepted"))
                     }
+                    other => Err(format!("unexpected {other:?}")),
                 }
             }
             Injection::Burst(n) => {
@@ -344,4 +338,167 @@ pub fn closed_loop(
 /// Sets the applied aperture to a value for fixed-aperture runs.
 pub fn fixed(pct: f32) -> Mode {
     Mode::Fixed(Aperture::from_num(pct))
+}
+
+/// A processor-in-the-loop check: runs on a booted firmware, returns it with the figures.
+pub type CheckFn = fn(Qemu, &Bench) -> Result<(Qemu, Check), String>;
+
+/// A processor-in-the-loop check and its figures.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct Check {
+    /// What was checked.
+    pub name: String,
+    /// The measured figure (its unit in `unit`).
+    pub measured: f64,
+    /// The target.
+    pub target: f64,
+    /// Unit of both.
+    pub unit: String,
+    /// One-line account.
+    pub detail: String,
+    /// Steps run in lockstep.
+    pub steps: usize,
+    /// Wall time, s.
+    pub wall_s: f64,
+    /// Met.
+    pub pass: bool,
+}
+
+fn max_of(it: impl Iterator<Item = f64>) -> f64 {
+    it.fold(0.0, f64::max)
+}
+
+/// Hold P2 at 100 bar from 92 bar for 60 s; judged from 40 s (the loop, with the scheduler's
+/// default gains, settles in ≈ 40 s, as in the in-process check of `pto validate`).
+pub fn check_hold_p2(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+    let t0 = std::time::Instant::now();
+    let (q, _res, rows) = closed_loop(
+        q,
+        bench,
+        Mode::HoldPressure(Pressure::from_num(100.0)),
+        92.0,
+        60.0,
+        SensorSpec::default(),
+        Box::new(|_| Injection::None),
+    )?;
+    let from = 40.0;
+    let late = || rows.iter().filter(move |r| r.t >= from);
+    let worst = max_of(late().map(|r| (r.p2 - 100.0).abs()));
+    let est =
+        max_of(late().filter_map(|r| r.estimate.map(|e| (f64::from(e.p2.to_f32()) - r.p2).abs())));
+    Ok((
+        q,
+        Check {
+            name: "hold P2 at 100 bar".into(),
+            measured: worst,
+            target: 2.0,
+            unit: "bar".into(),
+            detail: format!(
+                "Test III-like run from 92 bar, 60 s; plant P2 within ±{worst:.2} bar of 100 from \
+                 {from} s on; firmware estimate within {est:.2} bar of the plant"
+            ),
+            steps: rows.len(),
+            wall_s: t0.elapsed().as_secs_f64(),
+            pass: worst <= 2.0,
+        },
+    ))
+}
+
+/// Hold the motor at 250 rpm from 100 bar for 40 s; judged from 15 s.
+pub fn check_hold_speed(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+    let t0 = std::time::Instant::now();
+    let sp = 250.0;
+    let (q, _res, rows) = closed_loop(
+        q,
+        bench,
+        Mode::HoldSpeed(Rpm::from_num(sp as f32)),
+        100.0,
+        40.0,
+        SensorSpec::default(),
+        Box::new(|_| Injection::None),
+    )?;
+    let from = 15.0;
+    let late = || rows.iter().filter(move |r| r.t >= from);
+    let worst = max_of(late().map(|r| (r.rpm - sp).abs() / sp)) * 100.0;
+    let (lo, hi) = late().fold((f64::INFINITY, 0.0f64), |(lo, hi), r| {
+        (lo.min(r.applied), hi.max(r.applied))
+    });
+    Ok((
+        q,
+        Check {
+            name: "hold motor at 250 rpm".into(),
+            measured: worst,
+            target: 3.0,
+            unit: "%".into(),
+            detail: format!(
+                "Test III-like run from 100 bar, 40 s; motor within ±{worst:.2} % from {from} s \
+                 on, aperture {lo:.1}–{hi:.1} %"
+            ),
+            steps: rows.len(),
+            wall_s: t0.elapsed().as_secs_f64(),
+            pass: worst <= 3.0,
+        },
+    ))
+}
+
+/// Overpressure: the relief valve set above the trip (it does not open), the control valve
+/// closed, P2 climbing from 136 bar; a noise-free HP transducer so that the trip happens where
+/// P2 crosses 140 bar (with 0.5 bar noise it trips up to ≈ 1.5 bar early, on a noise peak).
+/// Measured: periods from the plant's crossing (or the firmware's trip, if earlier) to the
+/// safe state.
+pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+    let t0 = std::time::Instant::now();
+    let mut b = bench.clone();
+    b.relief_setting = 170.0 * BAR;
+    let spec = SensorSpec {
+        hp_noise_bar: 0.0,
+        ..SensorSpec::default()
+    };
+    let trip = 140.0;
+    let (q, _res, rows) = closed_loop(
+        q,
+        &b,
+        fixed(0.0),
+        136.0,
+        4.0,
+        spec,
+        Box::new(|_| Injection::None),
+    )?;
+    let tripped = rows
+        .iter()
+        .position(|r| r.dump)
+        .ok_or("the firmware never tripped")?;
+    let crossed = rows.iter().position(|r| r.p2 > trip);
+    let onset = crossed.map_or(tripped, |k| k.min(tripped));
+    // Safe state: valve fully open and dump valve on, from the onset step to the end while P2
+    // is above the release threshold.
+    let late = tripped.saturating_sub(onset);
+    let held = rows[tripped..]
+        .iter()
+        .filter(|r| r.p2 > trip - 10.0)
+        .all(|r| r.dump && r.applied == 100.0);
+    let near = rows[tripped].p2 > trip - 0.2;
+    let peak = max_of(rows.iter().map(|r| r.p2));
+    let safety = rows[tripped].command.map(|c| c.safety);
+    Ok((
+        q,
+        Check {
+            name: "overpressure trip".into(),
+            measured: late as f64,
+            target: 0.0,
+            unit: "periods late".into(),
+            detail: format!(
+                "tripped at t = {:.4} s with the plant at {:.3} bar (crossed {trip} bar: {}); \
+                 valve 100 % and dump on in that step's output ({safety:?}), held while P2 > {} \
+                 bar: {held}; peak {peak:.2} bar",
+                rows[tripped].t,
+                rows[tripped].p2,
+                crossed.map_or("never".into(), |k| format!("step {k}")),
+                trip - 10.0
+            ),
+            steps: rows.len(),
+            wall_s: t0.elapsed().as_secs_f64(),
+            pass: late == 0 && held && near && peak < trip + 0.5,
+        },
+    ))
 }

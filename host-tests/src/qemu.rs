@@ -42,7 +42,7 @@ pub fn workspace_root() -> PathBuf {
 
 static BUILT: [OnceLock<Result<PathBuf, String>>; 2] = [OnceLock::new(), OnceLock::new()];
 
-/// Builds the firmware (release, `thumbv7em-none-eabihf`, its own target directory so that it
+/// Builds the firmware (profile `firmware`, `thumbv7em-none-eabihf`, its own target directory so that it
 /// can run inside `cargo test`) once per process and returns the ELF path.
 pub fn build(which: Build) -> Result<PathBuf, String> {
     BUILT[which as usize]
@@ -57,7 +57,8 @@ fn build_uncached(which: Build) -> Result<PathBuf, String> {
     let mut cmd = Command::new(cargo);
     cmd.current_dir(&root).args([
         "build",
-        "--release",
+        "--profile",
+        "firmware",
         "-p",
         "pto-firmware",
         "--target",
@@ -83,7 +84,7 @@ fn build_uncached(which: Build) -> Result<PathBuf, String> {
     }
     Ok(target_dir
         .join("thumbv7em-none-eabihf")
-        .join("release")
+        .join("firmware")
         .join("pto-firmware"))
 }
 
@@ -145,7 +146,7 @@ impl Qemu {
             .arg(elf)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
+            .stderr(Stdio::piped())
             .spawn()
             .map_err(|e| {
                 format!(
@@ -154,6 +155,23 @@ impl Qemu {
                 )
             })?;
         let mut stdout = child.stdout.take().ok_or("no QEMU stdout")?;
+        // QEMU's own messages (the "waiting for connection" note, errors): kept for error reports.
+        let mut stderr = child.stderr.take().ok_or("no QEMU stderr")?;
+        let errors = Arc::new(Mutex::new(String::new()));
+        let errors2 = errors.clone();
+        std::thread::spawn(move || {
+            let mut s = String::new();
+            let _ = stderr.read_to_string(&mut s);
+            if let Ok(mut g) = errors2.lock() {
+                g.push_str(&s);
+            }
+        });
+        let qemu_said = move || {
+            errors
+                .lock()
+                .map(|g| g.trim().to_string())
+                .unwrap_or_default()
+        };
         let log = Arc::new(Mutex::new(Vec::new()));
         let log2 = log.clone();
         let reader = std::thread::spawn(move || {
@@ -201,7 +219,11 @@ impl Qemu {
                 Ok(s) => break s,
                 Err(e) => {
                     if let Ok(Some(st)) = child.try_wait() {
-                        return Err(format!("QEMU exited before the link was up: {st}"));
+                        std::thread::sleep(Duration::from_millis(50));
+                        return Err(format!(
+                            "QEMU exited before the link was up ({st}): {}",
+                            qemu_said()
+                        ));
                     }
                     if t0.elapsed() > Duration::from_secs(20) {
                         let _ = child.kill();

@@ -32,6 +32,9 @@ fn boots_logs_answers_a_ping_and_exits_zero() {
     assert!(boot.text.contains("board=qemu-netduinoplus2"), "{boot}");
     assert!(boot.text.contains("dt=2^-10 s"), "{boot}");
     assert!(boot.text.contains("trip=140.0 bar"), "{boot}");
-    assert!(log.iter().any(|l| l.text.starts_with("scheduler: Fixed(0.0000 %)")));
+    assert!(
+        log.iter()
+            .any(|l| l.text.starts_with("scheduler: Fixed(0.0000 %)"))
+    );
     assert!(log.iter().any(|l| l.text == "exit 0 on command"));
 }

@@ -72,6 +72,8 @@ fn firmware_matches_the_host_model_bit_for_bit() {
         st.frames_ok, st.frames_dropped, st.steps, st.step_cost_last, st.step_cost_max
     );
     assert_eq!(st.frames_dropped, 0);
-    q.link.send(&pto_model::protocol::ToFirmware::Exit(0)).unwrap();
+    q.link
+        .send(&pto_model::protocol::ToFirmware::Exit(0))
+        .unwrap();
     assert_eq!(q.wait_exit(Duration::from_secs(10)).unwrap(), 0);
 }

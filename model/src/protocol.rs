@@ -100,6 +100,8 @@ pub struct Status {
     pub step_cost_last: u32,
     /// Largest of those.
     pub step_cost_max: u32,
+    /// Sum over every step (mean = sum / steps).
+    pub step_cost_sum: u64,
 }
 
 /// Firmware → host.

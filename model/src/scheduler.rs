@@ -199,19 +199,11 @@ pub struct SchedulerState {
     pub last: Fx,
 }
 
-/// The aperture at which the steady valve flow equals `q` L/min at P2 − LP = `dp` bar
-/// (bisection on the monotone valve table: 14 halvings of 0..100 % ≈ 0.006 %).
+/// The aperture at which the steady valve flow equals `q` L/min at P2 − LP = `dp` bar: the
+/// inverse of the valve table along its aperture axis ([`crate::table::Table2::invert_r`]:
+/// 5 column interpolations and one reciprocal).
 pub fn aperture_for_flow(k: &Coefficients, q: Fx, dp: Fx) -> Fx {
-    let (mut lo, mut hi) = (ZERO, Fx::from_bits(100 << 16));
-    for _ in 0..14 {
-        let mid = Fx::from_bits((lo.to_bits() + hi.to_bits()) >> 1);
-        if k.valve_flow.at(mid, dp) < q {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    hi
+    k.valve_flow.invert_r(dp, q)
 }
 
 /// One scheduler step after the estimator's. `measured_rpm` is the motor speed sensor (the

@@ -4,7 +4,7 @@
 //! subtraction, a multiplication and a truncation. Outside the grid the end segments are held
 //! (clamped), never extrapolated.
 
-use crate::fx::{Fx, ONE, ZERO};
+use crate::fx::{Fx, ONE, ZERO, recip};
 
 /// Locates `x` on a grid: (index of the lower node, fraction in [0, 1]).
 #[inline]
@@ -59,6 +59,8 @@ impl<const N: usize> Table1<N> {
 pub struct Table2<const R: usize, const C: usize> {
     /// Row grid start.
     pub r0: Fx,
+    /// Row spacing.
+    pub dr: Fx,
     /// 1 / row spacing.
     pub inv_dr: Fx,
     /// Column grid start.
@@ -82,6 +84,7 @@ impl<const R: usize, const C: usize> Table2<R, C> {
         }
         Table2 {
             r0: Fx::saturating_from_num(r.0),
+            dr: Fx::saturating_from_num(dr),
             inv_dr: Fx::saturating_from_num(1.0 / dr),
             c0: Fx::saturating_from_num(c.0),
             inv_dc: Fx::saturating_from_num(1.0 / dc),
@@ -99,6 +102,45 @@ impl<const R: usize, const C: usize> Table2<R, C> {
         let hi = lerp(self.y[i + 1][j], self.y[i + 1][j + 1], fc);
         lerp(lo, hi, fr)
     }
+
+    /// The row coordinate r at which [`Table2::at`]`(r, c)` equals `y`, for a table that does
+    /// not decrease along its rows (held at the first / last row outside the range). At fixed c
+    /// the bilinear table is piecewise linear in r: the bracketing cell is found by bisection
+    /// (log2 R evaluations of one column interpolation), the position inside it with the
+    /// division-free [`recip`].
+    #[inline(never)]
+    pub fn invert_r(&self, c: Fx, y: Fx) -> Fx {
+        let (j, fc) = locate(c, self.c0, self.inv_dc, C);
+        let col = |i: usize| {
+            let (a, b) = (self.y[i][j], self.y[i][j + 1]);
+            a.saturating_add(fc.saturating_mul(b.saturating_sub(a)))
+        };
+        if y <= col(0) {
+            return self.r0;
+        }
+        let (mut lo, mut hi) = (0usize, R - 1);
+        if y >= col(hi) {
+            return self
+                .r0
+                .saturating_add(self.dr.saturating_mul(Fx::from_num(hi)));
+        }
+        // Invariant: col(lo) < y < col(hi).
+        while hi - lo > 1 {
+            let mid = (lo + hi) / 2;
+            if col(mid) < y {
+                lo = mid;
+            } else {
+                hi = mid;
+            }
+        }
+        let (a, b) = (col(lo), col(hi));
+        let f = y
+            .saturating_sub(a)
+            .saturating_mul(recip(b.saturating_sub(a)))
+            .min(ONE);
+        self.r0
+            .saturating_add(self.dr.saturating_mul(Fx::from_num(lo).saturating_add(f)))
+    }
 }
 
 #[cfg(test)]
@@ -114,6 +156,31 @@ mod tests {
         assert!((v - 76.0).abs() < 0.005, "{v}");
         assert_eq!(t.at(Fx::from_num(-10)).to_num::<f32>(), 1.0);
         assert_eq!(t.at(Fx::from_num(500)).to_num::<f32>(), 201.0);
+    }
+
+    #[test]
+    fn invert_r_undoes_at_along_the_rows() {
+        // Monotone in r, curved in both coordinates, like the valve table.
+        let t = Table2::<21, 33>::sample((0.0, 100.0), (0.0, 160.0), |r, c| {
+            0.01 * r * r * (c + 1.0).sqrt() + 0.2 * r
+        });
+        let mut worst = 0.0f32;
+        for ri in 0..=200 {
+            for c in [0.0f32, 3.3, 47.0, 100.0, 159.0] {
+                let r = ri as f32 * 0.5;
+                let y = t.at(Fx::from_num(r), Fx::from_num(c));
+                let back: f32 = t.invert_r(Fx::from_num(c), y).to_num();
+                worst = worst.max((back - r).abs());
+            }
+        }
+        println!("invert_r: worst round trip {worst:.5} (row units)");
+        assert!(worst < 0.01, "{worst}");
+        assert_eq!(t.invert_r(Fx::from_num(50), Fx::from_num(-1)), ZERO);
+        assert_eq!(
+            t.invert_r(Fx::from_num(50), Fx::from_num(1e4))
+                .to_num::<f32>(),
+            100.0
+        );
     }
 
     #[test]

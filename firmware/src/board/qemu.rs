@@ -62,7 +62,8 @@ pub struct Board {
     pub watchdog: Watchdog,
 }
 
-/// Starts SysTick, TIM2 and USART1 (with its interrupt).
+/// Starts SysTick, TIM2 and USART1 (with its interrupt). Under QEMU the sensor samples arrive
+/// over the link: there is no sampling task.
 pub fn init(_spawner: Spawner) -> Board {
     // SAFETY: called once at boot, before any other user of the core peripherals.
     let mut cp = unsafe { cortex_m::Peripherals::steal() };
@@ -94,9 +95,6 @@ pub fn init(_spawner: Spawner) -> Board {
         watchdog: SoftWatchdog::start(),
     }
 }
-
-/// Under QEMU the sensor samples arrive over the link: no sampling task.
-pub fn spawn_sampling(_spawner: Spawner) {}
 
 /// Bytes lost because the receive pipe was full.
 pub fn bytes_lost() -> u32 {
@@ -265,7 +263,10 @@ impl embassy_time_driver::Driver for SysTickDriver {
 fn SysTick() {
     let left = WATCHDOG_LEFT_MS.load(Ordering::Relaxed);
     if left <= 1 {
-        defmt::error!("watchdog expired: no feed for {} ms — reset", WATCHDOG_TIMEOUT_MS);
+        defmt::error!(
+            "watchdog expired: no feed for {} ms — reset",
+            WATCHDOG_TIMEOUT_MS
+        );
         exit(EXIT_WATCHDOG);
     }
     WATCHDOG_LEFT_MS.store(left - 1, Ordering::Relaxed);
@@ -281,7 +282,11 @@ fn SysTick() {
 
 #[panic_handler]
 fn panic(info: &core::panic::PanicInfo) -> ! {
-    defmt::error!("panic: {}", defmt::Display2Format(info));
+    // The location only: formatting the message would link core::fmt's float code (~20 KB).
+    match info.location() {
+        Some(l) => defmt::error!("panic at {=str}:{=u32}", l.file(), l.line()),
+        None => defmt::error!("panic"),
+    }
     exit(EXIT_PANIC)
 }
 

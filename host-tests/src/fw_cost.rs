@@ -1,0 +1,129 @@
+//! Firmware cost: instructions per estimator + scheduler step under QEMU `-icount shift=0`
+//! (TIM2 counts one tick per instruction), and flash / static RAM of both builds.
+
+use crate::golden;
+use crate::pil;
+use crate::qemu::{self, Build, Qemu};
+use object::{Object, ObjectSection, SectionKind};
+use pto_model::fx::{Aperture, Pressure};
+use pto_model::scheduler::Mode;
+use serde::Serialize;
+use std::path::Path;
+
+/// Targets of the firmware issue.
+pub mod target {
+    /// Instructions per estimator + scheduler step.
+    pub const STEP_INSTRUCTIONS: u32 = 2_000;
+    /// Flash of the bench build, bytes.
+    pub const FLASH: u64 = 64 * 1024;
+    /// Static RAM of the bench build, bytes.
+    pub const RAM: u64 = 16 * 1024;
+}
+
+/// Step cost in one scheduler mode.
+#[derive(Debug, Clone, Serialize)]
+pub struct StepCost {
+    /// Mode.
+    pub mode: String,
+    /// Steps measured.
+    pub steps: u32,
+    /// Mean instructions per step.
+    pub mean: f64,
+    /// Largest.
+    pub max: u32,
+}
+
+/// Flash and static RAM of one build.
+#[derive(Debug, Clone, Serialize)]
+pub struct Size {
+    /// Build.
+    pub build: String,
+    /// .vector_table + .text + .rodata + .data, bytes.
+    pub flash: u64,
+    /// .data + .bss + .uninit, bytes (the stack is what is left of the 128 KiB).
+    pub ram: u64,
+}
+
+/// Sizes of an ELF's loadable sections.
+pub fn size(elf: &Path, build: &str) -> Result<Size, String> {
+    let data = std::fs::read(elf).map_err(|e| format!("{}: {e}", elf.display()))?;
+    let obj = object::File::parse(&*data).map_err(|e| format!("{}: {e}", elf.display()))?;
+    let (mut flash, mut ram) = (0u64, 0u64);
+    for s in obj.sections() {
+        let name = s.name().unwrap_or("");
+        let n = s.size();
+        match name {
+            ".vector_table" | ".text" | ".rodata" => flash += n,
+            ".data" => {
+                flash += n;
+                ram += n;
+            }
+            ".bss" | ".uninit" => ram += n,
+            _ if s.kind() == SectionKind::UninitializedData && s.address() >= 0x2000_0000 => {
+                ram += n
+            }
+            _ => {}
+        }
+    }
+    Ok(Size {
+        build: build.into(),
+        flash,
+        ram,
+    })
+}
+
+/// Replays the golden inputs in `mode` and reads the step cost from the firmware.
+pub fn step_cost(q: &mut Qemu, mode: Mode, label: &str) -> Result<StepCost, String> {
+    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(golden::FILE))
+        .map_err(|e| format!("{}: {e}", golden::FILE))?;
+    let (p2, lp, inputs) = golden::parse(&text)?;
+    let before = pil::status(q)?;
+    pil::replay(
+        q,
+        &inputs,
+        Pressure::from_bits(p2).to_f32(),
+        Pressure::from_bits(lp).to_f32(),
+        mode,
+    )?;
+    let after = pil::status(q)?;
+    let steps = after.steps - before.steps;
+    Ok(StepCost {
+        mode: label.into(),
+        steps,
+        mean: (after.step_cost_sum - before.step_cost_sum) as f64 / f64::from(steps.max(1)),
+        max: after.step_cost_max,
+    })
+}
+
+/// The whole report.
+#[derive(Debug, Clone, Serialize)]
+pub struct Report {
+    /// Per mode.
+    pub step: Vec<StepCost>,
+    /// Both builds.
+    pub size: Vec<Size>,
+    /// Every target met.
+    pub pass: bool,
+}
+
+/// Builds both firmwares, measures.
+pub fn measure() -> Result<Report, String> {
+    let qemu_elf = qemu::build(Build::Qemu)?;
+    let bench_elf = qemu::build(Build::Bench)?;
+    let mut q = Qemu::boot(&qemu_elf, false)?;
+    let mut step = Vec::new();
+    // Fresh maxima per mode: the firmware keeps one running maximum, so measure the cheapest
+    // mode first.
+    for (label, mode) in [
+        ("fixed aperture", Mode::Fixed(Aperture::from_num(10.0))),
+        ("hold P2", Mode::HoldPressure(Pressure::from_num(100.0))),
+    ] {
+        step.push(step_cost(&mut q, mode, label)?);
+    }
+    q.link.send(&pto_model::protocol::ToFirmware::Exit(0))?;
+    let size = vec![size(&bench_elf, "bench")?, size(&qemu_elf, "qemu")?];
+    let pass = step.iter().all(|s| s.max <= target::STEP_INSTRUCTIONS)
+        && size[0].flash <= target::FLASH
+        && size[0].ram <= target::RAM;
+    Ok(Report { step, size, pass })
+}

@@ -1,0 +1,32 @@
+//! Firmware cost report: instructions per estimator + scheduler step under QEMU, flash and
+//! static RAM of both builds. The memory targets are asserted; the instruction figures are
+//! printed (see the README for where they stand against the 2 000-instruction target).
+
+use pto_host::fw_cost::{self, target};
+
+#[test]
+fn firmware_cost_report() {
+    let r = fw_cost::measure().unwrap();
+    for s in &r.step {
+        println!(
+            "{:<15} {} steps: mean {:.0}, max {} instructions (target {})",
+            s.mode,
+            s.steps,
+            s.mean,
+            s.max,
+            target::STEP_INSTRUCTIONS
+        );
+        assert!(s.steps >= 2048 && s.mean > 0.0, "TIM2 counts instructions");
+    }
+    for s in &r.size {
+        println!("{:<6} flash {} B, static RAM {} B", s.build, s.flash, s.ram);
+    }
+    let bench = &r.size[0];
+    assert_eq!(bench.build, "bench");
+    assert!(
+        bench.flash <= target::FLASH,
+        "bench flash {} B",
+        bench.flash
+    );
+    assert!(bench.ram <= target::RAM, "bench static RAM {} B", bench.ram);
+}
