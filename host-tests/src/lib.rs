@@ -6,8 +6,10 @@
 //! [`paper`] (the paper's facts) → [`plot`] / [`report`] (figures and tables).
 
 pub mod bench;
+pub mod benchlog;
 pub mod estimation;
 pub mod figures;
+pub mod fit;
 pub mod fw_cost;
 pub mod golden;
 pub mod model_cost;

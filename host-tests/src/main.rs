@@ -88,6 +88,62 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+    /// Make synthetic bench logs of the paper's experimental runs (64.5 / 67.2 / 72 / 101.5 bar
+    /// starts; discharges from 102 / 84 / 71 bar) from the full simulation and the sensor model.
+    SynthLogs {
+        /// Bench parameter file (default: the reference bench).
+        #[arg(long)]
+        bench: Option<PathBuf>,
+        /// Override a bench value, e.g. `--set trapped_air=0.04 --set cd=0.17 --set
+        /// precharge=45` (names as in `pto fit --params`, or bench fields).
+        #[arg(long = "set", value_name = "NAME=VALUE")]
+        set: Vec<String>,
+        /// Built-in scenarios to log (default: the seven experimental runs).
+        #[arg(long, value_delimiter = ',')]
+        runs: Vec<String>,
+        /// Sample rate, Hz.
+        #[arg(long, default_value_t = 10.0)]
+        rate: f64,
+        /// Noise seed.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Output directory.
+        #[arg(long, default_value = "out/logs")]
+        out: PathBuf,
+        /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Fit bench parameters to bench logs by least squares over full simulations driven by the
+    /// logged motion and valve aperture; writes the fitted bench file next to the input, the
+    /// model-crate configuration for the firmware, and plots.
+    Fit {
+        /// Bench log CSV files.
+        #[arg(required = true)]
+        logs: Vec<PathBuf>,
+        /// Bench parameter file to start from (default: the reference bench).
+        #[arg(long)]
+        bench: Option<PathBuf>,
+        /// Parameters: trapped_air, cd, precharge, hp_volume, leakage, area_table.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "trapped_air,cd,precharge"
+        )]
+        params: Vec<String>,
+        /// Residual samples every this many seconds of each log.
+        #[arg(long, default_value_t = 0.5)]
+        spacing: f64,
+        /// Iteration limit (Levenberg–Marquardt patience, × parameters + 1 evaluations).
+        #[arg(long, default_value_t = 20)]
+        max_iter: usize,
+        /// Output directory (figures; the fitted files when starting from the built-in bench).
+        #[arg(long, default_value = "out/fit")]
+        out: PathBuf,
+        /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
     /// Boot the QEMU firmware, ping it, print its decoded defmt log and its counters, stop it.
     /// Needs qemu-system-arm and the thumbv7em-none-eabihf target (it builds the firmware).
     Qemu {
@@ -156,6 +212,32 @@ fn main() -> ExitCode {
         } => validate_cmd(bench.as_ref(), &filter, !no_loop, json),
         Cmd::ModelCost { json } => model_cost_cmd(json),
         Cmd::Qemu { follow } => qemu_cmd(follow),
+        Cmd::SynthLogs {
+            bench,
+            set,
+            runs,
+            rate,
+            seed,
+            out,
+            json,
+        } => synth_logs_cmd(bench.as_ref(), &set, &runs, rate, seed, &out, json),
+        Cmd::Fit {
+            logs,
+            bench,
+            params,
+            spacing,
+            max_iter,
+            out,
+            json,
+        } => fit_cmd(
+            &logs,
+            bench.as_ref(),
+            &params,
+            spacing,
+            max_iter,
+            &out,
+            json,
+        ),
         Cmd::Pil { bench, json } => pil_cmd(bench.as_ref(), json),
         Cmd::FwCost { json } => fw_cost_cmd(json),
     };
@@ -453,10 +535,7 @@ fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
 }
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).with_context(|| format!("cannot write {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("cannot write {}", path.display()))?;
-    Ok(())
+    runner::write_atomic(path, bytes).map_err(anyhow::Error::msg)
 }
 
 fn bench_cmd(bench_path: Option<&PathBuf>, repeats: usize, json: bool) -> Result<bool> {
@@ -708,4 +787,288 @@ fn fw_cost_cmd(json: bool) -> Result<bool> {
         }
     }
     Ok(r.pass)
+}
+
+fn synth_logs_cmd(
+    bench: Option<&PathBuf>,
+    set: &[String],
+    runs: &[String],
+    rate: f64,
+    seed: u64,
+    out: &Path,
+    json: bool,
+) -> Result<bool> {
+    use pto_host::fit;
+    if !(0.1..=1000.0).contains(&rate) {
+        bail!("--rate {rate}: outside [0.1, 1000] Hz");
+    }
+    let mut file = load_bench(bench)?.file;
+    for kv in set {
+        fit::apply_override(&mut file, kv).map_err(anyhow::Error::msg)?;
+    }
+    let b = Bench::from_file(file, "--set").context("the overridden bench")?;
+    let names: Vec<String> = if runs.is_empty() {
+        fit::EXPERIMENTAL_RUNS
+            .iter()
+            .map(|s| s.to_string())
+            .collect()
+    } else {
+        runs.to_vec()
+    };
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let pb = count_bar(names.len() as u64, "logs");
+    let logs: Vec<Result<pto_host::benchlog::BenchLog, String>> = {
+        use rayon::prelude::*;
+        names
+            .par_iter()
+            .enumerate()
+            .map(|(i, n)| {
+                let r = fit::synth_log(&b, n, rate, seed + i as u64, out);
+                pb.inc(1);
+                r
+            })
+            .collect()
+    };
+    pb.finish_and_clear();
+    let mut written = Vec::new();
+    for l in logs {
+        let l = l.map_err(anyhow::Error::msg)?;
+        l.write().map_err(anyhow::Error::msg)?;
+        written.push((l.path.clone(), l.t.len()));
+    }
+    if json {
+        let v: Vec<_> = written
+            .iter()
+            .map(|(p, n)| serde_json::json!({"file": p, "samples": n}))
+            .collect();
+        println!("{}", serde_json::to_string_pretty(&v)?);
+    } else {
+        for (p, n) in &written {
+            println!("{} ({n} samples at {rate} Hz)", p.display());
+        }
+    }
+    Ok(true)
+}
+
+fn count_bar(n: u64, what: &str) -> ProgressBar {
+    let pb = ProgressBar::new(n);
+    if std::io::stderr().is_terminal() {
+        pb.set_style(
+            ProgressStyle::with_template(&format!("{{bar:40}} {{pos}}/{{len}} {what} {{elapsed}}"))
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+    } else {
+        pb.set_draw_target(ProgressDrawTarget::hidden());
+    }
+    pb
+}
+
+fn fit_cmd(
+    log_paths: &[PathBuf],
+    bench_path: Option<&PathBuf>,
+    params: &[String],
+    spacing: f64,
+    max_iter: usize,
+    out: &Path,
+    json: bool,
+) -> Result<bool> {
+    use pto_host::benchlog::BenchLog;
+    use pto_host::fit;
+    if !(0.01..=60.0).contains(&spacing) {
+        bail!("--spacing {spacing}: outside [0.01, 60] s");
+    }
+    let bench = load_bench(bench_path)?;
+    let logs: Vec<BenchLog> = log_paths
+        .iter()
+        .map(|p| BenchLog::read(p))
+        .collect::<Result<_, _>>()?;
+    for l in &logs {
+        if l.config > bench.configs.len() {
+            bail!(
+                "{}: config {} but the bench has {} configurations",
+                l.path.display(),
+                l.config,
+                bench.configs.len()
+            );
+        }
+    }
+    // Residual evaluations: (parameters + 1) × logs per Jacobian.
+    let n_par = fit::params(params, &bench.file)
+        .map_err(anyhow::Error::msg)?
+        .len();
+    let pb = ProgressBar::new(((n_par + 1) * logs.len() * (max_iter + 2)) as u64);
+    if std::io::stderr().is_terminal() {
+        pb.set_style(
+            ProgressStyle::with_template("{spinner} {pos} simulations {elapsed} {msg}")
+                .unwrap_or_else(|_| ProgressStyle::default_spinner()),
+        );
+    } else {
+        pb.set_draw_target(ProgressDrawTarget::hidden());
+    }
+    let mut o = fit::fit(
+        &bench.file,
+        params,
+        logs.clone(),
+        spacing,
+        max_iter,
+        Some(pb.clone()),
+    )
+    .map_err(anyhow::Error::msg)?;
+    pb.finish_and_clear();
+    // Outputs: the fitted bench next to the input (or in --out for the built-in bench), never
+    // overwriting; the model configuration for the firmware; figures.
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let (dir, stem) = match bench_path {
+        Some(p) => (
+            p.parent()
+                .map_or_else(|| PathBuf::from("."), Path::to_path_buf),
+            p.file_stem()
+                .map_or("bench".into(), |s| s.to_string_lossy().into_owned()),
+        ),
+        None => (out.to_path_buf(), "reference-bench".to_string()),
+    };
+    let fitted = Bench::from_file(o.fitted.clone(), "fitted").context("the fitted bench")?;
+    let bench_out = fit::fresh_path(&dir, &stem, "toml");
+    let mut text = format!(
+        "# Fitted by `pto fit` to {} log(s) from {}; parameters: {}.\n",
+        logs.len(),
+        bench_path.map_or("the reference bench".into(), |p| p.display().to_string()),
+        params.join(", ")
+    );
+    text.push_str(&toml::to_string_pretty(&o.fitted)?);
+    write_atomic(&bench_out, text.as_bytes())?;
+    let model = pto_host::estimation::model_config(&fitted).map_err(anyhow::Error::msg)?;
+    model
+        .validate()
+        .map_err(|e| anyhow::anyhow!("fitted model configuration: {e}"))?;
+    let model_out = fit::fresh_path(&dir, &format!("{stem}.model"), "toml");
+    write_atomic(&model_out, toml::to_string_pretty(&model)?.as_bytes())?;
+    o.report.bench_file = Some(bench_out);
+    o.report.model_file = Some(model_out);
+    o.report.figures = fit_figures(&logs, &o, out)?;
+    let r = &o.report;
+    if json {
+        println!("{}", serde_json::to_string_pretty(r)?);
+    } else {
+        println!(
+            "{:<14} {:>10} {:>10} {:>10}  unit  field",
+            "parameter", "start", "fitted", "± 1σ"
+        );
+        for p in &r.params {
+            println!(
+                "{:<14} {:>10.4} {:>10.4} {:>10}  {:<4}  {}",
+                p.name,
+                p.start,
+                p.value,
+                p.sigma.map_or("—".into(), |s| format!("{s:.4}")),
+                p.unit,
+                p.key
+            );
+        }
+        println!(
+            "weighted residual RMS {:.3} → {:.3} ({:.1}× smaller; σ = {} bar, {} rpm)",
+            r.residual_rms.0,
+            r.residual_rms.1,
+            r.improvement,
+            fit::SIGMA_P2_BAR,
+            fit::SIGMA_RPM
+        );
+        for l in &r.logs {
+            println!(
+                "  {:<24} P2 RMS {:.2} → {:.2} bar, motor {:.1} → {:.1} rpm",
+                l.name, l.p2_rms_bar.0, l.p2_rms_bar.1, l.rpm_rms.0, l.rpm_rms.1
+            );
+        }
+        println!(
+            "{} simulations in {:.1} s; {}",
+            r.simulations, r.wall_s, r.termination
+        );
+        if let (Some(b), Some(m)) = (&r.bench_file, &r.model_file) {
+            println!(
+                "fitted bench: {}\nmodel configuration for the firmware: {}",
+                b.display(),
+                m.display()
+            );
+        }
+        for f in &r.figures {
+            println!("figure: {}", f.display());
+        }
+    }
+    Ok(r.converged)
+}
+
+fn fit_figures(
+    logs: &[pto_host::benchlog::BenchLog],
+    o: &pto_host::fit::FitOutcome,
+    out: &Path,
+) -> Result<Vec<PathBuf>> {
+    use pto_host::plot::{Figure, Panel, Series};
+    let mut files = Vec::new();
+    for (k, l) in logs.iter().enumerate() {
+        let t: Vec<f64> = l.t.iter().map(|t| t - l.t[0]).collect();
+        let col = |v: &[pto_host::estimation::Truth],
+                   f: fn(&pto_host::estimation::Truth) -> f64| {
+            v.iter().map(f).collect::<Vec<f64>>()
+        };
+        let rel = |sim: &[f64], meas: &[f64], floor: f64| -> Vec<f64> {
+            sim.iter()
+                .zip(meas)
+                .map(|(s, m)| 100.0 * (s - m) / m.abs().max(floor))
+                .collect()
+        };
+        let (p2b, p2a) = (col(&o.before[k], |x| x.p2), col(&o.after[k], |x| x.p2));
+        let (rb, ra) = (
+            col(&o.before[k], |x| x.motor_rpm),
+            col(&o.after[k], |x| x.motor_rpm),
+        );
+        let s = |label: &str, y: Vec<f64>| Series {
+            label: label.into(),
+            x: t.clone(),
+            y,
+        };
+        let fig = Figure {
+            name: format!("fit-{}", l.name()),
+            title: format!(
+                "{}: measured vs simulated, before and after the fit",
+                l.name()
+            ),
+            panels: vec![
+                Panel {
+                    title: "HP pressure P2".into(),
+                    x_label: "time (s)".into(),
+                    y_label: "P2 (bar)".into(),
+                    series: vec![
+                        s("measured", l.p2.clone()),
+                        s("simulated, start", p2b),
+                        s("simulated, fitted", p2a.clone()),
+                    ],
+                },
+                Panel {
+                    title: "Motor speed".into(),
+                    x_label: "time (s)".into(),
+                    y_label: "speed (rpm)".into(),
+                    series: vec![
+                        s("measured", l.rpm.clone()),
+                        s("simulated, start", rb),
+                        s("simulated, fitted", ra.clone()),
+                    ],
+                },
+                Panel {
+                    title: "Relative difference, fitted − measured (Fig. 26 view)".into(),
+                    x_label: "time (s)".into(),
+                    y_label: "difference (%)".into(),
+                    series: vec![
+                        s("P2", rel(&p2a, &l.p2, 1.0)),
+                        s(
+                            "motor speed (of max(speed, 50 rpm))",
+                            rel(&ra, &l.rpm, 50.0),
+                        ),
+                    ],
+                },
+            ],
+            cols: 1,
+        };
+        files.push(fig.write(out).map_err(anyhow::Error::msg)?);
+    }
+    Ok(files)
 }

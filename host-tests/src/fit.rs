@@ -1,0 +1,664 @@
+//! Model adjustment from bench logs: least squares over full-simulation runs driven by the
+//! logged shaft angle and valve aperture, solved with the MINPACK Levenberg–Marquardt of the
+//! `levenberg-marquardt` crate. The Jacobian is taken by forward differences, every column's
+//! simulations running in parallel (rayon).
+//!
+//! Parameters live in bounded form: the optimiser moves z ∈ ℝ and the bench value is
+//! p = lo + (hi − lo)(1 + tanh z)/2, so a step can never leave the range the bench file accepts.
+//! The valve's area table is fitted as factors on its increments (≥ 0), so it stays monotone.
+
+use crate::bench::{BAR, Bench, BenchFile};
+use crate::benchlog::BenchLog;
+use crate::estimation::{SensorSpec, SensorSynth, Truth, truth_at};
+use crate::motion::Motion;
+use crate::plant::Plant;
+use crate::sim::{self, Initial, Run, SolverOptions, ValveSchedule};
+use indicatif::ProgressBar;
+use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
+use nalgebra::{DMatrix, DVector, Dyn, Owned};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// Residual weights: one standard deviation of the measurement, per quantity.
+pub const SIGMA_P2_BAR: f64 = 0.5;
+/// Motor speed σ, rpm.
+pub const SIGMA_RPM: f64 = 5.0;
+
+type Setter = Arc<dyn Fn(&mut BenchFile, f64) + Send + Sync>;
+
+/// A fittable parameter.
+#[derive(Clone)]
+pub struct Param {
+    /// Short name (command line).
+    pub name: String,
+    /// Bench file field.
+    pub key: String,
+    /// Unit.
+    pub unit: String,
+    /// Range the optimiser keeps to.
+    pub lo: f64,
+    /// Range the optimiser keeps to.
+    pub hi: f64,
+    /// Value in a bench file.
+    pub get: Arc<dyn Fn(&BenchFile) -> f64 + Send + Sync>,
+    /// Sets it.
+    pub set: Setter,
+}
+
+impl std::fmt::Debug for Param {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} ({}, {} in [{}, {}])",
+            self.name, self.key, self.unit, self.lo, self.hi
+        )
+    }
+}
+
+fn scalar(
+    name: &str,
+    key: &str,
+    unit: &str,
+    lo: f64,
+    hi: f64,
+    get: fn(&BenchFile) -> f64,
+    set: fn(&mut BenchFile, f64),
+) -> Param {
+    Param {
+        name: name.into(),
+        key: key.into(),
+        unit: unit.into(),
+        lo,
+        hi,
+        get: Arc::new(get),
+        set: Arc::new(set),
+    }
+}
+
+/// Names accepted by `--params` (`area_table` expands to one factor per table segment).
+pub const PARAM_NAMES: &[&str] = &[
+    "trapped_air",
+    "cd",
+    "precharge",
+    "hp_volume",
+    "leakage",
+    "area_table",
+];
+
+/// The parameters called `names`, for a fit starting from `start`.
+pub fn params(names: &[String], start: &BenchFile) -> Result<Vec<Param>, String> {
+    let mut v = Vec::new();
+    for n in names {
+        match n.as_str() {
+            "trapped_air" => v.push(scalar(
+                "trapped_air",
+                "oil.trapped_air_fraction",
+                "-",
+                0.0,
+                0.3,
+                |f| f.oil.trapped_air_fraction,
+                |f, x| f.oil.trapped_air_fraction = x,
+            )),
+            "cd" => v.push(scalar(
+                "cd",
+                "control_valve.discharge_coefficient",
+                "-",
+                0.02,
+                1.0,
+                |f| f.control_valve.discharge_coefficient,
+                |f, x| f.control_valve.discharge_coefficient = x,
+            )),
+            "precharge" => v.push(scalar(
+                "precharge",
+                "hp_accumulator.precharge_bar",
+                "bar",
+                1.0,
+                120.0,
+                |f| f.hp_accumulator.precharge_bar,
+                |f, x| f.hp_accumulator.precharge_bar = x,
+            )),
+            "hp_volume" => v.push(scalar(
+                "hp_volume",
+                "hp_accumulator.volume_l",
+                "L",
+                0.1,
+                200.0,
+                |f| f.hp_accumulator.volume_l,
+                |f, x| f.hp_accumulator.volume_l = x,
+            )),
+            "leakage" => v.push(scalar(
+                "leakage",
+                "motor.volumetric_efficiency",
+                "-",
+                0.5,
+                1.0,
+                |f| f.motor.volumetric_efficiency,
+                |f, x| f.motor.volumetric_efficiency = x,
+            )),
+            "area_table" => {
+                let a = start.control_valve.area_mm2.clone();
+                let ap = start.control_valve.aperture_pct.clone();
+                for i in 1..a.len() {
+                    let base = a.clone();
+                    v.push(Param {
+                        name: format!("area_seg{}", i),
+                        key: format!(
+                            "control_valve.area_mm2 increment {:.0}→{:.0} % (factor)",
+                            ap[i - 1],
+                            ap[i]
+                        ),
+                        unit: "×".into(),
+                        lo: 0.0,
+                        hi: 5.0,
+                        get: Arc::new(|_| 1.0),
+                        // Segment i's increment = factor × its starting increment; the rest of
+                        // the table is rebuilt cumulatively, so it stays monotone.
+                        set: Arc::new(move |f, x| {
+                            let cur = &mut f.control_valve.area_mm2;
+                            let inc_now: Vec<f64> =
+                                (1..cur.len()).map(|k| cur[k] - cur[k - 1]).collect();
+                            let mut acc = cur[0];
+                            for k in 1..cur.len() {
+                                let inc = if k == i {
+                                    x * (base[k] - base[k - 1])
+                                } else {
+                                    inc_now[k - 1]
+                                };
+                                acc += inc.max(0.0);
+                                cur[k] = acc;
+                            }
+                        }),
+                    });
+                }
+            }
+            other => {
+                return Err(format!(
+                    "--params: unknown parameter `{other}` (known: {})",
+                    PARAM_NAMES.join(", ")
+                ));
+            }
+        }
+    }
+    if v.is_empty() {
+        return Err("--params: nothing to fit".into());
+    }
+    Ok(v)
+}
+
+fn to_z(p: &Param, x: f64) -> f64 {
+    let u = (2.0 * (x - p.lo) / (p.hi - p.lo) - 1.0).clamp(-0.999_999, 0.999_999);
+    u.atanh()
+}
+
+fn from_z(p: &Param, z: f64) -> f64 {
+    p.lo + (p.hi - p.lo) * 0.5 * (1.0 + z.tanh())
+}
+
+fn dx_dz(p: &Param, z: f64) -> f64 {
+    let c = z.cosh();
+    (p.hi - p.lo) * 0.5 / (c * c)
+}
+
+/// A log prepared for simulation: the samples the residuals use.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// The log.
+    pub log: BenchLog,
+    /// Indices of the samples in the residual (≈ `spacing_s` apart).
+    pub idx: Vec<usize>,
+    motion: Motion,
+    valve: Vec<(f64, f64)>,
+}
+
+/// Prepares logs: residual samples every `spacing_s` seconds.
+pub fn prepare(logs: Vec<BenchLog>, spacing_s: f64) -> Vec<Prepared> {
+    logs.into_iter()
+        .map(|log| {
+            let t0 = log.t[0];
+            let mut idx = Vec::new();
+            let mut next = t0;
+            for (i, &t) in log.t.iter().enumerate() {
+                if t >= next {
+                    idx.push(i);
+                    next = t + spacing_s;
+                }
+            }
+            let motion = Motion::from_samples(
+                log.t.iter().map(|t| t - t0).collect(),
+                log.theta_deg.iter().map(|a| a.to_radians()).collect(),
+            );
+            let (ts, ap) = log.valve_steps();
+            let valve = ts
+                .into_iter()
+                .zip(ap)
+                .map(|(t, a)| (t, a / 100.0))
+                .collect();
+            Prepared {
+                log,
+                idx,
+                motion,
+                valve,
+            }
+        })
+        .collect()
+}
+
+/// Simulated (P2 bar, motor rpm) at every log sample.
+pub fn simulate_log(bench: &Bench, p: &Prepared) -> Result<Vec<Truth>, String> {
+    let log = &p.log;
+    let on: [bool; 4] = log.on_duty;
+    let plant = Plant::new(bench, log.config - 1, on, p.motion.clone());
+    let t0 = log.t[0];
+    let dur = log.t[log.t.len() - 1] - t0;
+    let res = sim::simulate(Run {
+        plant: &plant,
+        valve: ValveSchedule::Table(p.valve.clone()),
+        initial: Initial {
+            p2: log.p2[0] * BAR,
+            lp: log.lp[0] * BAR,
+        },
+        duration: dur,
+        sample_dt: 0.05,
+        solver: SolverOptions::default(),
+        progress: None,
+    })
+    .map_err(|e| format!("{}: {e}", log.name()))?;
+    Ok(log.t.iter().map(|t| truth_at(&res.trace, t - t0)).collect())
+}
+
+fn residuals_of(p: &Prepared, sim: &[Truth], out: &mut Vec<f64>) {
+    for &i in &p.idx {
+        out.push((sim[i].p2 - p.log.p2[i]) / SIGMA_P2_BAR);
+        out.push((sim[i].motor_rpm - p.log.rpm[i]) / SIGMA_RPM);
+    }
+}
+
+/// The fit problem.
+struct Problem {
+    start: BenchFile,
+    params: Vec<Param>,
+    logs: Arc<Vec<Prepared>>,
+    z: DVector<f64>,
+    progress: Option<ProgressBar>,
+    evals: std::sync::atomic::AtomicUsize,
+}
+
+impl Problem {
+    fn bench_at(&self, z: &[f64]) -> Result<Bench, String> {
+        let mut f = self.start.clone();
+        for (p, &zi) in self.params.iter().zip(z) {
+            (p.set)(&mut f, from_z(p, zi));
+        }
+        Bench::from_file(f, "fit").map_err(|e| e.to_string())
+    }
+
+    /// Residuals at each z of `zs`, all simulations in parallel.
+    fn residuals_many(&self, zs: &[Vec<f64>]) -> Vec<Option<Vec<f64>>> {
+        let benches: Vec<Option<Bench>> = zs.iter().map(|z| self.bench_at(z).ok()).collect();
+        let jobs: Vec<(usize, usize)> = (0..zs.len())
+            .flat_map(|k| (0..self.logs.len()).map(move |l| (k, l)))
+            .collect();
+        let sims: Vec<Option<Vec<Truth>>> = jobs
+            .par_iter()
+            .map(|&(k, l)| {
+                let r = benches[k]
+                    .as_ref()
+                    .and_then(|b| simulate_log(b, &self.logs[l]).ok());
+                if let Some(pb) = &self.progress {
+                    pb.inc(1);
+                }
+                r
+            })
+            .collect();
+        self.evals
+            .fetch_add(jobs.len(), std::sync::atomic::Ordering::Relaxed);
+        (0..zs.len())
+            .map(|k| {
+                let mut out = Vec::new();
+                for l in 0..self.logs.len() {
+                    residuals_of(
+                        &self.logs[l],
+                        sims[k * self.logs.len() + l].as_ref()?,
+                        &mut out,
+                    );
+                }
+                Some(out)
+            })
+            .collect()
+    }
+}
+
+impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem {
+    type ResidualStorage = Owned<f64, Dyn>;
+    type JacobianStorage = Owned<f64, Dyn, Dyn>;
+    type ParameterStorage = Owned<f64, Dyn>;
+
+    fn set_params(&mut self, z: &DVector<f64>) {
+        self.z.copy_from(z);
+    }
+
+    fn params(&self) -> DVector<f64> {
+        self.z.clone()
+    }
+
+    fn residuals(&self) -> Option<DVector<f64>> {
+        let z: Vec<f64> = self.z.iter().copied().collect();
+        let r = self.residuals_many(&[z]).pop()??;
+        Some(DVector::from_vec(r))
+    }
+
+    fn jacobian(&self) -> Option<DMatrix<f64>> {
+        let z: Vec<f64> = self.z.iter().copied().collect();
+        let h: Vec<f64> = z.iter().map(|zi| 1e-4 * (1.0 + zi.abs())).collect();
+        let mut zs = vec![z.clone()];
+        for (j, hj) in h.iter().enumerate() {
+            let mut zj = z.clone();
+            zj[j] += hj;
+            zs.push(zj);
+        }
+        let rs = self.residuals_many(&zs);
+        let r0 = rs[0].as_ref()?;
+        let mut jac = DMatrix::zeros(r0.len(), z.len());
+        for j in 0..z.len() {
+            let rj = rs[j + 1].as_ref()?;
+            for i in 0..r0.len() {
+                jac[(i, j)] = (rj[i] - r0[i]) / h[j];
+            }
+        }
+        Some(jac)
+    }
+}
+
+/// One fitted parameter.
+#[derive(Debug, Clone, Serialize)]
+pub struct Fitted {
+    /// Short name.
+    pub name: String,
+    /// Bench file field.
+    pub key: String,
+    /// Unit.
+    pub unit: String,
+    /// Starting value.
+    pub start: f64,
+    /// Fitted value.
+    pub value: f64,
+    /// One standard deviation (from the Jacobian at the optimum); `None` if the logs do not
+    /// determine it.
+    pub sigma: Option<f64>,
+}
+
+/// Per log.
+#[derive(Debug, Clone, Serialize)]
+pub struct LogFit {
+    /// Name.
+    pub name: String,
+    /// P2 RMS difference before / after, bar.
+    pub p2_rms_bar: (f64, f64),
+    /// Motor speed RMS difference before / after, rpm.
+    pub rpm_rms: (f64, f64),
+}
+
+/// The result of a fit.
+#[derive(Debug, Clone, Serialize)]
+pub struct FitReport {
+    /// Parameters.
+    pub params: Vec<Fitted>,
+    /// Weighted residual RMS before and after.
+    pub residual_rms: (f64, f64),
+    /// Before / after.
+    pub improvement: f64,
+    /// Per log.
+    pub logs: Vec<LogFit>,
+    /// Simulations run.
+    pub simulations: usize,
+    /// LM termination.
+    pub termination: String,
+    /// Converged.
+    pub converged: bool,
+    /// Wall time, s.
+    pub wall_s: f64,
+    /// Fitted bench file (set by the caller that writes it).
+    pub bench_file: Option<PathBuf>,
+    /// Model-crate configuration for the firmware (set by the caller that writes it).
+    pub model_file: Option<PathBuf>,
+    /// Figures.
+    pub figures: Vec<PathBuf>,
+}
+
+/// What a fit returns besides its report: the fitted bench file and the simulations before /
+/// after (for the figures).
+pub struct FitOutcome {
+    /// Report.
+    pub report: FitReport,
+    /// Fitted bench file.
+    pub fitted: BenchFile,
+    /// Simulated samples per log, before.
+    pub before: Vec<Vec<Truth>>,
+    /// After.
+    pub after: Vec<Vec<Truth>>,
+}
+
+fn rms(v: &[f64]) -> f64 {
+    (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt()
+}
+
+fn log_rms(p: &Prepared, sim: &[Truth]) -> (f64, f64) {
+    let dp: Vec<f64> = p.idx.iter().map(|&i| sim[i].p2 - p.log.p2[i]).collect();
+    let dr: Vec<f64> = p
+        .idx
+        .iter()
+        .map(|&i| sim[i].motor_rpm - p.log.rpm[i])
+        .collect();
+    (rms(&dp), rms(&dr))
+}
+
+/// Fits `params` to `logs`, starting from `start`.
+pub fn fit(
+    start: &BenchFile,
+    names: &[String],
+    logs: Vec<BenchLog>,
+    spacing_s: f64,
+    max_iter: usize,
+    progress: Option<ProgressBar>,
+) -> Result<FitOutcome, String> {
+    let t0 = std::time::Instant::now();
+    let params = params(names, start)?;
+    let logs = Arc::new(prepare(logs, spacing_s));
+    let z0: Vec<f64> = params.iter().map(|p| to_z(p, (p.get)(start))).collect();
+    let problem = Problem {
+        start: start.clone(),
+        params: params.clone(),
+        logs: logs.clone(),
+        z: DVector::from_vec(z0.clone()),
+        progress,
+        evals: Default::default(),
+    };
+    let b0 = problem.bench_at(&z0)?;
+    let before: Vec<Vec<Truth>> = logs
+        .par_iter()
+        .map(|p| simulate_log(&b0, p))
+        .collect::<Result<_, _>>()?;
+    let mut r_before = Vec::new();
+    for (p, s) in logs.iter().zip(&before) {
+        residuals_of(p, s, &mut r_before);
+    }
+    let lm = LevenbergMarquardt::<f64>::new()
+        .with_patience(max_iter.max(1))
+        .with_ftol(1e-6)
+        .with_xtol(1e-6);
+    let (problem, report) = lm.minimize(problem);
+    let z: Vec<f64> = problem.z.iter().copied().collect();
+    let fitted_bench = problem.bench_at(&z)?;
+    let after: Vec<Vec<Truth>> = logs
+        .par_iter()
+        .map(|p| simulate_log(&fitted_bench, p))
+        .collect::<Result<_, _>>()?;
+    let mut r_after = Vec::new();
+    for (p, s) in logs.iter().zip(&after) {
+        residuals_of(p, s, &mut r_after);
+    }
+    // Uncertainty: cov(z) = s²(JᵀJ)⁻¹ with s² = SSR/(m − n), through the bounds' transform.
+    let jac = problem
+        .jacobian()
+        .ok_or("the Jacobian at the optimum failed")?;
+    let m = r_after.len();
+    let n = z.len();
+    let s2 = r_after.iter().map(|x| x * x).sum::<f64>() / (m.saturating_sub(n)).max(1) as f64;
+    let jtj = jac.transpose() * &jac;
+    let svd = jtj.clone().svd(true, true);
+    let smax = svd.singular_values.max();
+    let pinv = svd
+        .pseudo_inverse(smax * 1e-10)
+        .map_err(|e| format!("covariance: {e}"))?;
+    let mut fitted = start.clone();
+    let mut out = Vec::new();
+    for (j, p) in params.iter().enumerate() {
+        let value = from_z(p, z[j]);
+        (p.set)(&mut fitted, value);
+        let determined = jtj[(j, j)] > smax * 1e-10;
+        let var = s2 * pinv[(j, j)];
+        out.push(Fitted {
+            name: p.name.clone(),
+            key: p.key.clone(),
+            unit: p.unit.clone(),
+            start: (p.get)(start),
+            value,
+            sigma: (determined && var.is_finite() && var >= 0.0)
+                .then(|| var.sqrt() * dx_dz(p, z[j])),
+        });
+    }
+    // Area-table factors report the table itself.
+    let per_log = logs
+        .iter()
+        .zip(before.iter().zip(&after))
+        .map(|(p, (b, a))| {
+            let (pb, rb) = log_rms(p, b);
+            let (pa, ra) = log_rms(p, a);
+            LogFit {
+                name: p.log.name(),
+                p2_rms_bar: (pb, pa),
+                rpm_rms: (rb, ra),
+            }
+        })
+        .collect();
+    let (rb, ra) = (rms(&r_before), rms(&r_after));
+    Ok(FitOutcome {
+        report: FitReport {
+            params: out,
+            residual_rms: (rb, ra),
+            improvement: rb / ra.max(1e-12),
+            logs: per_log,
+            simulations: problem.evals.load(std::sync::atomic::Ordering::Relaxed) + 2 * logs.len(),
+            termination: format!("{:?}", report.termination),
+            converged: report.termination.was_successful(),
+            wall_s: t0.elapsed().as_secs_f64(),
+            bench_file: None,
+            model_file: None,
+            figures: Vec::new(),
+        },
+        fitted,
+        before,
+        after,
+    })
+}
+
+/// A path next to `input` named `<stem>.fitted.<ext>` that does not exist yet (`-2`, `-3`, …
+/// appended as needed): the input is never overwritten.
+pub fn fresh_path(dir: &Path, stem: &str, ext: &str) -> PathBuf {
+    let mut p = dir.join(format!("{stem}.fitted.{ext}"));
+    let mut k = 2;
+    while p.exists() {
+        p = dir.join(format!("{stem}.fitted-{k}.{ext}"));
+        k += 1;
+    }
+    p
+}
+
+/// Makes a bench log of a built-in scenario from the full simulation and the sensor model
+/// (encoder 16 384 counts/rev, 12-bit pressures with noise, motor speed noise), sampled at
+/// `rate_hz`.
+pub fn synth_log(
+    bench: &Bench,
+    scenario: &str,
+    rate_hz: f64,
+    seed: u64,
+    out: &Path,
+) -> Result<BenchLog, String> {
+    let mut s = crate::scenario::builtin_named(scenario)
+        .ok_or_else(|| format!("unknown scenario `{scenario}` (see `pto scenarios`)"))?;
+    s.sample_interval_s = (0.5 / rate_hz).min(s.sample_interval_s);
+    let (prep, res) = s.simulate(bench, Path::new("."), SolverOptions::default(), None)?;
+    let mut synth = SensorSynth::new(SensorSpec::default(), seed);
+    let n = (s.duration_s * rate_hz).floor() as usize + 1;
+    let spec = SensorSpec::default();
+    let mut log = BenchLog {
+        path: out.join(format!("{scenario}.csv")),
+        t: Vec::with_capacity(n),
+        theta_deg: Vec::with_capacity(n),
+        p2: Vec::with_capacity(n),
+        lp: Vec::with_capacity(n),
+        rpm: Vec::with_capacity(n),
+        aperture: Vec::with_capacity(n),
+        on_duty: prep.on_duty,
+        config: prep.config + 1,
+    };
+    for k in 0..n {
+        let t = k as f64 / rate_hz;
+        let truth = truth_at(&res.trace, t);
+        let theta = prep.plant.motion().at(t).0;
+        let (enc, hp, lp, motor) = synth.read(theta, &truth);
+        log.t.push(t);
+        log.theta_deg
+            .push(f64::from(enc) * 360.0 / f64::from(spec.counts_per_rev));
+        log.p2.push(hp);
+        log.lp.push(lp);
+        log.rpm.push(motor);
+        log.aperture
+            .push(crate::estimation::commanded_aperture_pct(&s, &res, t));
+    }
+    Ok(log)
+}
+
+/// The paper's experimental runs (Section 4.2), as built-in scenario names.
+pub const EXPERIMENTAL_RUNS: [&str; 7] = [
+    "exp-charge-64.5",
+    "exp-charge-67.2",
+    "exp-charge-72",
+    "exp-9pct-101.5",
+    "exp-discharge-102",
+    "exp-discharge-84",
+    "exp-discharge-71",
+];
+
+/// Sets `key = value` overrides on a bench file (`pto synth-logs --set`), by parameter name
+/// or bench field.
+pub fn apply_override(f: &mut BenchFile, kv: &str) -> Result<(), String> {
+    let (k, v) = kv
+        .split_once('=')
+        .ok_or_else(|| format!("--set {kv}: want name=value"))?;
+    let v: f64 = v
+        .trim()
+        .parse()
+        .map_err(|_| format!("--set {kv}: `{v}` is not a number"))?;
+    let k = k.trim();
+    let all = params(
+        &["trapped_air", "cd", "precharge", "hp_volume", "leakage"].map(String::from),
+        f,
+    )?;
+    let p = all
+        .iter()
+        .find(|p| p.name == k || p.key == k)
+        .ok_or_else(|| {
+            format!(
+                "--set {kv}: unknown `{k}` (known: {})",
+                all.iter()
+                    .map(|p| format!("{} ({})", p.name, p.key))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        })?;
+    (p.set)(f, v);
+    Ok(())
+}
