@@ -500,6 +500,10 @@ impl Reference {
                 self.var *= 1.0 - g;
                 self.rejected = 0;
             } else {
+                // Fading memory on rejection, capped at 16 r, as in the fixed-point model.
+                if self.var < 16.0 * r {
+                    self.var = (self.var + r).min(16.0 * r);
+                }
                 self.rejected += 1;
                 if f64::from(self.rejected) * dt * 1e3 >= f64::from(c.gate_reset_ms) {
                     self.p2 = z;

@@ -1013,7 +1013,7 @@ fn fit_figures(
         let rel = |sim: &[f64], meas: &[f64], floor: f64| -> Vec<f64> {
             sim.iter()
                 .zip(meas)
-                .map(|(s, m)| 100.0 * (s - m) / m.abs().max(floor))
+                .map(|(s, m)| (100.0 * (s - m) / m.abs().max(floor)).clamp(-30.0, 30.0))
                 .collect()
         };
         let (p2b, p2a) = (col(&o.before[k], |x| x.p2), col(&o.after[k], |x| x.p2));
@@ -1054,7 +1054,7 @@ fn fit_figures(
                     ],
                 },
                 Panel {
-                    title: "Relative difference, fitted − measured (Fig. 26 view)".into(),
+                    title: "Fitted − measured, % (Fig. 26 view; clipped to ±30 %)".into(),
                     x_label: "time (s)".into(),
                     y_label: "difference (%)".into(),
                     series: vec![

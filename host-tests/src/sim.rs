@@ -618,8 +618,9 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
             if tk > t_emit + 1e-12 {
                 break;
             }
+            // (A stop time can be reached a rounding error short of `tk`.)
             solver
-                .interpolate_inplace(tk, &mut ybuf)
+                .interpolate_inplace(tk.min(t_emit), &mut ybuf)
                 .map_err(|e| solver_err(tk, e))?;
             for (i, v) in ysample.iter_mut().enumerate() {
                 *v = ybuf[i];
