@@ -726,7 +726,7 @@ fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
     ];
     let mut out = Vec::new();
     for (name, f) in checks {
-        eprintln!("PIL {name}: running in lockstep with the firmware (≈ 2 ms per step)…");
+        eprintln!("PIL {name}: running in lockstep with the firmware (≈ 2–3 ms per step)…");
         let q = Qemu::boot(&elf, false).map_err(anyhow::Error::msg)?;
         let (mut q, c) = f(q, &bench).map_err(anyhow::Error::msg)?;
         let _ = q.link.send(&pto_model::protocol::ToFirmware::Exit(0));
