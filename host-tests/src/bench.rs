@@ -113,11 +113,19 @@ pub struct ReliefSection {
     pub discharge_coefficient: f64,
 }
 
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
+}
+
 #[allow(missing_docs)]
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct ControlValveSection {
     pub discharge_coefficient: f64,
+    /// Pressure-dependent characteristic: Cd(Δp) = Cd·(1 + slope·(Δp − 50 bar)/100 bar).
+    /// Optional (0: the paper's constant Cd); `pto fit --params cd_slope` fits it.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub cd_slope_per_100bar: f64,
     pub aperture_pct: Vec<f64>,
     pub area_mm2: Vec<f64>,
     pub spool_time_constant_ms: f64,
@@ -543,6 +551,13 @@ impl BenchFile {
             "-",
         );
         c.range(
+            "control_valve.cd_slope_per_100bar",
+            v.cd_slope_per_100bar,
+            -0.5,
+            0.5,
+            "1/100 bar",
+        );
+        c.range(
             "control_valve.spool_time_constant_ms",
             v.spool_time_constant_ms,
             0.0,
@@ -822,8 +837,10 @@ pub struct Bench {
     pub relief_area: f64,
     /// Relief Cd.
     pub relief_cd: f64,
-    /// Control valve Cd.
+    /// Control valve Cd (at 50 bar Δp).
     pub valve_cd: f64,
+    /// Relative change of the control valve's Cd per 100 bar of Δp around 50 bar.
+    pub valve_cd_slope: f64,
     /// Control valve aperture table, fraction 0..1.
     pub valve_aperture: Vec<f64>,
     /// Control valve area table, m².
@@ -978,6 +995,7 @@ impl Bench {
             relief_area: f.relief_valve.max_area_mm2 * 1e-6,
             relief_cd: f.relief_valve.discharge_coefficient,
             valve_cd: f.control_valve.discharge_coefficient,
+            valve_cd_slope: f.control_valve.cd_slope_per_100bar,
             valve_aperture: f
                 .control_valve
                 .aperture_pct

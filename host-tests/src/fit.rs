@@ -81,6 +81,7 @@ fn scalar(
 pub const PARAM_NAMES: &[&str] = &[
     "trapped_air",
     "cd",
+    "cd_slope",
     "precharge",
     "hp_volume",
     "leakage",
@@ -127,6 +128,15 @@ pub fn params(names: &[String], start: &BenchFile) -> Result<Vec<Param>, String>
                 200.0,
                 |f| f.hp_accumulator.volume_l,
                 |f, x| f.hp_accumulator.volume_l = x,
+            )),
+            "cd_slope" => v.push(scalar(
+                "cd_slope",
+                "control_valve.cd_slope_per_100bar",
+                "1/100 bar",
+                -0.5,
+                0.5,
+                |f| f.control_valve.cd_slope_per_100bar,
+                |f, x| f.control_valve.cd_slope_per_100bar = x,
             )),
             "leakage" => v.push(scalar(
                 "leakage",
@@ -335,6 +345,15 @@ pub const FIT_SOLVER: SolverOptions = SolverOptions {
 
 /// Simulated (P2 bar, motor rpm) at every log sample.
 pub fn simulate_log(bench: &Bench, p: &Prepared) -> Result<Vec<Truth>, String> {
+    simulate_log_from(bench, p, 0.0)
+}
+
+/// Like [`simulate_log`], with the start P2 moved by `p2_offset` bar.
+pub fn simulate_log_from(
+    bench: &Bench,
+    p: &Prepared,
+    p2_offset: f64,
+) -> Result<Vec<Truth>, String> {
     let log = &p.log;
     let on: [bool; 4] = log.on_duty;
     let plant = Plant::new(bench, log.config - 1, on, p.motion.clone());
@@ -344,7 +363,7 @@ pub fn simulate_log(bench: &Bench, p: &Prepared) -> Result<Vec<Truth>, String> {
         plant: &plant,
         valve: ValveSchedule::Table(p.valve.clone()),
         initial: Initial {
-            p2: p.p2_start * BAR,
+            p2: (p.p2_start + p2_offset) * BAR,
             lp: p.lp_start * BAR,
         },
         duration: dur,
@@ -407,6 +426,9 @@ struct Problem {
     start: BenchFile,
     params: Vec<Param>,
     logs: Arc<Vec<Prepared>>,
+    /// z = the parameters' bounded coordinates, then (if `offsets`) one start-P2 correction per
+    /// log, bar.
+    offsets: bool,
     z: DVector<f64>,
     progress: Option<ProgressBar>,
     evals: std::sync::atomic::AtomicUsize,
@@ -421,18 +443,26 @@ impl Problem {
         Bench::from_file(f, "fit").map_err(|e| e.to_string())
     }
 
-    /// Residuals at each z of `zs`, all simulations in parallel.
-    fn residuals_many(&self, zs: &[Vec<f64>]) -> Vec<Option<Vec<f64>>> {
-        let benches: Vec<Option<Bench>> = zs.iter().map(|z| self.bench_at(z).ok()).collect();
-        let jobs: Vec<(usize, usize)> = (0..zs.len())
-            .flat_map(|k| (0..self.logs.len()).map(move |l| (k, l)))
-            .collect();
-        let sims: Vec<Option<Vec<Truth>>> = jobs
+    fn offsets_of(&self, z: &[f64]) -> Vec<f64> {
+        if self.offsets {
+            z[self.params.len()..].to_vec()
+        } else {
+            vec![0.0; self.logs.len()]
+        }
+    }
+
+    /// Runs (bench, log, start-P2 offset) simulations in parallel.
+    fn run_jobs(
+        &self,
+        benches: &[Option<Bench>],
+        jobs: &[(usize, usize, f64)],
+    ) -> Vec<Option<Vec<Truth>>> {
+        let sims = jobs
             .par_iter()
-            .map(|&(k, l)| {
-                let r = benches[k]
+            .map(|&(b, l, off)| {
+                let r = benches[b]
                     .as_ref()
-                    .and_then(|b| simulate_log(b, &self.logs[l]).ok());
+                    .and_then(|b| simulate_log_from(b, &self.logs[l], off).ok());
                 if let Some(pb) = &self.progress {
                     pb.inc(1);
                 }
@@ -441,21 +471,33 @@ impl Problem {
             .collect();
         self.evals
             .fetch_add(jobs.len(), std::sync::atomic::Ordering::Relaxed);
-        (0..zs.len())
-            .map(|k| {
-                let mut out = Vec::new();
-                for l in 0..self.logs.len() {
-                    residuals_of(
-                        &self.logs[l],
-                        sims[k * self.logs.len() + l].as_ref()?,
-                        &mut out,
-                    );
-                }
-                Some(out)
-            })
-            .collect()
+        sims
+    }
+
+    /// The residual vector from one simulation per log (plus the start-offset priors).
+    fn assemble(&self, sims: &[&Vec<Truth>], offsets: &[f64]) -> Vec<f64> {
+        let mut out = Vec::new();
+        for (l, sim) in sims.iter().enumerate() {
+            residuals_of(&self.logs[l], sim, &mut out);
+        }
+        if self.offsets {
+            out.extend(offsets.iter().map(|o| o / SIGMA_START_BAR));
+        }
+        out
+    }
+
+    fn base(&self, z: &[f64]) -> Option<(Vec<Vec<Truth>>, Vec<f64>)> {
+        let offsets = self.offsets_of(z);
+        let benches = [self.bench_at(z).ok()];
+        let jobs: Vec<(usize, usize, f64)> =
+            (0..self.logs.len()).map(|l| (0, l, offsets[l])).collect();
+        let sims: Option<Vec<Vec<Truth>>> = self.run_jobs(&benches, &jobs).into_iter().collect();
+        Some((sims?, offsets))
     }
 }
+
+/// σ of a log's start P2 as read from its first samples, bar (the prior on its correction).
+pub const SIGMA_START_BAR: f64 = 0.3;
 
 impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem {
     type ResidualStorage = Owned<f64, Dyn>;
@@ -472,26 +514,59 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem {
 
     fn residuals(&self) -> Option<DVector<f64>> {
         let z: Vec<f64> = self.z.iter().copied().collect();
-        let r = self.residuals_many(&[z]).pop()??;
-        Some(DVector::from_vec(r))
+        let (sims, offsets) = self.base(&z)?;
+        let refs: Vec<&Vec<Truth>> = sims.iter().collect();
+        Some(DVector::from_vec(self.assemble(&refs, &offsets)))
     }
 
     fn jacobian(&self) -> Option<DMatrix<f64>> {
+        // Forward differences. A parameter's column re-simulates every log; a log's start-P2
+        // correction re-simulates that log only.
         let z: Vec<f64> = self.z.iter().copied().collect();
+        let ng = self.params.len();
+        let nl = self.logs.len();
         let h: Vec<f64> = z.iter().map(|zi| 1e-4 * (1.0 + zi.abs())).collect();
-        let mut zs = vec![z.clone()];
-        for (j, hj) in h.iter().enumerate() {
+        let offsets = self.offsets_of(&z);
+        let mut benches = vec![self.bench_at(&z).ok()];
+        for j in 0..ng {
             let mut zj = z.clone();
-            zj[j] += hj;
-            zs.push(zj);
+            zj[j] += h[j];
+            benches.push(self.bench_at(&zj).ok());
         }
-        let rs = self.residuals_many(&zs);
-        let r0 = rs[0].as_ref()?;
+        let mut jobs: Vec<(usize, usize, f64)> = Vec::new();
+        for b in 0..=ng {
+            for (l, off) in offsets.iter().enumerate() {
+                jobs.push((b, l, *off));
+            }
+        }
+        if self.offsets {
+            for (l, off) in offsets.iter().enumerate() {
+                jobs.push((0, l, off + h[ng + l]));
+            }
+        }
+        let sims: Vec<Vec<Truth>> = self
+            .run_jobs(&benches, &jobs)
+            .into_iter()
+            .collect::<Option<_>>()?;
+        let base: Vec<&Vec<Truth>> = sims[..nl].iter().collect();
+        let r0 = self.assemble(&base, &offsets);
         let mut jac = DMatrix::zeros(r0.len(), z.len());
-        for j in 0..z.len() {
-            let rj = rs[j + 1].as_ref()?;
+        let mut fill = |j: usize, r: Vec<f64>| {
             for i in 0..r0.len() {
-                jac[(i, j)] = (rj[i] - r0[i]) / h[j];
+                jac[(i, j)] = (r[i] - r0[i]) / h[j];
+            }
+        };
+        for j in 0..ng {
+            let col: Vec<&Vec<Truth>> = sims[(j + 1) * nl..(j + 2) * nl].iter().collect();
+            fill(j, self.assemble(&col, &offsets));
+        }
+        if self.offsets {
+            for l in 0..nl {
+                let mut col = base.clone();
+                col[l] = &sims[(ng + 1) * nl + l];
+                let mut off = offsets.clone();
+                off[l] += h[ng + l];
+                fill(ng + l, self.assemble(&col, &off));
             }
         }
         Some(jac)
@@ -525,6 +600,8 @@ pub struct LogFit {
     pub p2_rms_bar: (f64, f64),
     /// Motor speed RMS difference before / after, rpm.
     pub rpm_rms: (f64, f64),
+    /// Start P2 read from the log's first samples, and as corrected by the fit, bar.
+    pub start_p2_bar: (f64, f64),
 }
 
 /// The result of a fit.
@@ -623,14 +700,22 @@ pub fn fit(
     let mut termination = String::new();
     let mut converged = false;
     let mut last: Option<(Problem, Vec<usize>)> = None;
-    for (pj, lk) in stages {
+    let n_stages = stages.len();
+    for (stage, (pj, lk)) in stages.into_iter().enumerate() {
         let sub: Vec<Param> = pj.iter().map(|&j| params[j].clone()).collect();
         let sub_logs: Vec<Prepared> = lk.iter().map(|&k| logs[k].clone()).collect();
-        let z0: Vec<f64> = sub.iter().map(|p| to_z(p, (p.get)(&cur))).collect();
+        let mut z0: Vec<f64> = sub.iter().map(|p| to_z(p, (p.get)(&cur))).collect();
+        // The last stage also corrects each log's start P2 (read from noisy first samples, it
+        // would otherwise shift the moment the accumulator runs empty by up to a second).
+        let offsets = stage + 1 == n_stages;
+        if offsets {
+            z0.extend(std::iter::repeat_n(0.0, sub_logs.len()));
+        }
         let problem = Problem {
             start: cur.clone(),
             params: sub,
             logs: Arc::new(sub_logs),
+            offsets,
             z: DVector::from_vec(z0),
             progress: progress.clone(),
             evals: Default::default(),
@@ -652,9 +737,11 @@ pub fn fit(
     let (problem, _) = last.ok_or("no fit stage ran")?;
     let z: Vec<f64> = problem.z.iter().copied().collect();
     let fitted_bench = problem.bench_at(&z)?;
+    let corrections = problem.offsets_of(&z);
     let after: Vec<Vec<Truth>> = logs
         .par_iter()
-        .map(|p| simulate_log(&fitted_bench, p))
+        .zip(&corrections)
+        .map(|(p, off)| simulate_log_from(&fitted_bench, p, *off))
         .collect::<Result<_, _>>()?;
     let mut r_after = Vec::new();
     for (p, s) in logs.iter().zip(&after) {
@@ -664,9 +751,12 @@ pub fn fit(
     let jac = problem
         .jacobian()
         .ok_or("the Jacobian at the optimum failed")?;
-    let m = r_after.len();
+    let r_opt = problem
+        .residuals()
+        .ok_or("the residuals at the optimum failed")?;
+    let m = r_opt.len();
     let n = z.len();
-    let s2 = r_after.iter().map(|x| x * x).sum::<f64>() / (m.saturating_sub(n)).max(1) as f64;
+    let s2 = r_opt.iter().map(|x| x * x).sum::<f64>() / (m.saturating_sub(n)).max(1) as f64;
     let jtj = jac.transpose() * &jac;
     let svd = jtj.clone().svd(true, true);
     let smax = svd.singular_values.max();
@@ -694,13 +784,15 @@ pub fn fit(
     let per_log = logs
         .iter()
         .zip(before.iter().zip(&after))
-        .map(|(p, (b, a))| {
+        .zip(&corrections)
+        .map(|((p, (b, a)), c)| {
             let (pb, rb) = log_rms(p, b);
             let (pa, ra) = log_rms(p, a);
             LogFit {
                 name: p.log.name(),
                 p2_rms_bar: (pb, pa),
                 rpm_rms: (rb, ra),
+                start_p2_bar: (p.p2_start, p.p2_start + c),
             }
         })
         .collect();
@@ -805,7 +897,15 @@ pub fn apply_override(f: &mut BenchFile, kv: &str) -> Result<(), String> {
         .map_err(|_| format!("--set {kv}: `{v}` is not a number"))?;
     let k = k.trim();
     let all = params(
-        &["trapped_air", "cd", "precharge", "hp_volume", "leakage"].map(String::from),
+        &[
+            "trapped_air",
+            "cd",
+            "cd_slope",
+            "precharge",
+            "hp_volume",
+            "leakage",
+        ]
+        .map(String::from),
         f,
     )?;
     let p = all

@@ -124,7 +124,8 @@ enum Cmd {
         /// Bench parameter file to start from (default: the reference bench).
         #[arg(long)]
         bench: Option<PathBuf>,
-        /// Parameters: trapped_air, cd, precharge, hp_volume, leakage, area_table.
+        /// Parameters: trapped_air, cd, cd_slope (pressure-dependent Cd), precharge, hp_volume,
+        /// leakage, area_table.
         #[arg(
             long,
             value_delimiter = ',',
@@ -937,6 +938,7 @@ fn fit_cmd(
     );
     text.push_str(&toml::to_string_pretty(&o.fitted)?);
     write_atomic(&bench_out, text.as_bytes())?;
+    // The reduced model has a constant Cd: it takes the fitted Cd at 50 bar Δp.
     let model = pto_host::estimation::model_config(&fitted).map_err(anyhow::Error::msg)?;
     model
         .validate()

@@ -150,9 +150,16 @@ pub fn valve_area(bench: &Bench, a: f64) -> f64 {
     area.max(bench.oil.leak_area)
 }
 
-/// Control valve flow at aperture `a`, m³/s.
+/// Control valve flow at aperture `a`, m³/s. With a pressure-dependent characteristic the Cd
+/// varies linearly with |Δp| around 50 bar (kept ≥ 10 % of its nominal value).
 pub fn valve_flow(bench: &Bench, a: f64, dp: f64) -> f64 {
-    orifice(&bench.oil, bench.valve_cd, valve_area(bench, a), dp)
+    let cd = if bench.valve_cd_slope == 0.0 {
+        bench.valve_cd
+    } else {
+        let k = 1.0 + bench.valve_cd_slope * (dp.abs() / 1e5 - 50.0) / 100.0;
+        bench.valve_cd * k.max(0.1)
+    };
+    orifice(&bench.oil, cd, valve_area(bench, a), dp)
 }
 
 /// Pressure band over which the bladder lifts off its stop, Pa.
