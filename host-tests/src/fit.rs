@@ -896,18 +896,12 @@ pub fn apply_override(f: &mut BenchFile, kv: &str) -> Result<(), String> {
         .parse()
         .map_err(|_| format!("--set {kv}: `{v}` is not a number"))?;
     let k = k.trim();
-    let all = params(
-        &[
-            "trapped_air",
-            "cd",
-            "cd_slope",
-            "precharge",
-            "hp_volume",
-            "leakage",
-        ]
-        .map(String::from),
-        f,
-    )?;
+    let scalars: Vec<String> = PARAM_NAMES
+        .iter()
+        .filter(|n| **n != "area_table")
+        .map(|n| n.to_string())
+        .collect();
+    let all = params(&scalars, f)?;
     let p = all
         .iter()
         .find(|p| p.name == k || p.key == k)
