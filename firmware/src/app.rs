@@ -20,6 +20,24 @@ use pto_model::scheduler::SchedulerConfig;
 use pto_model::{ModelConfig, fx::Aperture};
 use static_cell::StaticCell;
 
+/// What the tasks get from the board (its types are the board module's aliases).
+pub struct Board {
+    /// Link receive.
+    pub rx: board::Rx,
+    /// Link transmit.
+    pub tx: board::Tx,
+    /// Step-cost clock.
+    pub clock: board::Clock,
+    /// Proportional valve.
+    pub valve: board::Valve,
+    /// Dump valve.
+    pub dump: board::Pin,
+    /// Duty solenoids HC3.1..HC3.4.
+    pub solenoids: [board::Pin; 4],
+    /// Watchdog.
+    pub watchdog: board::Watchdog,
+}
+
 /// What the control task is given.
 pub enum ToControl {
     /// A sensor sample (from the link under QEMU, from the sampling task on the bench).
@@ -248,10 +266,8 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                     })
                     .await;
                 }
-                ToFirmware::Sensors(f) => {
-                    // Routed as a sample by the receive task; kept for completeness.
-                    let _ = TO_CONTROL.try_send(ToControl::Sample(f));
-                }
+                // The receive task turns sensor frames into samples: never a command.
+                ToFirmware::Sensors(_) => {}
                 ToFirmware::Ping(n) => send(FromFirmware::Pong(n)).await,
                 ToFirmware::SetMode(m) => {
                     defmt::info!("mode {}", m);

@@ -324,10 +324,9 @@ mod tests {
         .unwrap()
     }
 
-    fn frame(c: &Controller, tick: u32, hp_bar: f32) -> SensorFrame {
+    fn frame(tick: u32, hp_bar: f32) -> SensorFrame {
         let t = Transducer::new(LoopSpec::HP).unwrap();
         let l = Transducer::new(LoopSpec::LP).unwrap();
-        let _ = c;
         SensorFrame {
             tick,
             encoder: 0,
@@ -344,10 +343,10 @@ mod tests {
         c.set_mode(Mode::Fixed(Aperture::from_num(5.0)));
         let trip = c.trip().to_f32();
         for i in 0..50 {
-            let o = c.sample(&frame(&c, i, 100.0), &mut NoClock);
+            let o = c.sample(&frame(i, 100.0), &mut NoClock);
             assert!(!o.dump);
         }
-        let o = c.sample(&frame(&c, 50, trip + 1.0), &mut NoClock);
+        let o = c.sample(&frame(50, trip + 1.0), &mut NoClock);
         assert!(
             o.dump,
             "dump valve on in the step that sees the overpressure"
@@ -358,13 +357,13 @@ mod tests {
             "valve at its safe aperture at once"
         );
         // Still latched a little below the trip.
-        let o = c.sample(&frame(&c, 51, trip - 5.0), &mut NoClock);
+        let o = c.sample(&frame(51, trip - 5.0), &mut NoClock);
         assert!(o.dump && o.applied.to_f32() == 100.0);
         // Released once P2 is 15 bar below, then the valve slews back (100 %/s, 2^-10 s).
         let mut n = 0;
         let mut last = 100.0;
         for i in 52..2000 {
-            let o = c.sample(&frame(&c, i, trip - 30.0), &mut NoClock);
+            let o = c.sample(&frame(i, trip - 30.0), &mut NoClock);
             if !o.dump {
                 let a = o.applied.to_f32();
                 assert!(last - a <= 100.0 / 1024.0 + 1e-3, "slew {last} -> {a}");
@@ -394,7 +393,7 @@ mod tests {
     fn a_wire_break_is_counted_and_the_estimate_runs_on_the_model() {
         let mut c = ctl();
         c.reset(Pressure::from_num(90.0), Pressure::from_num(8.0));
-        let mut f = frame(&c, 0, 90.0);
+        let mut f = frame(0, 90.0);
         f.hp_adc = 0;
         let o = c.sample(&f, &mut NoClock);
         assert_ne!(o.estimate.faults & fault::HP_SENSOR, 0);

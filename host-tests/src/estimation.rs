@@ -112,7 +112,7 @@ impl Default for SensorSpec {
     }
 }
 
-/// Plant values at one instant (linear interpolation of a trace).
+/// Plant values at one instant (linear interpolation of a trace, or the plant's evaluation).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Truth {
     /// P2, bar.
@@ -125,7 +125,19 @@ pub struct Truth {
     pub motor_rpm: f64,
 }
 
-/// Interpolates a trace.
+impl Truth {
+    /// The plant's values as its controller callback sees them.
+    pub fn of_eval(p: &crate::plant::Eval) -> Truth {
+        Truth {
+            p2: p.p2 / BAR,
+            lp: p.lp / BAR,
+            torque: p.torque.iter().sum(),
+            motor_rpm: p.omega * RPM,
+        }
+    }
+}
+
+/// Plant values at time `t` of a trace (linear interpolation).
 pub fn truth_at(tr: &Trace, t: f64) -> Truth {
     let n = tr.len();
     let k = tr.t.partition_point(|&x| x <= t).clamp(1, n - 1);

@@ -5,6 +5,7 @@ use crate::golden;
 use crate::pil;
 use crate::qemu::{self, Build, Qemu};
 use object::{Object, ObjectSection, SectionKind};
+use pto_model::estimator::Inputs;
 use pto_model::fx::{Aperture, Pressure};
 use pto_model::scheduler::Mode;
 use serde::Serialize;
@@ -72,19 +73,16 @@ pub fn size(elf: &Path, build: &str) -> Result<Size, String> {
     })
 }
 
-/// Replays the golden inputs in `mode` and reads the step cost from the firmware.
-pub fn step_cost(q: &mut Qemu, mode: Mode, label: &str) -> Result<StepCost, String> {
-    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(golden::FILE))
-        .map_err(|e| format!("{}: {e}", golden::FILE))?;
-    let (p2, lp, inputs) = golden::parse(&text)?;
+/// Replays `inputs` (from the start pressures in bar) in `mode` and reads the step cost from
+/// the firmware.
+pub fn step_cost(
+    q: &mut Qemu,
+    (inputs, p2, lp): (&[Inputs], f32, f32),
+    mode: Mode,
+    label: &str,
+) -> Result<StepCost, String> {
     let before = pil::status(q)?;
-    pil::replay(
-        q,
-        &inputs,
-        Pressure::from_bits(p2).to_f32(),
-        Pressure::from_bits(lp).to_f32(),
-        mode,
-    )?;
+    pil::replay(q, inputs, p2, lp, mode)?;
     let after = pil::status(q)?;
     let steps = after.steps - before.steps;
     Ok(StepCost {
@@ -110,6 +108,14 @@ pub struct Report {
 pub fn measure() -> Result<Report, String> {
     let qemu_elf = qemu::build(Build::Qemu)?;
     let bench_elf = qemu::build(Build::Bench)?;
+    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(golden::FILE))
+        .map_err(|e| format!("{}: {e}", golden::FILE))?;
+    let (p2, lp, inputs) = golden::parse(&text)?;
+    let start = (
+        inputs.as_slice(),
+        Pressure::from_bits(p2).to_f32(),
+        Pressure::from_bits(lp).to_f32(),
+    );
     let mut q = Qemu::boot(&qemu_elf, false)?;
     let mut step = Vec::new();
     // Fresh maxima per mode: the firmware keeps one running maximum, so measure the cheapest
@@ -118,7 +124,7 @@ pub fn measure() -> Result<Report, String> {
         ("fixed aperture", Mode::Fixed(Aperture::from_num(10.0))),
         ("hold P2", Mode::HoldPressure(Pressure::from_num(100.0))),
     ] {
-        step.push(step_cost(&mut q, mode, label)?);
+        step.push(step_cost(&mut q, start, mode, label)?);
     }
     q.link.send(&pto_model::protocol::ToFirmware::Exit(0))?;
     let size = vec![size(&bench_elf, "bench")?, size(&qemu_elf, "qemu")?];

@@ -52,8 +52,9 @@ pub fn scenario_inputs(
     let mut s = crate::scenario::builtin_named(name).ok_or(format!("{name} missing"))?;
     s.sample_interval_s = 1.0 / 128.0;
     let dt = 1.0 / 1024.0;
-    let t_need = t_start.unwrap_or(s.duration_s) + steps as f64 * dt + 1.0;
-    s.duration_s = s.duration_s.min(t_need);
+    if let Some(t0) = t_start {
+        s.duration_s = s.duration_s.min(t0 + steps as f64 * dt + 1.0);
+    }
     let (prep, res) = s.simulate(bench, Path::new("."), Default::default(), None)?;
     let t0 = t_start.unwrap_or_else(|| res.valve_opened_at.unwrap_or(50.0) - 1.0);
     let mut synth = SensorSynth::new(SensorSpec::default(), 42);

@@ -1030,10 +1030,7 @@ fn fit_figures(
         };
         let fig = Figure {
             name: format!("fit-{}", l.name()),
-            title: format!(
-                "{}: measured vs simulated, before and after the fit",
-                l.name()
-            ),
+            title: format!("{}: measured vs simulated", l.name()),
             panels: vec![
                 Panel {
                     title: "HP pressure P2".into(),

@@ -7,13 +7,12 @@ use crate::bench::{BAR, Bench};
 use crate::estimation::{SensorSpec, SensorSynth, Truth};
 use crate::plant::Eval;
 use crate::qemu::Qemu;
-use crate::sim::{self, Initial, Run, SimResult, SolverOptions, ValveController, ValveSchedule};
+use crate::sim::{SimResult, ValveController};
 use pto_firmware::frontend::{LoopSpec, Transducer};
 use pto_model::estimator::{Estimate, Inputs};
 use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::protocol::{FromFirmware, SensorFrame, Status, ToFirmware};
 use pto_model::scheduler::{Command, Mode};
-use std::path::Path;
 
 /// Starts the firmware's estimator from known pressures and sets its mode.
 pub fn prime(q: &mut Qemu, p2: f32, lp: f32, mode: Mode) -> Result<(), String> {
@@ -143,21 +142,14 @@ impl FirmwareController {
         })
     }
 
-    fn frame(&mut self, t: f64, p: &Eval, inj: Injection) -> SensorFrame {
-        let truth = Truth {
-            p2: p.p2 / BAR,
-            lp: p.lp / BAR,
-            torque: p.torque.iter().sum(),
-            motor_rpm: p.omega * 30.0 / std::f64::consts::PI,
-        };
-        let (mut enc, mut hp, lp, motor) = self.synth.read_analog(p.theta, &truth);
+    fn frame(&mut self, theta: f64, truth: &Truth, inj: Injection) -> SensorFrame {
+        let (mut enc, mut hp, lp, motor) = self.synth.read_analog(theta, truth);
         match inj {
             Injection::EncoderStuck => enc = self.last_enc,
             Injection::HpNoise(a) => hp += if self.tick.is_multiple_of(2) { a } else { -a },
             _ => {}
         }
         self.last_enc = enc;
-        let _ = t;
         SensorFrame {
             tick: self.tick,
             encoder: enc,
@@ -236,11 +228,12 @@ impl ValveController for FirmwareController {
 
     fn update(&mut self, t: f64, p: &Eval) -> f64 {
         let inj = (self.inject)(t);
-        let f = self.frame(t, p, inj);
+        let truth = Truth::of_eval(p);
+        let f = self.frame(p.theta, &truth, inj);
         let mut row = PilRow {
             t,
-            p2: p.p2 / BAR,
-            rpm: p.omega * 30.0 / std::f64::consts::PI,
+            p2: truth.p2,
+            rpm: truth.motor_rpm,
             estimate: None,
             command: None,
             applied: self.applied,
@@ -276,9 +269,9 @@ impl ValveController for FirmwareController {
 /// What a closed-loop run returns: the firmware (still running), the plant's trace, every step.
 pub type LoopRun = (Qemu, SimResult, Vec<PilRow>);
 
-/// A Test III-like closed-loop run (HC3.1 + HC3.4, Config 1, ±40 mm at 0.1 Hz) with the
-/// firmware as the controller, from P2 `p2_start` bar, for `duration` s, with the sensors of
-/// `spec` (4–20 mA loops quantised by the firmware's own front end).
+/// A Test III-like closed-loop run ([`crate::validate::test3_like_loop`]) with the firmware as
+/// the controller, from P2 `p2_start` bar, for `duration` s, with the sensors of `spec` (4–20 mA
+/// loops quantised by the firmware's own front end).
 pub fn closed_loop(
     mut q: Qemu,
     bench: &Bench,
@@ -288,54 +281,27 @@ pub fn closed_loop(
     spec: SensorSpec,
     inject: Box<dyn Fn(f64) -> Injection>,
 ) -> Result<LoopRun, String> {
-    let s = crate::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
-    let prep = s
-        .prepare(bench, Path::new("."))
-        .map_err(|e| e.to_string())?;
-    let lp_start = 8.0;
-    prime(&mut q, p2_start as f32, lp_start as f32, mode)?;
-    q.link.send(&ToFirmware::SetDuty {
-        on_duty: crate::estimation::duty_mask(&prep.on_duty),
-        config: prep.config as u8,
-    })?;
     let dt_log2 = pto_model::ModelConfig::reference().dt_log2;
-    let ctrl = FirmwareController::new(q, dt_log2, spec, 11, inject)?;
-    let shared = std::rc::Rc::new(std::cell::RefCell::new(ctrl));
-    struct Shim(std::rc::Rc<std::cell::RefCell<FirmwareController>>);
-    impl ValveController for Shim {
-        fn period(&self) -> f64 {
-            self.0.borrow().period()
-        }
-        fn update(&mut self, t: f64, p: &Eval) -> f64 {
-            self.0.borrow_mut().update(t, p)
-        }
-    }
-    let res = sim::simulate(Run {
-        plant: &prep.plant,
-        valve: ValveSchedule::Controller(Box::new(Shim(shared.clone()))),
-        initial: Initial {
-            p2: p2_start * BAR,
-            lp: lp_start * BAR,
-        },
-        duration,
-        sample_dt: 0.05,
-        solver: SolverOptions {
-            rtol: 1e-6,
-            atol_scale: 0.1,
-        },
-        progress: None,
-    })
-    .map_err(|e| e.to_string())?;
-    let ctrl = std::rc::Rc::try_unwrap(shared)
-        .map_err(|_| "controller still shared")?
-        .into_inner();
+    let (res, ctrl) = crate::validate::test3_like_loop(bench, p2_start, duration, |prep| {
+        prime(
+            &mut q,
+            p2_start as f32,
+            crate::validate::LOOP_LP_START_BAR as f32,
+            mode,
+        )?;
+        q.link.send(&ToFirmware::SetDuty {
+            on_duty: crate::estimation::duty_mask(&prep.on_duty),
+            config: prep.config as u8,
+        })?;
+        FirmwareController::new(q, dt_log2, spec, 11, inject)
+    })?;
     if let Some(e) = ctrl.error {
         return Err(e);
     }
     Ok((ctrl.q, res, ctrl.rows))
 }
 
-/// Sets the applied aperture to a value for fixed-aperture runs.
+/// The scheduler mode of a fixed aperture, %.
 pub fn fixed(pct: f32) -> Mode {
     Mode::Fixed(Aperture::from_num(pct))
 }

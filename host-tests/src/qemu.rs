@@ -136,7 +136,7 @@ impl Qemu {
         let mut child = Command::new("qemu-system-arm")
             .args(["-M", "netduinoplus2", "-nographic", "-monitor", "none"])
             .args(["-semihosting-config", "enable=on,target=native"])
-            .args(icount_args())
+            .args(["-icount", ICOUNT])
             .arg("-chardev")
             .arg(format!(
                 "socket,id=u0,path={},server=on,wait=on",
@@ -374,13 +374,5 @@ impl Link {
         self.send(msg)?;
         let r = self.recv()?;
         pick(&r).ok_or_else(|| format!("unexpected reply to {msg:?}: {r:?}"))
-    }
-}
-
-fn icount_args() -> Vec<String> {
-    match std::env::var("PTO_QEMU_ICOUNT") {
-        Ok(s) if s == "none" => vec![],
-        Ok(s) => vec!["-icount".into(), s],
-        Err(_) => vec!["-icount".into(), ICOUNT.into()],
     }
 }

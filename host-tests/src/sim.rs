@@ -446,6 +446,32 @@ pub struct Run<'a> {
     pub progress: Option<ProgressBar>,
 }
 
+/// Runs `run` with `controller` driving the valve (whatever `run.valve` says) and hands the
+/// controller back with the result, so that what it logged can be inspected.
+pub fn simulate_with<C: ValveController + 'static>(
+    mut run: Run<'_>,
+    controller: C,
+) -> (Result<SimResult, SimError>, C) {
+    struct Lent<C>(std::rc::Rc<std::cell::RefCell<C>>);
+    impl<C: ValveController> ValveController for Lent<C> {
+        fn period(&self) -> f64 {
+            self.0.borrow().period()
+        }
+        fn update(&mut self, t: f64, plant: &Eval) -> f64 {
+            self.0.borrow_mut().update(t, plant)
+        }
+    }
+    let shared = std::rc::Rc::new(std::cell::RefCell::new(controller));
+    run.valve = ValveSchedule::Controller(Box::new(Lent(shared.clone())));
+    let res = simulate(run);
+    // `simulate` consumed the run and with it the other handle.
+    let controller = match std::rc::Rc::try_unwrap(shared) {
+        Ok(cell) => cell.into_inner(),
+        Err(_) => unreachable!("the run that held the other handle has been dropped"),
+    };
+    (res, controller)
+}
+
 /// Steady motor state (inlet pressure Pa, speed rad/s) for P2, LP and aperture.
 pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture: f64) -> (f64, f64) {
     use crate::bench::Load;

@@ -247,13 +247,7 @@ impl ValveController for ModelController {
     }
 
     fn update(&mut self, t: f64, p: &Eval) -> f64 {
-        let truth = Truth {
-            p2: p.p2 / BAR,
-            lp: p.lp / BAR,
-            torque: p.torque.iter().sum(),
-            motor_rpm: p.omega * 30.0 / std::f64::consts::PI,
-        };
-        let (enc, hp, lp, motor) = self.synth.read(p.theta, &truth);
+        let (enc, hp, lp, motor) = self.synth.read(p.theta, &Truth::of_eval(p));
         let inp = estimation::inputs(
             Some(enc),
             Some(hp),
@@ -271,8 +265,45 @@ impl ValveController for ModelController {
     }
 }
 
-/// Closed-loop Test III-like run (HC3.1 + HC3.4, Config 1, ±40 mm at 0.1 Hz, from `p2_start`
-/// bar, LP 8 bar).
+/// LP at the start of the closed-loop runs, bar.
+pub const LOOP_LP_START_BAR: f64 = 8.0;
+
+/// A Test III-like closed-loop run (HC3.1 + HC3.4, Config 1, ±40 mm at 0.1 Hz, from `p2_start`
+/// bar, LP 8 bar) for `duration` s, with the controller `make` builds for the prepared scenario
+/// (its duty and geometry); returns the controller with the result.
+pub fn test3_like_loop<C: ValveController + 'static>(
+    bench: &Bench,
+    p2_start: f64,
+    duration: f64,
+    make: impl FnOnce(&crate::scenario::Prepared) -> Result<C, String>,
+) -> Result<(crate::sim::SimResult, C), String> {
+    let s = crate::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
+    let prep = s
+        .prepare(bench, Path::new("."))
+        .map_err(|e| e.to_string())?;
+    let ctrl = make(&prep)?;
+    let (res, ctrl) = sim::simulate_with(
+        Run {
+            plant: &prep.plant,
+            valve: ValveSchedule::Constant(0.0),
+            initial: Initial {
+                p2: p2_start * BAR,
+                lp: LOOP_LP_START_BAR * BAR,
+            },
+            duration,
+            sample_dt: 0.05,
+            solver: SolverOptions {
+                rtol: 1e-6,
+                atol_scale: 0.1,
+            },
+            progress: None,
+        },
+        ctrl,
+    );
+    Ok((res.map_err(|e| e.to_string())?, ctrl))
+}
+
+/// The model crate as the controller of a Test III-like run, its model at 2^−dt_log2 s.
 pub fn closed_loop(
     bench: &Bench,
     mode: Mode,
@@ -282,50 +313,17 @@ pub fn closed_loop(
 ) -> Result<(crate::sim::SimResult, ModelController), String> {
     let mut mcfg = model_config(bench)?;
     mcfg.dt_log2 = dt_log2;
-    let s = crate::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
-    let prep = s
-        .prepare(bench, Path::new("."))
-        .map_err(|e| e.to_string())?;
-    let ctrl = ModelController::new(
-        &mcfg,
-        mode,
-        p2_start,
-        8.0,
-        estimation::duty_mask(&prep.on_duty),
-        prep.config as u8,
-        7,
-    )?;
-    // The controller must outlive the run to be inspected: run it through a shared cell.
-    let shared = std::rc::Rc::new(std::cell::RefCell::new(ctrl));
-    struct Shim(std::rc::Rc<std::cell::RefCell<ModelController>>);
-    impl ValveController for Shim {
-        fn period(&self) -> f64 {
-            self.0.borrow().period()
-        }
-        fn update(&mut self, t: f64, p: &Eval) -> f64 {
-            self.0.borrow_mut().update(t, p)
-        }
-    }
-    let res = sim::simulate(Run {
-        plant: &prep.plant,
-        valve: ValveSchedule::Controller(Box::new(Shim(shared.clone()))),
-        initial: Initial {
-            p2: p2_start * BAR,
-            lp: 8.0 * BAR,
-        },
-        duration,
-        sample_dt: 0.05,
-        solver: SolverOptions {
-            rtol: 1e-6,
-            atol_scale: 0.1,
-        },
-        progress: None,
+    test3_like_loop(bench, p2_start, duration, |prep| {
+        ModelController::new(
+            &mcfg,
+            mode,
+            p2_start,
+            LOOP_LP_START_BAR,
+            estimation::duty_mask(&prep.on_duty),
+            prep.config as u8,
+            7,
+        )
     })
-    .map_err(|e| e.to_string())?;
-    let ctrl = std::rc::Rc::try_unwrap(shared)
-        .map_err(|_| "controller still shared")?
-        .into_inner();
-    Ok((res, ctrl))
 }
 
 fn judge_loop(

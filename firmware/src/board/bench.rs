@@ -17,7 +17,7 @@
 //! | Debug (probe-rs, defmt over RTT) | SWD               | PA13 (SWDIO), PA14 (SWCLK) |
 //! | Watchdog                         | IWDG              | —                        |
 
-use crate::app::{self, ToControl};
+use crate::app::{self, Board, ToControl};
 use core::sync::atomic::Ordering;
 use defmt_rtt as _;
 use embassy_executor::Spawner;
@@ -68,24 +68,6 @@ pub type Valve = SimplePwmChannel<'static, TIM4>;
 pub type Pin = Output<'static>;
 /// Watchdog.
 pub type Watchdog = Iwdg;
-
-/// What the tasks get from the board.
-pub struct Board {
-    /// Link receive.
-    pub rx: Rx,
-    /// Link transmit.
-    pub tx: Tx,
-    /// Step-cost clock.
-    pub clock: Clock,
-    /// Proportional valve.
-    pub valve: Valve,
-    /// Dump valve.
-    pub dump: Pin,
-    /// Duty solenoids HC3.1..HC3.4.
-    pub solenoids: [Pin; 4],
-    /// Watchdog.
-    pub watchdog: Watchdog,
-}
 
 static TX_BUF: StaticCell<[u8; 512]> = StaticCell::new();
 static RX_BUF: StaticCell<[u8; 256]> = StaticCell::new();

@@ -9,6 +9,7 @@
 //!   (the host learns their state from the telemetry).
 #![allow(unsafe_code)]
 
+use crate::app::Board;
 use core::cell::{Cell, RefCell};
 use core::convert::Infallible;
 use core::sync::atomic::{AtomicU32, Ordering};
@@ -43,24 +44,6 @@ pub type Valve = VirtualPwm;
 pub type Pin = VirtualPin;
 /// Watchdog.
 pub type Watchdog = SoftWatchdog;
-
-/// What the tasks get from the board.
-pub struct Board {
-    /// Link receive.
-    pub rx: Rx,
-    /// Link transmit.
-    pub tx: Tx,
-    /// Step-cost clock.
-    pub clock: Clock,
-    /// Proportional valve.
-    pub valve: Valve,
-    /// Dump valve.
-    pub dump: Pin,
-    /// Duty solenoids HC3.1..HC3.4.
-    pub solenoids: [Pin; 4],
-    /// Watchdog.
-    pub watchdog: Watchdog,
-}
 
 /// Starts SysTick, TIM2 and USART1 (with its interrupt). Under QEMU the sensor samples arrive
 /// over the link: there is no sampling task.
