@@ -231,7 +231,7 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                         f.tick,
                         new,
                         o.estimate.p2.to_f32(),
-                        o.estimate.p2_sigma.to_f32()
+                        o.estimate.p2_sigma().to_f32()
                     );
                 }
                 faults_prev = o.estimate.faults;

@@ -110,7 +110,7 @@ mod tests {
         let big = Fx::from_bits(i32::MIN);
         let e = Estimate {
             p2: Pressure(big),
-            p2_sigma: Pressure(big),
+            p2_var: pto_model::fx::PressureVariance(big),
             faults: u16::MAX,
             ..Default::default()
         };

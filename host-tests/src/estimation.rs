@@ -271,16 +271,30 @@ pub struct Reference {
     /// LP, bar.
     pub lp: f64,
     aperture: f64,
-    dir: [i8; 4],
-    lag: [f64; 4],
     rejected: u32,
-    stroke: [Stroke; 4],
-    last_p: [(f64, f64); 4],
+    cyl: [RefCyl; 4],
 }
 
-/// Per-stroke constants of the reference: ((ms_new0, ms_old0, ms/mm new, ms/mm old), u_bal,
-/// u_end, u_suc).
-type Stroke = ((f64, f64, f64, f64), f64, f64, f64);
+/// Per-cylinder stroke state of the reference, as `pto_model::estimator::CylState`.
+#[derive(Debug, Clone, Copy, Default)]
+struct RefCyl {
+    dir: i8,
+    from_rest: bool,
+    setup_left: u8,
+    bisect_left: u8,
+    /// Eye travel since the reversal, mm.
+    travel: f64,
+    /// (new, old) chamber lengths, mm.
+    len: (f64, f64),
+    /// (ms_new0, ms_old0, ms/mm new, ms/mm old).
+    strain: (f64, f64, f64, f64),
+    u_bal: f64,
+    u_bal_hi: f64,
+    u_end: f64,
+    u_suc: f64,
+    /// (cap, rod) chamber pressures of the last step, bar.
+    p: (f64, f64),
+}
 
 /// f64 outputs of the reference.
 #[derive(Debug, Clone, Copy, Default)]
@@ -308,11 +322,8 @@ impl Reference {
             var: sigma * sigma,
             lp,
             aperture: 0.0,
-            dir: [0; 4],
-            lag: [0.0; 4],
             rejected: 0,
-            stroke: [((0.0, 0.0, 0.0, 0.0), 0.0, 0.0, 0.0); 4],
-            last_p: [(0.0, 0.0); 4],
+            cyl: [RefCyl::default(); 4],
         }
     }
 
@@ -385,6 +396,7 @@ impl Reference {
             spool * (f64::from(inp.aperture_cmd.to_f32()).clamp(0.0, 100.0) - self.aperture);
         let config = usize::from(inp.config).min(3);
         let (mut q_pump, mut q_lp, mut torque) = (0.0, 0.0, 0.0);
+        let mut budget = pto_model::estimator::REVERSAL_UNITS_PER_STEP;
         for i in 0..4 {
             let cc = &k.cyl[i];
             let f = |x: Fx| x.to_num::<f64>();
@@ -392,12 +404,14 @@ impl Reference {
             let d = Self::t1(&k.arm[config], side * self.theta); // mm
             let v = side * d * self.omega; // mm/s
             if inp.on_duty & (1 << i) != 0 {
+                use pto_model::estimator::{BISECT_ITERATIONS, BISECT_PER_UNIT, SETUP_UNITS};
+                let cs = &mut self.cyl[i];
                 let dir: i8 = if v > 0.0 {
                     1
                 } else if v < 0.0 {
                     -1
                 } else {
-                    self.dir[i]
+                    cs.dir
                 };
                 let play = f(k.play_mm);
                 let drop = f(k.check_drop);
@@ -408,81 +422,112 @@ impl Reference {
                     let po = Self::t1(&k.p_of_ms, ms_o0 - u * ko).max(lo).min(hi);
                     (pn, po)
                 };
-                if dir != self.dir[i] {
-                    let pos = Self::t1(&k.ext[config], side * self.theta);
-                    let l_cap = f(cc.dead_cap_mm) + pos;
-                    let l_rod = f(cc.dead_rod_mm) + f(cc.stroke_mm) - pos;
-                    let (l_n, l_o, ratio) = if dir >= 0 {
-                        (l_rod, l_cap, f(cc.ratio_ext))
-                    } else {
-                        (l_cap, l_rod, f(cc.ratio_ret))
-                    };
-                    let (p_new0, p_old0) = if self.dir[i] == 0 {
-                        (lo, lo)
-                    } else if dir >= 0 {
-                        (self.last_p[i].1, self.last_p[i].0)
-                    } else {
-                        (self.last_p[i].0, self.last_p[i].1)
-                    };
-                    let st = (
-                        Self::t1(&k.ms_of_p, p_new0.max(lo).min(hi)),
-                        Self::t1(&k.ms_of_p, p_old0.max(lo).min(hi)),
-                        1000.0 / l_n,
-                        1000.0 / l_o,
-                    );
-                    let to_hi = (Self::t1(&k.ms_of_p, hi) - st.0).max(0.0);
-                    let to_lo = (st.1 - Self::t1(&k.ms_of_p, lo)).max(0.0);
-                    let (u_end, u_suc) = (to_hi / st.2, to_lo / st.3);
-                    let (mut a, mut b) = (0.0, u_end.max(u_suc));
-                    for _ in 0..12 {
-                        let m = 0.5 * (a + b);
-                        let (pn, po) = pressures(&st, m);
-                        if po - ratio * pn > 0.0 {
-                            a = m;
+                if dir != cs.dir {
+                    cs.from_rest = cs.dir == 0;
+                    cs.dir = dir;
+                    cs.travel = 0.0;
+                    cs.setup_left = SETUP_UNITS;
+                    cs.bisect_left = 0;
+                }
+                // The same work units, in the same order and budget, as the fixed-point model.
+                if (cs.setup_left > 0 || cs.bisect_left > 0) && budget > 0 {
+                    budget -= 1;
+                    if cs.setup_left == SETUP_UNITS {
+                        let pos = Self::t1(&k.ext[config], side * self.theta);
+                        let l_cap = f(cc.dead_cap_mm) + pos;
+                        let l_rod = f(cc.dead_rod_mm) + f(cc.stroke_mm) - pos;
+                        cs.len = if dir >= 0 {
+                            (l_rod, l_cap)
                         } else {
-                            b = m;
+                            (l_cap, l_rod)
+                        };
+                        cs.strain.2 = 1000.0 / cs.len.0;
+                        cs.strain.3 = 1000.0 / cs.len.1;
+                        cs.setup_left -= 1;
+                    } else if cs.setup_left > 0 {
+                        let (p_new0, p_old0) = if cs.from_rest {
+                            (lo, lo)
+                        } else if dir >= 0 {
+                            (cs.p.1, cs.p.0)
+                        } else {
+                            (cs.p.0, cs.p.1)
+                        };
+                        cs.strain.0 = Self::t1(&k.ms_of_p, p_new0.max(lo).min(hi));
+                        cs.strain.1 = Self::t1(&k.ms_of_p, p_old0.max(lo).min(hi));
+                        let to_hi = (Self::t1(&k.ms_of_p, hi) - cs.strain.0).max(0.0);
+                        let to_lo = (cs.strain.1 - Self::t1(&k.ms_of_p, lo)).max(0.0);
+                        cs.u_end = to_hi * cs.len.0 / 1000.0;
+                        cs.u_suc = to_lo * cs.len.1 / 1000.0;
+                        cs.u_bal = 0.0;
+                        cs.u_bal_hi = cs.u_end.max(cs.u_suc);
+                        cs.bisect_left = BISECT_ITERATIONS;
+                        cs.setup_left = 0;
+                    } else {
+                        let ratio = if dir >= 0 {
+                            f(cc.ratio_ext)
+                        } else {
+                            f(cc.ratio_ret)
+                        };
+                        for _ in 0..BISECT_PER_UNIT.min(cs.bisect_left) {
+                            let m = 0.5 * (cs.u_bal + cs.u_bal_hi);
+                            let (pn, po) = pressures(&cs.strain, m);
+                            if po - ratio * pn > 0.0 {
+                                cs.u_bal = m;
+                            } else {
+                                cs.u_bal_hi = m;
+                            }
+                        }
+                        cs.bisect_left = cs.bisect_left.saturating_sub(BISECT_PER_UNIT);
+                        if cs.bisect_left == 0 && cs.from_rest {
+                            cs.travel += cs.u_bal;
                         }
                     }
-                    self.stroke[i] = (st, a, u_end, u_suc);
-                    self.lag[i] = if self.dir[i] == 0 { a } else { 0.0 };
-                    self.dir[i] = dir;
                 }
-                let (st, ub, u_end, u_suc) = self.stroke[i];
-                let e = self.lag[i];
-                let u = if e <= ub {
-                    e
-                } else if e <= ub + play {
-                    ub
+                let step_mm = v.abs() * dt;
+                if cs.setup_left == 0 {
+                    let ub = if cs.bisect_left > 0 {
+                        cs.u_bal_hi
+                    } else {
+                        cs.u_bal
+                    };
+                    let e = cs.travel;
+                    let u = if e <= ub {
+                        e
+                    } else if e <= ub + play {
+                        ub
+                    } else {
+                        e - play
+                    };
+                    let (q_del, q_suc) = if dir >= 0 {
+                        (f(cc.q_ann) * v.abs(), f(cc.q_cap) * v.abs())
+                    } else {
+                        (f(cc.q_cap) * v.abs(), f(cc.q_ann) * v.abs())
+                    };
+                    let e_end = cs.u_end + play;
+                    if e < e_end {
+                        cs.travel += step_mm;
+                    } else {
+                        q_pump += q_del;
+                    }
+                    if u >= cs.u_suc {
+                        q_lp += q_suc;
+                    }
+                    let (mut p_new, mut p_old) = pressures(&cs.strain, u);
+                    if cs.travel >= e_end {
+                        p_new = hi;
+                    }
+                    if u >= cs.u_suc {
+                        p_old = lo;
+                    }
+                    cs.p = if dir >= 0 {
+                        (p_old, p_new)
+                    } else {
+                        (p_new, p_old)
+                    };
                 } else {
-                    e - play
-                };
-                let (q_del, q_suc) = if dir >= 0 {
-                    (f(cc.q_ann) * v.abs(), f(cc.q_cap) * v.abs())
-                } else {
-                    (f(cc.q_cap) * v.abs(), f(cc.q_ann) * v.abs())
-                };
-                if e < u_end + play {
-                    self.lag[i] += v.abs() * dt;
-                } else {
-                    q_pump += q_del;
+                    cs.travel += step_mm;
                 }
-                if u >= u_suc {
-                    q_lp += q_suc;
-                }
-                let (mut p_new, mut p_old) = pressures(&st, u);
-                if self.lag[i] >= u_end + play {
-                    p_new = hi;
-                }
-                if u >= u_suc {
-                    p_old = lo;
-                }
-                let (p_cap, p_rod) = if dir >= 0 {
-                    (p_old, p_new)
-                } else {
-                    (p_new, p_old)
-                };
-                self.last_p[i] = (p_cap, p_rod);
-                torque -= side * d * (p_cap * f(cc.f_cap) - p_rod * f(cc.f_ann));
+                torque -= side * d * (cs.p.0 * f(cc.f_cap) - cs.p.1 * f(cc.f_ann));
             } else {
                 q_lp += (f(cc.q_cap) - f(cc.q_ann)) * v;
                 torque -= side * d * self.lp * (f(cc.f_cap) - f(cc.f_ann));

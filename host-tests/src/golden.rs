@@ -19,7 +19,7 @@ use std::path::Path;
 pub const FILE: &str = "data/golden-vectors.csv";
 /// Setpoint of the scheduler in the vectors, bar.
 pub const SETPOINT_BAR: f32 = 100.0;
-const HEADER: &str = "step,encoder,hp,lp,motor,aperture_cmd,on_duty,config,p2,p2_sigma,lp_est,q_pump,q_valve,q_relief,torque,motor_rpm,autonomy,aperture,faults,cmd_aperture,safety";
+const HEADER: &str = "step,encoder,hp,lp,motor,aperture_cmd,on_duty,config,p2,p2_var,lp_est,q_pump,q_valve,q_relief,torque,motor_rpm,autonomy,aperture,faults,cmd_aperture,safety";
 
 /// Which steps of a replay get a fault injected.
 pub type Faults = fn(usize, Option<i32>, f64) -> (Option<i32>, Option<f64>);
@@ -151,7 +151,7 @@ pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) 
             inp.on_duty,
             inp.config,
             e.p2.to_bits(),
-            e.p2_sigma.to_bits(),
+            e.p2_var.to_bits(),
             e.lp.to_bits(),
             e.q_pump.to_bits(),
             e.q_valve.to_bits(),

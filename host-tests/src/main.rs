@@ -757,7 +757,7 @@ fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
 }
 
 fn fw_cost_cmd(json: bool) -> Result<bool> {
-    eprintln!("building both firmwares and replaying the golden vectors under QEMU…");
+    eprintln!("building both firmwares and replaying the golden vectors (and a four-cylinder run) under QEMU…");
     let r = pto_host::fw_cost::measure().map_err(anyhow::Error::msg)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&r)?);
@@ -765,7 +765,7 @@ fn fw_cost_cmd(json: bool) -> Result<bool> {
         use pto_host::fw_cost::target;
         for s in &r.step {
             println!(
-                "step ({:<14}) {} steps: mean {:.0}, max {} instructions (target ≤ {})",
+                "step ({:<20}) {} steps: mean {:.0}, max {} instructions (target ≤ {})",
                 s.mode,
                 s.steps,
                 s.mean,

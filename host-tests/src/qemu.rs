@@ -40,6 +40,17 @@ pub fn workspace_root() -> PathBuf {
         .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
 }
 
+/// QEMU arguments for an instruction trace when `PTO_QEMU_TRACE=<file>` is set: every translated
+/// block and every execution of one is logged there (`-d exec,nochain,in_asm`), which
+/// `scripts/profile-step` turns into instructions per step by function and source line. Several
+/// GB for a `pto fw-cost` run; off unless asked for.
+fn trace_args() -> Vec<String> {
+    std::env::var("PTO_QEMU_TRACE").map_or_else(
+        |_| Vec::new(),
+        |file| vec!["-d".into(), "exec,nochain,in_asm".into(), "-D".into(), file],
+    )
+}
+
 static BUILT: [OnceLock<Result<PathBuf, String>>; 2] = [OnceLock::new(), OnceLock::new()];
 
 /// Builds the firmware (profile `firmware`, `thumbv7em-none-eabihf`, its own target directory so that it
@@ -137,6 +148,7 @@ impl Qemu {
             .args(["-M", "netduinoplus2", "-nographic", "-monitor", "none"])
             .args(["-semihosting-config", "enable=on,target=native"])
             .args(["-icount", ICOUNT])
+            .args(trace_args())
             .arg("-chardev")
             .arg(format!(
                 "socket,id=u0,path={},server=on,wait=on",

@@ -12,8 +12,8 @@
 
 use crate::coeffs::{Coefficients, CylinderCoeffs, N_ARM};
 use crate::fx::{
-    Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, Rpm, Seconds, Torque, ZERO, clamp,
-    mul_dt, recip, sqrt0,
+    Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, PressureVariance, QMul, Rpm, Seconds,
+    Torque, ZERO, clamp, mul_dt, recip, sqrt0,
 };
 use crate::table::Table1;
 
@@ -68,8 +68,9 @@ pub struct Inputs {
 pub struct Estimate {
     /// Estimated P2.
     pub p2: Pressure,
-    /// Its standard deviation.
-    pub p2_sigma: Pressure,
+    /// Its variance (the filter's own uncertainty figure; [`Estimate::p2_sigma`] is the standard
+    /// deviation, taken on demand so that the step needs no square root).
+    pub p2_var: PressureVariance,
     /// Estimated LP.
     pub lp: Pressure,
     /// Shaft angle.
@@ -98,14 +99,31 @@ pub struct Estimate {
     pub faults: u16,
 }
 
+impl Estimate {
+    /// Standard deviation of P2 (a square root: for display and telemetry, not the step).
+    pub fn p2_sigma(&self) -> Pressure {
+        Pressure(sqrt0(self.p2_var.0))
+    }
+}
+
 /// Per-cylinder state.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct CylState {
     /// Direction of the rod: 1 extending, −1 retracting, 0 unknown.
     pub dir: i8,
+    /// The last reversal started from rest (both chambers at LP).
+    pub from_rest: bool,
+    /// Reversal set-up units still to run ([`SETUP_UNITS`] after a reversal, then 0).
+    pub setup_left: u8,
+    /// Force-balance bisection iterations still to run.
+    pub bisect_left: u8,
     /// Eye travel since the last reversal, mm (stops counting once delivering).
     pub travel: Fx,
+    /// Length of the new delivering chamber (dead volume + chamber at the reversal), mm.
+    pub len_n: Fx,
+    /// Length of the old (now sucking) chamber, mm.
+    pub len_o: Fx,
     /// This stroke's milli-strain per mm of rod travel, new delivering chamber.
     pub ms_per_mm_n: Fx,
     /// Same for the old (now sucking) chamber.
@@ -114,8 +132,11 @@ pub struct CylState {
     pub ms_new0: Fx,
     /// Milli-strain of the old chamber at the reversal (P2 + drop).
     pub ms_old0: Fx,
-    /// Rod travel at which the chamber forces balance, mm.
+    /// Rod travel at which the chamber forces balance, mm (the bisection's lower bracket while
+    /// it runs).
     pub u_bal: Fx,
+    /// Upper bracket of the force balance while the bisection runs, mm.
+    pub u_bal_hi: Fx,
     /// Rod travel at which the new chamber reaches P2 and delivers, mm.
     pub u_end: Fx,
     /// Rod travel at which the old chamber reaches LP and sucks, mm.
@@ -125,6 +146,23 @@ pub struct CylState {
     /// Rod-chamber pressure of the last step, bar.
     pub p_rod: Fx,
 }
+
+/// Set-up units of a stroke reversal: (1) the chamber lengths and strain rates, (2) the start
+/// strains, the travels to delivery and suction, and the bisection bracket.
+pub const SETUP_UNITS: u8 = 2;
+/// Iterations of the force-balance bisection (its bracket shrinks 4096-fold: ≈ 2 µm on a 10 mm
+/// stroke build-up).
+pub const BISECT_ITERATIONS: u8 = 12;
+/// Bisection iterations in one work unit.
+pub const BISECT_PER_UNIT: u8 = 2;
+/// Reversal work units per step, shared by all cylinders in order (HC3.1 first). A reversal
+/// needs [`SETUP_UNITS`] + [`BISECT_ITERATIONS`] / [`BISECT_PER_UNIT`] = 8 units, so with all four
+/// cylinders reversing in one step the last one is done 32 steps (31 ms at 2^−10 s) later; the
+/// rod has then moved ≈ 0.01 mm of a several-mm build-up (a 0.1 Hz, ±24° swing), and while a
+/// set-up waits its chambers hold their pressures and pass no flow, while the bisection runs the
+/// rod follows the lever up to the bracket's upper end. Spreading the work keeps every step's
+/// cost flat: a reversal on all cylinders at once cost ≈ 7 000 instructions in one step.
+pub const REVERSAL_UNITS_PER_STEP: u8 = 1;
 
 /// Estimator state (≈ 100 bytes).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -166,7 +204,7 @@ impl State {
         State {
             p2: p2.0,
             lp: lp.0,
-            var: sigma.0.saturating_mul(sigma.0),
+            var: sigma.0.qmul(sigma.0),
             ..State::default()
         }
     }
@@ -175,6 +213,7 @@ impl State {
 const P_MIN: Fx = Fx::from_bits(-65_536); // −1 bar
 const P_MAX: Fx = Fx::from_bits(400 << 16);
 const FLOW_LIM: Fx = Fx::from_bits(1000 << 16);
+const THETA_LIM_Q32: i64 = 1 << 61;
 const OMEGA_LIM_Q32: i64 = 100 << 32;
 const ACCEL_LIM_Q32: i64 = 1000 << 32;
 
@@ -184,7 +223,7 @@ const ACCEL_LIM_Q32: i64 = 1000 << 32;
 fn node_step(p: Fx, net_inflow: Fx, dp_per_flow: Fx, dtl: u8) -> Fx {
     let q = clamp(net_inflow, -FLOW_LIM, FLOW_LIM);
     clamp(
-        p.saturating_add(mul_dt(q.saturating_mul(dp_per_flow), dtl)),
+        p.saturating_add(mul_dt(q.qmul(dp_per_flow), dtl)),
         P_MIN,
         P_MAX,
     )
@@ -195,15 +234,21 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let dtl = k.dt_log2;
     let mut faults = 0u16;
     // --- Shaft: α–β–γ tracker on the encoder angle, in Q32.32 (i64).
+    // Bit budget: one count is < 2^29 (≥ 64 counts per revolution, validated), so a measured
+    // angle is < 2^60 in magnitude; θ is held to ±2^61, ω to ±100 rad/s (< 2^39) and the
+    // acceleration to ±1000 rad/s² (< 2^42); the residual is clamped to ±0.5 rad (2^31) and every
+    // gain is < 2^31 (< 2^29 at the validated extremes of bandwidth and dt). No sum or product
+    // below can leave i64, so the 64-bit saturating forms (≈ 8 instructions each on a 32-bit
+    // core) are not needed. Plain operators: the test builds' overflow checks (and the property
+    // tests' extreme inputs) verify this budget; the release build emits the same code.
     let half = 1i64 << (dtl - 1);
-    let pred_theta = s
-        .theta_q32
-        .saturating_add((s.omega_q32 + half) >> dtl)
-        .saturating_add((s.accel_q32 + (1i64 << (2 * dtl))) >> (2 * dtl + 1));
-    let pred_omega = s.omega_q32.saturating_add((s.accel_q32 + half) >> dtl);
+    let pred_theta = s.theta_q32
+        + ((s.omega_q32 + half) >> dtl)
+        + ((s.accel_q32 + (1i64 << (2 * dtl))) >> (2 * dtl + 1));
+    let pred_omega = s.omega_q32 + ((s.accel_q32 + half) >> dtl);
     match inp.encoder {
         Some(count) => {
-            let theta_meas = i64::from(count).saturating_mul(k.rad_per_count_q32);
+            let theta_meas = i64::from(count) * k.rad_per_count_q32;
             if !s.enc_init {
                 s.theta_q32 = theta_meas;
                 s.omega_q32 = 0;
@@ -212,17 +257,12 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
                 s.enc_last = count;
                 s.hp_at_enc_change = inp.hp.map_or(s.p2, |p| p.0);
             } else {
-                // Residual clamped to ±0.5 rad so the products stay inside 63 bits.
-                let r = theta_meas
-                    .saturating_sub(pred_theta)
-                    .clamp(-(1i64 << 31), 1i64 << 31);
-                s.theta_q32 = pred_theta.saturating_add((r * k.alpha_q31 + (1 << 30)) >> 31);
-                s.omega_q32 = pred_omega
-                    .saturating_add((r * k.beta_over_dt_q16 + (1 << 15)) >> 16)
+                let r = (theta_meas - pred_theta).clamp(-(1i64 << 31), 1i64 << 31);
+                s.theta_q32 = (pred_theta + ((r * k.alpha_q31 + (1 << 30)) >> 31))
+                    .clamp(-THETA_LIM_Q32, THETA_LIM_Q32);
+                s.omega_q32 = (pred_omega + ((r * k.beta_over_dt_q16 + (1 << 15)) >> 16))
                     .clamp(-OMEGA_LIM_Q32, OMEGA_LIM_Q32);
-                s.accel_q32 = s
-                    .accel_q32
-                    .saturating_add((r * k.gamma_over_dt2_q16 + (1 << 15)) >> 16)
+                s.accel_q32 = (s.accel_q32 + ((r * k.gamma_over_dt2_q16 + (1 << 15)) >> 16))
                     .clamp(-ACCEL_LIM_Q32, ACCEL_LIM_Q32);
             }
             if count != s.enc_last {
@@ -256,7 +296,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let cmd = clamp(inp.aperture_cmd.0, ZERO, Fx::from_num(100));
     s.aperture = s
         .aperture
-        .saturating_add(k.spool_gain.saturating_mul(cmd.saturating_sub(s.aperture)));
+        .saturating_add(k.spool_gain.qmul(cmd.saturating_sub(s.aperture)));
     // --- Cylinders: delivered flow, suction flow, torque.
     let config = usize::from(inp.config);
     let (arm_table, ext_table, duty) = match (k.arm.get(config), k.ext.get(config)) {
@@ -270,16 +310,27 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let mut q_lp_net = ZERO; // flow taken from LP by the cylinders (suction − idle bypass return)
     let mut torque_cyl = [Torque::ZERO; 4];
     let mut torque = ZERO;
+    let mut budget = REVERSAL_UNITS_PER_STEP;
+    // The lever on each side of the shaft (s = ±1): the arm tables are per geometry, so every
+    // cylinder on one side shares s·θ, the signed arm s·d and the rod speed v = s·d·θ̇ (mm/s).
+    let lever = |th: Fx, negative: bool| {
+        let d = arm_table.at(th);
+        let sd = if negative { d.saturating_neg() } else { d };
+        Lever {
+            th,
+            sd,
+            v: sd.qmul(omega),
+        }
+    };
+    let levers = [lever(theta, false), lever(theta.saturating_neg(), true)];
     for (i, (c, cs)) in k.cyl.iter().zip(s.cyl.iter_mut()).enumerate() {
         let on = duty & (1 << i) != 0;
-        let o = cylinder(k, c, cs, arm_table, ext_table, on, theta, omega, s.p2, s.lp);
+        let lv = &levers[usize::from(c.side < ZERO)];
+        let o = cylinder(k, c, cs, lv, ext_table, on, (s.p2, s.lp), &mut budget);
         q_pump = q_pump.saturating_add(o.q_pump);
         q_lp_net = q_lp_net.saturating_add(o.q_lp);
-        let tq = o.torque_nm;
-        // mm·kN = N·m.
-        let tq_nm = tq;
-        torque_cyl[i] = Torque(tq_nm);
-        torque = torque.saturating_add(tq_nm);
+        torque_cyl[i] = Torque(o.torque_nm);
+        torque = torque.saturating_add(o.torque_nm);
     }
     // --- Valve, relief, motor.
     let dp = s.p2.saturating_sub(s.lp).max(ZERO);
@@ -287,8 +338,8 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let q_relief =
         s.p2.saturating_sub(k.relief_setting)
             .max(ZERO)
-            .saturating_mul(k.relief_gain);
-    let motor_rpm = q_valve.saturating_mul(k.rpm_per_lpm);
+            .qmul(k.relief_gain);
+    let motor_rpm = q_valve.qmul(k.rpm_per_lpm);
     // --- Predict.
     let net_hp = q_pump.saturating_sub(q_valve).saturating_sub(q_relief);
     s.p2 = node_step(s.p2, net_hp, k.inv_c_hp.at(s.p2), dtl);
@@ -297,7 +348,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     s.var = s.var.saturating_add(k.q_step.at(s.p2));
     s.q_mean = s
         .q_mean
-        .saturating_add(k.mean_gain.saturating_mul(q_pump.saturating_sub(s.q_mean)));
+        .saturating_add(k.mean_gain.qmul(q_pump.saturating_sub(s.q_mean)));
     // --- Correct P2 with the HP transducer.
     let hp = inp
         .hp
@@ -307,10 +358,10 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         Some(z) => {
             let innov = z.saturating_sub(s.p2);
             let s_innov = s.var.saturating_add(k.r);
-            if innov.saturating_mul(innov) <= k.gate_sq.saturating_mul(s_innov) {
+            if innov.qmul(innov) <= k.gate_sq.qmul(s_innov) {
                 let g = k.gain(s.var);
-                s.p2 = clamp(s.p2.saturating_add(g.saturating_mul(innov)), P_MIN, P_MAX);
-                s.var = ONE.saturating_sub(g).saturating_mul(s.var);
+                s.p2 = clamp(s.p2.saturating_add(g.qmul(innov)), P_MIN, P_MAX);
+                s.var = ONE.saturating_sub(g).qmul(s.var);
                 s.rejected = 0;
             } else {
                 faults |= fault::INNOVATION;
@@ -337,10 +388,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         .map(|p| p.0)
         .filter(|p| *p >= k.lp_range.0 && *p <= k.lp_range.1)
     {
-        Some(z) => {
-            s.lp =
-                s.lp.saturating_add(k.gain_lp.saturating_mul(z.saturating_sub(s.lp)))
-        }
+        Some(z) => s.lp = s.lp.saturating_add(k.gain_lp.qmul(z.saturating_sub(s.lp))),
         None => faults |= fault::LP_SENSOR,
     }
     if inp.motor.is_none_or(|m| m.0 < ZERO || m.0 > k.motor_max) {
@@ -351,7 +399,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     }
     Estimate {
         p2: Pressure(s.p2),
-        p2_sigma: Pressure(sqrt0(s.var)),
+        p2_var: PressureVariance(s.var),
         lp: Pressure(s.lp),
         theta: Angle(theta),
         omega: AngularSpeed(omega),
@@ -368,16 +416,45 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     }
 }
 
-/// (new, old) chamber pressures after `u` mm of rod travel since the reversal, bar.
+/// Pressure of the new (compressing) chamber after `u` mm of rod travel since the reversal, bar.
 #[inline]
-fn chamber_pressures(k: &Coefficients, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> (Fx, Fx) {
-    let p_new = k
-        .p_of_ms
-        .at(cs.ms_new0.saturating_add(u.saturating_mul(cs.ms_per_mm_n)));
-    let p_old = k
-        .p_of_ms
-        .at(cs.ms_old0.saturating_sub(u.saturating_mul(cs.ms_per_mm_o)));
-    (clamp(p_new, lo, hi), clamp(p_old, lo, hi))
+fn p_new_at(k: &Coefficients, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> Fx {
+    clamp(
+        k.p_of_ms
+            .at(cs.ms_new0.saturating_add(u.qmul(cs.ms_per_mm_n))),
+        lo,
+        hi,
+    )
+}
+
+/// Pressure of the old (relaxing) chamber after `u` mm of rod travel since the reversal, bar.
+#[inline]
+fn p_old_at(k: &Coefficients, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> Fx {
+    clamp(
+        k.p_of_ms
+            .at(cs.ms_old0.saturating_sub(u.qmul(cs.ms_per_mm_o))),
+        lo,
+        hi,
+    )
+}
+
+/// `a·b/1000` for a milli-strain `a` and a length `b` in mm (a travel in mm), without a
+/// division: the Q32.32 product times 2^32/1000 (relative error 7e-8), saturated.
+#[inline]
+fn ms_times_mm(a: Fx, b: Fx) -> Fx {
+    let p = (i64::from(a.to_bits()) * i64::from(b.to_bits())) >> 16; // Q16.16, |p| < 2^47
+    let p = p.clamp(-(1i64 << 31), 1i64 << 31);
+    Fx::from_bits(((p * 4_294_967 + (1i64 << 31)) >> 32) as i32)
+}
+
+/// The lever on one side of the shaft this step.
+struct Lever {
+    /// s·θ, rad.
+    th: Fx,
+    /// s·d: the signed lever arm, mm.
+    sd: Fx,
+    /// Rod speed s·d·θ̇, mm/s.
+    v: Fx,
 }
 
 /// One cylinder's contribution to the step (kept out of line: the step would otherwise carry
@@ -389,102 +466,149 @@ struct CylOut {
     torque_nm: Fx,
 }
 
-/// Flows (L/min) and torque (N·m) of one cylinder; advances its stroke state.
+/// One unit of a cylinder's pending reversal work (see [`REVERSAL_UNITS_PER_STEP`]).
+#[inline(never)]
+fn reversal_unit(
+    k: &Coefficients,
+    c: &CylinderCoeffs,
+    cs: &mut CylState,
+    (ext, th): (&Table1<N_ARM>, Fx),
+    lo: Fx,
+    hi: Fx,
+) {
+    if cs.setup_left == SETUP_UNITS {
+        // (1) Chamber lengths at the rod's position and their strain per mm: a chamber of length
+        // L (dead volume + chamber) moved by u changes its strain by u/L. 1000/L is taken as
+        // (1024/L)·(1000/1024) so the reciprocal keeps 1e-5 precision.
+        let pos = ext.at(th);
+        let l_cap = c.dead_cap_mm.saturating_add(pos);
+        let l_rod = c
+            .dead_rod_mm
+            .saturating_add(c.stroke_mm.saturating_sub(pos));
+        let (l_n, l_o) = if cs.dir >= 0 {
+            (l_rod, l_cap)
+        } else {
+            (l_cap, l_rod)
+        };
+        let kms = Fx::from_bits(64_000); // 1000/1024, exact
+        cs.len_n = l_n;
+        cs.len_o = l_o;
+        cs.ms_per_mm_n = recip(Fx::from_bits(l_n.to_bits() >> 10)).qmul(kms);
+        cs.ms_per_mm_o = recip(Fx::from_bits(l_o.to_bits() >> 10)).qmul(kms);
+        cs.setup_left -= 1;
+    } else if cs.setup_left > 0 {
+        // (2) Start from the chambers' pressures at the reversal (held since), not from P2/LP:
+        // in an irregular sea the shaft can turn back before a stroke has built up.
+        let (p_new0, p_old0) = if cs.from_rest {
+            (lo, lo)
+        } else if cs.dir >= 0 {
+            (cs.p_rod, cs.p_cap)
+        } else {
+            (cs.p_cap, cs.p_rod)
+        };
+        cs.ms_new0 = k.ms_of_p.at(clamp(p_new0, lo, hi));
+        cs.ms_old0 = k.ms_of_p.at(clamp(p_old0, lo, hi));
+        // Travel for the new chamber to reach P2 (delivery) and the old one LP (suction):
+        // strain to go × L / 1000.
+        let to_hi = k.ms_of_p.at(hi).saturating_sub(cs.ms_new0).max(ZERO);
+        let to_lo = cs.ms_old0.saturating_sub(k.ms_of_p.at(lo)).max(ZERO);
+        cs.u_end = ms_times_mm(to_hi, cs.len_n);
+        cs.u_suc = ms_times_mm(to_lo, cs.len_o);
+        cs.u_bal = ZERO;
+        cs.u_bal_hi = cs.u_end.max(cs.u_suc);
+        cs.bisect_left = BISECT_ITERATIONS;
+        cs.setup_left = 0;
+    } else {
+        // Force balance A_o·p_old(u) = A_n·p_new(u) (p_old falls, p_new rises): bisection.
+        let ratio = if cs.dir >= 0 {
+            c.ratio_ext
+        } else {
+            c.ratio_ret
+        };
+        for _ in 0..BISECT_PER_UNIT.min(cs.bisect_left) {
+            let m = Fx::from_bits((cs.u_bal.to_bits() + cs.u_bal_hi.to_bits()) >> 1);
+            let (pn, po) = (p_new_at(k, cs, m, lo, hi), p_old_at(k, cs, m, lo, hi));
+            if po.saturating_sub(ratio.qmul(pn)) > ZERO {
+                cs.u_bal = m;
+            } else {
+                cs.u_bal_hi = m;
+            }
+        }
+        cs.bisect_left = cs.bisect_left.saturating_sub(BISECT_PER_UNIT);
+        if cs.bisect_left == 0 && cs.from_rest {
+            // From rest both chambers start at LP: skip to the play.
+            cs.travel = cs.travel.saturating_add(cs.u_bal);
+        }
+    }
+}
+
+/// Flows (L/min) and torque (N·m) of one cylinder; advances its stroke state, spending the
+/// step's reversal work `budget`.
 #[allow(clippy::too_many_arguments)]
 #[inline(never)]
 fn cylinder(
     k: &Coefficients,
     c: &CylinderCoeffs,
     cs: &mut CylState,
-    arm_table: &Table1<N_ARM>,
+    lever: &Lever,
     ext_table: &Table1<N_ARM>,
     on: bool,
-    theta: Fx,
-    omega: Fx,
-    p2: Fx,
-    lp: Fx,
+    (p2, lp): (Fx, Fx),
+    budget: &mut u8,
 ) -> CylOut {
     let dtl = k.dt_log2;
     let mut out = CylOut::default();
-    let th = c.side.saturating_mul(theta);
-    let d = arm_table.at(th);
-    // Rod speed, mm/s: v = s·d·θ̇.
-    let v = c.side.saturating_mul(d).saturating_mul(omega);
-    let tq;
-    if on {
-        let dir: i8 = if v > ZERO {
-            1
-        } else if v < ZERO {
-            -1
-        } else {
-            cs.dir
-        };
-        // After a reversal (eye travel e since it, mm): the rod first follows the lever
-        // while the old delivering chamber relaxes and the new one compresses, until their
-        // forces balance at u_bal; the eye then crosses the free play with the rod standing;
-        // then the rod moves again until the new chamber reaches P2 and delivers. The rod's own
-        // travel u sets both chamber pressures through the oil's strain law: a chamber of
-        // length L (dead volume + chamber, at the reversal position) moved by u changes its
-        // strain by u/L, and p = P(strain) from the inverse strain table. (A linear
-        // pressure–travel law put the new chamber at ~45 bar instead of ~19 bar when the
-        // forces balance, so the torque built up too early.)
-        let lo = lp.saturating_sub(k.check_drop);
-        let hi = p2.saturating_add(k.check_drop);
-        if dir != cs.dir {
-            let pos = ext_table.at(th);
-            let l_cap = c.dead_cap_mm.saturating_add(pos);
-            let l_rod = c
-                .dead_rod_mm
-                .saturating_add(c.stroke_mm.saturating_sub(pos));
-            let (l_n, l_o, ratio) = if dir >= 0 {
-                (l_rod, l_cap, c.ratio_ext)
-            } else {
-                (l_cap, l_rod, c.ratio_ret)
-            };
-            // 1000/L: milli-strain per mm of travel, as (1024/L)·(1000/1024) so the reciprocal
-            // keeps 1e-5 precision (1/L itself is only ~256 LSB of Q16.16).
-            let kms = Fx::from_bits(64_000); // 1000/1024, exact
-            cs.ms_per_mm_n = recip(Fx::from_bits(l_n.to_bits() >> 10)).saturating_mul(kms);
-            cs.ms_per_mm_o = recip(Fx::from_bits(l_o.to_bits() >> 10)).saturating_mul(kms);
-            // Start from the chambers' pressures at this instant, not from P2/LP: in an
-            // irregular sea the shaft can turn back before a stroke has built up its pressure.
-            let (p_new0, p_old0) = if cs.dir == 0 {
-                (lo, lo)
-            } else if dir >= 0 {
-                (cs.p_rod, cs.p_cap)
-            } else {
-                (cs.p_cap, cs.p_rod)
-            };
-            cs.ms_new0 = k.ms_of_p.at(clamp(p_new0, lo, hi));
-            cs.ms_old0 = k.ms_of_p.at(clamp(p_old0, lo, hi));
-            // Travel for the new chamber to reach P2 (delivery) and the old one LP (suction).
-            let to_hi = k.ms_of_p.at(hi).saturating_sub(cs.ms_new0).max(ZERO);
-            let to_lo = cs.ms_old0.saturating_sub(k.ms_of_p.at(lo)).max(ZERO);
-            cs.u_end = to_hi.saturating_mul(recip(cs.ms_per_mm_n));
-            cs.u_suc = to_lo.saturating_mul(recip(cs.ms_per_mm_o));
-            // Force balance A_o·p_old(u) = A_n·p_new(u) (p_old falls, p_new rises): bisection.
-            let (mut a, mut b) = (ZERO, cs.u_end.max(cs.u_suc));
-            for _ in 0..12 {
-                let m = Fx::from_bits((a.to_bits() + b.to_bits()) >> 1);
-                let (pn, po) = chamber_pressures(k, cs, m, lo, hi);
-                if po.saturating_sub(ratio.saturating_mul(pn)) > ZERO {
-                    a = m;
-                } else {
-                    b = m;
-                }
-            }
-            cs.u_bal = a;
-            // From rest (unknown direction) both chambers start at LP: skip to the play.
-            cs.travel = if cs.dir == 0 { cs.u_bal } else { ZERO };
-            cs.dir = dir;
-        }
-        let speed = v.abs();
+    let (th, sd, v) = (lever.th, lever.sd, lever.v);
+    if !on {
+        // Idle: bypassed to LP; LP·A_rod pushes the rod out, the rod volume flows to LP.
+        let a_rod_q = c.q_cap.saturating_sub(c.q_ann);
+        out.q_lp = a_rod_q.qmul(v);
+        let f = lp.qmul(c.f_cap.saturating_sub(c.f_ann));
+        out.torque_nm = sd.qmul(f).saturating_neg();
+        return out;
+    }
+    let dir: i8 = if v > ZERO {
+        1
+    } else if v < ZERO {
+        -1
+    } else {
+        cs.dir
+    };
+    // After a reversal (eye travel e since it, mm): the rod first follows the lever while the
+    // old delivering chamber relaxes and the new one compresses, until their forces balance at
+    // u_bal; the eye then crosses the free play with the rod standing; then the rod moves again
+    // until the new chamber reaches P2 and delivers. The rod's own travel u sets both chamber
+    // pressures through the oil's strain law p = P(strain) (inverse strain table). (A linear
+    // pressure–travel law put the new chamber at ~45 bar instead of ~19 bar when the forces
+    // balance, so the torque built up too early.)
+    let lo = lp.saturating_sub(k.check_drop);
+    let hi = p2.saturating_add(k.check_drop);
+    if dir != cs.dir {
+        cs.from_rest = cs.dir == 0;
+        cs.dir = dir;
+        cs.travel = ZERO;
+        cs.setup_left = SETUP_UNITS;
+        cs.bisect_left = 0;
+    }
+    if (cs.setup_left > 0 || cs.bisect_left > 0) && *budget > 0 {
+        *budget -= 1;
+        reversal_unit(k, c, cs, (ext_table, th), lo, hi);
+    }
+    let speed = v.abs();
+    let mm = mul_dt(speed, dtl); // mm this step = mm/s × dt
+    if cs.setup_left == 0 {
         let (q_del, q_suc) = if dir >= 0 {
-            (c.q_ann.saturating_mul(speed), c.q_cap.saturating_mul(speed))
+            (c.q_ann.qmul(speed), c.q_cap.qmul(speed))
         } else {
-            (c.q_cap.saturating_mul(speed), c.q_ann.saturating_mul(speed))
+            (c.q_cap.qmul(speed), c.q_ann.qmul(speed))
         };
-        let ub = cs.u_bal;
+        // While the bisection runs, u_bal is known to lie in [u_bal, u_bal_hi]: the rod follows
+        // the lever up to the upper end.
+        let ub = if cs.bisect_left > 0 {
+            cs.u_bal_hi
+        } else {
+            cs.u_bal
+        };
         let e_end = cs.u_end.saturating_add(k.play_mm);
         let u = if cs.travel <= ub {
             cs.travel
@@ -494,8 +618,6 @@ fn cylinder(
             cs.travel.saturating_sub(k.play_mm)
         };
         if cs.travel < e_end {
-            // mm this step = mm/s × dt.
-            let mm = mul_dt(speed, dtl);
             cs.travel = cs.travel.saturating_add(mm);
         } else {
             out.q_pump = q_del;
@@ -505,35 +627,32 @@ fn cylinder(
         }
         // Once delivering (sucking) the chamber follows P2 (LP), which may have moved since the
         // reversal the strain constants were taken at.
-        let (mut p_new, mut p_old) = chamber_pressures(k, cs, u, lo, hi);
-        if cs.travel >= e_end {
-            p_new = hi;
-        }
-        if u >= cs.u_suc {
-            p_old = lo;
-        }
-        let (p_cap, p_rod) = if dir >= 0 {
+        // (The strain table is read only for a chamber that is still building up or relaxing.)
+        let p_new = if cs.travel >= e_end {
+            hi
+        } else {
+            p_new_at(k, cs, u, lo, hi)
+        };
+        let p_old = if u >= cs.u_suc {
+            lo
+        } else {
+            p_old_at(k, cs, u, lo, hi)
+        };
+        (cs.p_cap, cs.p_rod) = if dir >= 0 {
             (p_old, p_new)
         } else {
             (p_new, p_old)
         };
-        cs.p_cap = p_cap;
-        cs.p_rod = p_rod;
-        let f_hyd = p_cap
-            .saturating_mul(c.f_cap)
-            .saturating_sub(p_rod.saturating_mul(c.f_ann)); // kN
-        tq = c
-            .side
-            .saturating_mul(d)
-            .saturating_mul(f_hyd)
-            .saturating_neg();
     } else {
-        // Idle: bypassed to LP; LP·A_rod pushes the rod out, the rod volume flows to LP.
-        let a_rod_q = c.q_cap.saturating_sub(c.q_ann);
-        out.q_lp = a_rod_q.saturating_mul(v);
-        let f = lp.saturating_mul(c.f_cap.saturating_sub(c.f_ann));
-        tq = c.side.saturating_mul(d).saturating_mul(f).saturating_neg();
+        // Set-up pending: the chambers hold the pressures they had at the reversal and pass no
+        // flow; the eye's travel is counted.
+        cs.travel = cs.travel.saturating_add(mm);
     }
-    out.torque_nm = tq;
+    let f_hyd = cs
+        .p_cap
+        .qmul(c.f_cap)
+        .saturating_sub(cs.p_rod.qmul(c.f_ann)); // kN
+    // mm·kN = N·m.
+    out.torque_nm = sd.qmul(f_hyd).saturating_neg();
     out
 }

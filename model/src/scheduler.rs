@@ -4,7 +4,7 @@
 use crate::coeffs::Coefficients;
 use crate::config::ConfigError;
 use crate::estimator::{Estimate, fault};
-use crate::fx::{Aperture, Fx, Pressure, Rpm, ZERO, clamp, mul_dt};
+use crate::fx::{Aperture, Fx, Pressure, QMul, Rpm, ZERO, clamp, mul_dt};
 
 /// What the scheduler aims for.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -183,7 +183,7 @@ impl SchedulerConfig {
                 0.0,
                 100.0,
             )?,
-            fault_var: sigma.saturating_mul(sigma),
+            fault_var: sigma.qmul(sigma),
             lpm_per_rpm: Fx::saturating_from_num(1.0 / k.rpm_per_lpm.to_num::<f32>()),
         })
     }
@@ -220,9 +220,7 @@ pub fn step(
     // Safety layer first: it overrides every mode, without rate limit.
     let safety = if est.faults & fault::OVERPRESSURE != 0 {
         Override::Overpressure
-    } else if est.faults & fault::HP_SENSOR != 0
-        && est.p2_sigma.0.saturating_mul(est.p2_sigma.0) > sc.fault_var
-    {
+    } else if est.faults & fault::HP_SENSOR != 0 && est.p2_var.0 > sc.fault_var {
         Override::SensorFault
     } else {
         Override::None
@@ -253,12 +251,12 @@ pub fn step(
         ),
         Mode::HoldSpeed(r) | Mode::MaxAutonomy(r) => {
             let target = if matches!(mode, Mode::MaxAutonomy(_)) {
-                r.0.saturating_add(r.0.saturating_mul(sc.margin))
+                r.0.saturating_add(r.0.qmul(sc.margin))
             } else {
                 r.0
             };
             (
-                aperture_for_flow(k, target.saturating_mul(sc.lpm_per_rpm), dp),
+                aperture_for_flow(k, target.qmul(sc.lpm_per_rpm), dp),
                 target.saturating_sub(speed),
                 sc.kp_s,
                 sc.ki_s,
@@ -266,15 +264,13 @@ pub fn step(
         }
     };
     let span = sc.max.saturating_sub(sc.min);
-    let unclamped = ff
-        .saturating_add(kp.saturating_mul(err))
-        .saturating_add(st.integ);
+    let unclamped = ff.saturating_add(kp.qmul(err)).saturating_add(st.integ);
     // Anti-windup: integrate only while the output is inside its limits or the error pulls it
     // back in.
     let pushing_out = (unclamped >= sc.max && err > ZERO) || (unclamped <= sc.min && err < ZERO);
     if !pushing_out {
         st.integ = clamp(
-            st.integ.saturating_add(mul_dt(ki.saturating_mul(err), dtl)),
+            st.integ.saturating_add(mul_dt(ki.qmul(err), dtl)),
             span.saturating_neg(),
             span,
         );

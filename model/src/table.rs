@@ -4,18 +4,32 @@
 //! subtraction, a multiplication and a truncation. Outside the grid the end segments are held
 //! (clamped), never extrapolated.
 
-use crate::fx::{Fx, ONE, ZERO, recip};
+use crate::fx::{Fx, ONE, QMul, ZERO, recip};
 
 /// Locates `x` on a grid: (index of the lower node, fraction in [0, 1]).
-#[inline]
+///
+/// The Q16.16 offset times the Q16.16 reciprocal spacing is a Q32.32 position whose high word
+/// is the cell index and whose bits 16..31 are the fraction: no saturation or 64-bit shift is
+/// needed (offset ≥ 0 and < 2^31, reciprocal < 2^31, so the product is < 2^62). Past the last
+/// cell the end segment is held, as a saturated product would also give.
+#[inline(always)]
 fn locate(x: Fx, x0: Fx, inv_dx: Fx, n: usize) -> (usize, Fx) {
-    let u = x.saturating_sub(x0).saturating_mul(inv_dx).max(ZERO);
-    let last = (n - 2) as i32;
-    let i = u.to_bits() >> 16; // floor, u ≥ 0
-    if i > last {
+    let dx = x.saturating_sub(x0).max(ZERO).to_bits();
+    let p = i64::from(dx) * i64::from(inv_dx.to_bits());
+    let i = (p >> 32) as i32;
+    if i > (n - 2) as i32 {
         return (n - 2, ONE);
     }
-    (i as usize, u.frac())
+    (i as usize, Fx::from_bits(((p >> 16) as i32) & 0xffff))
+}
+
+/// a + f·(b − a) for a fraction f ∈ [0, 1]: |f·(b − a)| ≤ |b − a|, so the product needs no
+/// range check (same bits as the saturating product: floor of the exact value).
+#[inline(always)]
+fn lerp(a: Fx, b: Fx, f: Fx) -> Fx {
+    let d = b.saturating_sub(a);
+    let t = (i64::from(f.to_bits()) * i64::from(d.to_bits())) >> 16;
+    a.saturating_add(Fx::from_bits(t as i32))
 }
 
 /// A 1-D table of `N` values on a uniform grid.
@@ -49,8 +63,7 @@ impl<const N: usize> Table1<N> {
     #[inline(never)]
     pub fn at(&self, x: Fx) -> Fx {
         let (i, f) = locate(x, self.x0, self.inv_dx, N);
-        let (a, b) = (self.y[i], self.y[i + 1]);
-        a.saturating_add(f.saturating_mul(b.saturating_sub(a)))
+        lerp(self.y[i], self.y[i + 1], f)
     }
 }
 
@@ -97,7 +110,6 @@ impl<const R: usize, const C: usize> Table2<R, C> {
     pub fn at(&self, r: Fx, c: Fx) -> Fx {
         let (i, fr) = locate(r, self.r0, self.inv_dr, R);
         let (j, fc) = locate(c, self.c0, self.inv_dc, C);
-        let lerp = |a: Fx, b: Fx, f: Fx| a.saturating_add(f.saturating_mul(b.saturating_sub(a)));
         let lo = lerp(self.y[i][j], self.y[i][j + 1], fc);
         let hi = lerp(self.y[i + 1][j], self.y[i + 1][j + 1], fc);
         lerp(lo, hi, fr)
@@ -111,18 +123,13 @@ impl<const R: usize, const C: usize> Table2<R, C> {
     #[inline(never)]
     pub fn invert_r(&self, c: Fx, y: Fx) -> Fx {
         let (j, fc) = locate(c, self.c0, self.inv_dc, C);
-        let col = |i: usize| {
-            let (a, b) = (self.y[i][j], self.y[i][j + 1]);
-            a.saturating_add(fc.saturating_mul(b.saturating_sub(a)))
-        };
+        let col = |i: usize| lerp(self.y[i][j], self.y[i][j + 1], fc);
         if y <= col(0) {
             return self.r0;
         }
         let (mut lo, mut hi) = (0usize, R - 1);
         if y >= col(hi) {
-            return self
-                .r0
-                .saturating_add(self.dr.saturating_mul(Fx::from_num(hi)));
+            return self.r0.saturating_add(self.dr.qmul(Fx::from_num(hi)));
         }
         // Invariant: col(lo) < y < col(hi).
         while hi - lo > 1 {
@@ -136,10 +143,10 @@ impl<const R: usize, const C: usize> Table2<R, C> {
         let (a, b) = (col(lo), col(hi));
         let f = y
             .saturating_sub(a)
-            .saturating_mul(recip(b.saturating_sub(a)))
+            .qmul(recip(b.saturating_sub(a)))
             .min(ONE);
         self.r0
-            .saturating_add(self.dr.saturating_mul(Fx::from_num(lo).saturating_add(f)))
+            .saturating_add(self.dr.qmul(Fx::from_num(lo).saturating_add(f)))
     }
 }
 
