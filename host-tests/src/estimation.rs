@@ -442,9 +442,11 @@ impl Reference {
                             (l_cap, l_rod)
                         };
                         cs.strain.2 = 1000.0 / cs.len.0;
+                        cs.setup_left -= 1;
+                    } else if cs.setup_left == SETUP_UNITS - 1 {
                         cs.strain.3 = 1000.0 / cs.len.1;
                         cs.setup_left -= 1;
-                    } else if cs.setup_left > 0 {
+                    } else if cs.setup_left == SETUP_UNITS - 2 {
                         let (p_new0, p_old0) = if cs.from_rest {
                             (lo, lo)
                         } else if dir >= 0 {
@@ -454,6 +456,8 @@ impl Reference {
                         };
                         cs.strain.0 = Self::t1(&k.ms_of_p, p_new0.max(lo).min(hi));
                         cs.strain.1 = Self::t1(&k.ms_of_p, p_old0.max(lo).min(hi));
+                        cs.setup_left -= 1;
+                    } else if cs.setup_left > 0 {
                         let to_hi = (Self::t1(&k.ms_of_p, hi) - cs.strain.0).max(0.0);
                         let to_lo = (cs.strain.1 - Self::t1(&k.ms_of_p, lo)).max(0.0);
                         cs.u_end = to_hi * cs.len.0 / 1000.0;

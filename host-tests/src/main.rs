@@ -757,7 +757,9 @@ fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
 }
 
 fn fw_cost_cmd(json: bool) -> Result<bool> {
-    eprintln!("building both firmwares and replaying the golden vectors (and a four-cylinder run) under QEMU…");
+    eprintln!(
+        "building both firmwares and replaying the golden vectors (and a four-cylinder run) under QEMU…"
+    );
     let r = pto_host::fw_cost::measure().map_err(anyhow::Error::msg)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&r)?);

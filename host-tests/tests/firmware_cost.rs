@@ -1,6 +1,8 @@
 //! Firmware cost report: instructions per estimator + scheduler step under QEMU, flash and
-//! static RAM of both builds. The memory targets are asserted; the instruction figures are
-//! printed (see the README for where they stand against the 2 000-instruction target).
+//! static RAM of both builds. Asserted: the memory targets and the 2 000-instruction step target
+//! for the golden vectors (two cylinders on duty, fixed aperture and holding P2; QEMU's
+//! instruction count is deterministic). Printed: the four-cylinder run, which does not meet the
+//! step target yet (see the README).
 
 use pto_host::fw_cost::{self, target};
 
@@ -9,7 +11,7 @@ fn firmware_cost_report() {
     let r = fw_cost::measure().unwrap();
     for s in &r.step {
         println!(
-            "{:<15} {} steps: mean {:.0}, max {} instructions (target {})",
+            "{:<20} {} steps: mean {:.0}, max {} instructions (target {})",
             s.mode,
             s.steps,
             s.mean,
@@ -17,6 +19,14 @@ fn firmware_cost_report() {
             target::STEP_INSTRUCTIONS
         );
         assert!(s.steps >= 2048 && s.mean > 0.0, "TIM2 counts instructions");
+    }
+    for s in &r.step[..2] {
+        assert!(
+            s.max <= target::STEP_INSTRUCTIONS,
+            "{}: max {} instructions per step",
+            s.mode,
+            s.max
+        );
     }
     for s in &r.size {
         println!("{:<6} flash {} B, static RAM {} B", s.build, s.flash, s.ram);

@@ -262,20 +262,11 @@ impl ModelConfig {
             check("cylinders.bore_mm", c.bore_mm, 5.0, 500.0)?;
             check("cylinders.rod_mm", c.rod_mm, 2.0, c.bore_mm - 1.0)?;
             check("cylinders.stroke_mm", c.stroke_mm, 10.0, 5000.0)?;
-            // ±1: a cylinder sits on one side of the shaft or the other.
-            check("cylinders.side", f32::from(c.side), -1.0, 1.0)?;
-            if c.side == 0 {
+            // A cylinder sits on one side of the shaft or the other: −1 or +1, never 0.
+            if c.side.unsigned_abs() != 1 {
                 return Err(ConfigError {
-                    field: "cylinders.side",
-                    value: 0.0,
-                    min: -1.0,
-                    max: 1.0,
-                });
-            }
-            if c.side == 0 {
-                return Err(ConfigError {
-                    field: "cylinders.side",
-                    value: 0.0,
+                    field: "cylinders.side (−1 or +1)",
+                    value: f32::from(c.side),
                     min: -1.0,
                     max: 1.0,
                 });

@@ -147,18 +147,19 @@ pub struct CylState {
     pub p_rod: Fx,
 }
 
-/// Set-up units of a stroke reversal: (1) the chamber lengths and strain rates, (2) the start
-/// strains, the travels to delivery and suction, and the bisection bracket.
-pub const SETUP_UNITS: u8 = 2;
+/// Set-up units of a stroke reversal: (1) the chamber lengths and the new chamber's strain rate,
+/// (2) the old chamber's, (3) the start strains, (4) the travels to delivery and suction and the
+/// bisection bracket — each at most two table lookups or one reciprocal.
+pub const SETUP_UNITS: u8 = 4;
 /// Iterations of the force-balance bisection (its bracket shrinks 4096-fold: ≈ 2 µm on a 10 mm
 /// stroke build-up).
 pub const BISECT_ITERATIONS: u8 = 12;
 /// Bisection iterations in one work unit.
-pub const BISECT_PER_UNIT: u8 = 2;
+pub const BISECT_PER_UNIT: u8 = 1;
 /// Reversal work units per step, shared by all cylinders in order (HC3.1 first). A reversal
-/// needs [`SETUP_UNITS`] + [`BISECT_ITERATIONS`] / [`BISECT_PER_UNIT`] = 8 units, so with all four
-/// cylinders reversing in one step the last one is done 32 steps (31 ms at 2^−10 s) later; the
-/// rod has then moved ≈ 0.01 mm of a several-mm build-up (a 0.1 Hz, ±24° swing), and while a
+/// needs [`SETUP_UNITS`] + [`BISECT_ITERATIONS`] / [`BISECT_PER_UNIT`] = 16 units, so with all
+/// four cylinders reversing in one step the last one is done 64 steps (63 ms at 2^−10 s) later;
+/// the rod has then moved ≈ 0.04 mm of a several-mm build-up (a 0.1 Hz, ±24° swing), and while a
 /// set-up waits its chambers hold their pressures and pass no flow, while the bisection runs the
 /// rod follows the lever up to the bracket's upper end. Spreading the work keeps every step's
 /// cost flat: a reversal on all cylinders at once cost ≈ 7 000 instructions in one step.
@@ -416,26 +417,22 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     }
 }
 
-/// Pressure of the new (compressing) chamber after `u` mm of rod travel since the reversal, bar.
+/// Pressures of the new (compressing) and old (relaxing) chambers after `u` mm of rod travel
+/// since the reversal, bar: the strain moves by u·(strain per mm) from its value at the reversal.
 #[inline]
 fn p_new_at(k: &Coefficients, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> Fx {
-    clamp(
-        k.p_of_ms
-            .at(cs.ms_new0.saturating_add(u.qmul(cs.ms_per_mm_n))),
-        lo,
-        hi,
-    )
+    p_at_strain(k, cs.ms_new0.saturating_add(u.qmul(cs.ms_per_mm_n)), lo, hi)
 }
 
-/// Pressure of the old (relaxing) chamber after `u` mm of rod travel since the reversal, bar.
 #[inline]
 fn p_old_at(k: &Coefficients, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> Fx {
-    clamp(
-        k.p_of_ms
-            .at(cs.ms_old0.saturating_sub(u.qmul(cs.ms_per_mm_o))),
-        lo,
-        hi,
-    )
+    p_at_strain(k, cs.ms_old0.saturating_sub(u.qmul(cs.ms_per_mm_o)), lo, hi)
+}
+
+/// Oil pressure at a milli-strain, held between the check valves' limits.
+#[inline]
+fn p_at_strain(k: &Coefficients, ms: Fx, lo: Fx, hi: Fx) -> Fx {
+    clamp(k.p_of_ms.at(ms), lo, hi)
 }
 
 /// `a·b/1000` for a milli-strain `a` and a length `b` in mm (a travel in mm), without a
@@ -477,27 +474,25 @@ fn reversal_unit(
     hi: Fx,
 ) {
     if cs.setup_left == SETUP_UNITS {
-        // (1) Chamber lengths at the rod's position and their strain per mm: a chamber of length
-        // L (dead volume + chamber) moved by u changes its strain by u/L. 1000/L is taken as
-        // (1024/L)·(1000/1024) so the reciprocal keeps 1e-5 precision.
+        // (1) Chamber lengths at the rod's position and the new chamber's strain per mm: a
+        // chamber of length L (dead volume + chamber) moved by u changes its strain by u/L.
+        // 1000/L is taken as (1024/L)·(1000/1024) so the reciprocal keeps 1e-5 precision.
         let pos = ext.at(th);
         let l_cap = c.dead_cap_mm.saturating_add(pos);
         let l_rod = c
             .dead_rod_mm
             .saturating_add(c.stroke_mm.saturating_sub(pos));
-        let (l_n, l_o) = if cs.dir >= 0 {
+        (cs.len_n, cs.len_o) = if cs.dir >= 0 {
             (l_rod, l_cap)
         } else {
             (l_cap, l_rod)
         };
-        let kms = Fx::from_bits(64_000); // 1000/1024, exact
-        cs.len_n = l_n;
-        cs.len_o = l_o;
-        cs.ms_per_mm_n = recip(Fx::from_bits(l_n.to_bits() >> 10)).qmul(kms);
-        cs.ms_per_mm_o = recip(Fx::from_bits(l_o.to_bits() >> 10)).qmul(kms);
-        cs.setup_left -= 1;
-    } else if cs.setup_left > 0 {
-        // (2) Start from the chambers' pressures at the reversal (held since), not from P2/LP:
+        cs.ms_per_mm_n = recip(Fx::from_bits(cs.len_n.to_bits() >> 10)).qmul(KMS);
+    } else if cs.setup_left == SETUP_UNITS - 1 {
+        // (2) The old chamber's strain per mm.
+        cs.ms_per_mm_o = recip(Fx::from_bits(cs.len_o.to_bits() >> 10)).qmul(KMS);
+    } else if cs.setup_left == SETUP_UNITS - 2 {
+        // (3) Start from the chambers' pressures at the reversal (held since), not from P2/LP:
         // in an irregular sea the shaft can turn back before a stroke has built up.
         let (p_new0, p_old0) = if cs.from_rest {
             (lo, lo)
@@ -508,8 +503,9 @@ fn reversal_unit(
         };
         cs.ms_new0 = k.ms_of_p.at(clamp(p_new0, lo, hi));
         cs.ms_old0 = k.ms_of_p.at(clamp(p_old0, lo, hi));
-        // Travel for the new chamber to reach P2 (delivery) and the old one LP (suction):
-        // strain to go × L / 1000.
+    } else if cs.setup_left > 0 {
+        // (4) Travel for the new chamber to reach P2 (delivery) and the old one LP (suction):
+        // strain to go × L / 1000; the bisection's bracket.
         let to_hi = k.ms_of_p.at(hi).saturating_sub(cs.ms_new0).max(ZERO);
         let to_lo = cs.ms_old0.saturating_sub(k.ms_of_p.at(lo)).max(ZERO);
         cs.u_end = ms_times_mm(to_hi, cs.len_n);
@@ -517,7 +513,6 @@ fn reversal_unit(
         cs.u_bal = ZERO;
         cs.u_bal_hi = cs.u_end.max(cs.u_suc);
         cs.bisect_left = BISECT_ITERATIONS;
-        cs.setup_left = 0;
     } else {
         // Force balance A_o·p_old(u) = A_n·p_new(u) (p_old falls, p_new rises): bisection.
         let ratio = if cs.dir >= 0 {
@@ -539,8 +534,13 @@ fn reversal_unit(
             // From rest both chambers start at LP: skip to the play.
             cs.travel = cs.travel.saturating_add(cs.u_bal);
         }
+        return;
     }
+    cs.setup_left -= 1;
 }
+
+/// 1000/1024, exact in Q16.16.
+const KMS: Fx = Fx::from_bits(64_000);
 
 /// Flows (L/min) and torque (N·m) of one cylinder; advances its stroke state, spending the
 /// step's reversal work `budget`.

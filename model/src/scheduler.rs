@@ -197,11 +197,14 @@ pub struct SchedulerState {
     pub integ: Fx,
     /// Last commanded aperture, %.
     pub last: Fx,
+    /// Lower row of the valve-table cell the feed-forward inversion is in (see
+    /// [`crate::table::Table2::invert_r_tracking`]).
+    pub ff_row: u8,
 }
 
 /// The aperture at which the steady valve flow equals `q` L/min at P2 − LP = `dp` bar: the
-/// inverse of the valve table along its aperture axis ([`crate::table::Table2::invert_r`]:
-/// 5 column interpolations and one reciprocal).
+/// inverse of the valve table along its aperture axis ([`crate::table::Table2::invert_r`]; the
+/// step uses its bounded-work form, [`crate::table::Table2::invert_r_tracking`]).
 pub fn aperture_for_flow(k: &Coefficients, q: Fx, dp: Fx) -> Fx {
     k.valve_flow.invert_r(dp, q)
 }
@@ -244,7 +247,8 @@ pub fn step(
     let (ff, err, kp, ki) = match mode {
         Mode::Fixed(a) => (a.0, ZERO, ZERO, ZERO),
         Mode::HoldPressure(p) => (
-            aperture_for_flow(k, est.q_pump_mean.0, dp),
+            k.valve_flow
+                .invert_r_tracking(dp, est.q_pump_mean.0, &mut st.ff_row),
             est.p2.0.saturating_sub(p.0),
             sc.kp_p,
             sc.ki_p,
@@ -256,7 +260,8 @@ pub fn step(
                 r.0
             };
             (
-                aperture_for_flow(k, target.qmul(sc.lpm_per_rpm), dp),
+                k.valve_flow
+                    .invert_r_tracking(dp, target.qmul(sc.lpm_per_rpm), &mut st.ff_row),
                 target.saturating_sub(speed),
                 sc.kp_s,
                 sc.ki_s,

@@ -148,6 +148,41 @@ impl<const R: usize, const C: usize> Table2<R, C> {
         self.r0
             .saturating_add(self.dr.qmul(Fx::from_num(lo).saturating_add(f)))
     }
+
+    /// [`Table2::invert_r`] with bounded work for a slowly moving target, for the per-step
+    /// path: `row` (kept by the caller between steps) is the lower row of the bracketing cell,
+    /// moved at most one row towards `y` per call. Three column interpolations and one
+    /// reciprocal, where `invert_r` needs up to eight; within its cell the result is
+    /// `invert_r`'s, and after a jump of the target it reaches it within `R − 2` calls, held at the
+    /// edge of the current cell meanwhile.
+    #[inline(never)]
+    pub fn invert_r_tracking(&self, c: Fx, y: Fx, row: &mut u8) -> Fx {
+        let (j, fc) = locate(c, self.c0, self.inv_dc, C);
+        let col = |i: usize| lerp(self.y[i][j], self.y[i][j + 1], fc);
+        let mut lo = usize::from(*row).min(R - 2);
+        let (mut a, mut b) = (col(lo), col(lo + 1));
+        if y < a && lo > 0 {
+            lo -= 1;
+            b = a;
+            a = col(lo);
+        } else if y > b && lo < R - 2 {
+            lo += 1;
+            a = b;
+            b = col(lo + 1);
+        }
+        *row = lo as u8;
+        let f = if y <= a {
+            ZERO
+        } else if y >= b {
+            ONE
+        } else {
+            y.saturating_sub(a)
+                .qmul(recip(b.saturating_sub(a)))
+                .min(ONE)
+        };
+        self.r0
+            .saturating_add(self.dr.qmul(Fx::from_num(lo).saturating_add(f)))
+    }
 }
 
 #[cfg(test)]
@@ -188,6 +223,29 @@ mod tests {
                 .to_num::<f32>(),
             100.0
         );
+    }
+
+    #[test]
+    fn tracking_inverse_reaches_invert_r() {
+        let t = Table2::<21, 33>::sample((0.0, 100.0), (0.0, 160.0), |r, c| {
+            0.01 * r * r * (c + 1.0).sqrt() + 0.2 * r
+        });
+        let mut row = 0u8;
+        let mut worst = 0.0f32;
+        for ri in 0..=40 {
+            for c in [3.3f32, 47.0, 159.0] {
+                let y = t.at(Fx::from_num(ri as f32 * 2.5), Fx::from_num(c));
+                let want: f32 = t.invert_r(Fx::from_num(c), y).to_num();
+                // From wherever the last target left the bracket: at most R − 2 calls.
+                let mut got = 0.0;
+                for _ in 0..19 {
+                    got = t.invert_r_tracking(Fx::from_num(c), y, &mut row).to_num();
+                }
+                worst = worst.max((got - want).abs());
+            }
+        }
+        println!("invert_r_tracking vs invert_r: worst {worst:.6} (row units)");
+        assert!(worst < 1e-3, "{worst}");
     }
 
     #[test]
