@@ -404,7 +404,7 @@ impl Reference {
             let d = Self::t1(&k.arm[config], side * self.theta); // mm
             let v = side * d * self.omega; // mm/s
             if inp.on_duty & (1 << i) != 0 {
-                use pto_model::estimator::{BISECT_ITERATIONS, BISECT_PER_UNIT, SETUP_UNITS};
+                use pto_model::estimator::{BISECT_ITERATIONS, SETUP_UNITS};
                 let cs = &mut self.cyl[i];
                 let dir: i8 = if v > 0.0 {
                     1
@@ -472,16 +472,14 @@ impl Reference {
                         } else {
                             f(cc.ratio_ret)
                         };
-                        for _ in 0..BISECT_PER_UNIT.min(cs.bisect_left) {
-                            let m = 0.5 * (cs.u_bal + cs.u_bal_hi);
-                            let (pn, po) = pressures(&cs.strain, m);
-                            if po - ratio * pn > 0.0 {
-                                cs.u_bal = m;
-                            } else {
-                                cs.u_bal_hi = m;
-                            }
+                        let m = 0.5 * (cs.u_bal + cs.u_bal_hi);
+                        let (pn, po) = pressures(&cs.strain, m);
+                        if po - ratio * pn > 0.0 {
+                            cs.u_bal = m;
+                        } else {
+                            cs.u_bal_hi = m;
                         }
-                        cs.bisect_left = cs.bisect_left.saturating_sub(BISECT_PER_UNIT);
+                        cs.bisect_left -= 1;
                         if cs.bisect_left == 0 && cs.from_rest {
                             cs.travel += cs.u_bal;
                         }

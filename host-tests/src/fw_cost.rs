@@ -122,12 +122,11 @@ pub fn measure() -> Result<Report, String> {
     // The golden vectors run two cylinders; the costliest case is all four on duty through a
     // stroke reversal (each reversal queues set-up and bisection work): 6 s of the four-cylinder
     // torque run (Config 1), which reverses every 5 s.
-    let (four, p2_four, lp_four) = golden::scenario_inputs(
+    let (four, p2_four, lp_four) = golden::clean_inputs(
         &crate::bench::Bench::reference(),
         "torque-cfg1-c1234",
         Some(FOUR_CYLINDER_START_S),
         6 * 1024,
-        |_, enc, hp| (enc, Some(hp)),
     )?;
     let mut q = Qemu::boot(&qemu_elf, false)?;
     let mut step = Vec::new();

@@ -4,7 +4,9 @@
 //! Per step: shaft angle and speed from the encoder (α–β–γ tracker) → per cylinder on duty, rod
 //! speed from the lever-arm table and the stroke-reversal phases (both chambers follow the oil's
 //! strain law from their pressures at the reversal until their forces balance, the eye crosses
-//! the free play, the new chamber compresses to P2 and delivers) → valve/motor flow from the
+//! the free play, the new chamber compresses to P2 and delivers; a reversal's set-up and
+//! force-balance bisection run as small work units over the following steps, see
+//! [`REVERSAL_UNITS_PER_STEP`]) → valve/motor flow from the
 //! steady valve table, relief flow → P2 and LP predicted through the nodes' capacitance tables →
 //! scalar Kalman correction of P2 (gain from a table of the prior variance, innovation gating,
 //! reset after a run of rejections) and a fixed-gain correction of LP → torque from the chamber
@@ -154,18 +156,17 @@ pub const SETUP_UNITS: u8 = 4;
 /// Iterations of the force-balance bisection (its bracket shrinks 4096-fold: ≈ 2 µm on a 10 mm
 /// stroke build-up).
 pub const BISECT_ITERATIONS: u8 = 12;
-/// Bisection iterations in one work unit.
-pub const BISECT_PER_UNIT: u8 = 1;
 /// Reversal work units per step, shared by all cylinders in order (HC3.1 first). A reversal
-/// needs [`SETUP_UNITS`] + [`BISECT_ITERATIONS`] / [`BISECT_PER_UNIT`] = 16 units, so with all
-/// four cylinders reversing in one step the last one is done 64 steps (63 ms at 2^−10 s) later;
-/// the rod has then moved ≈ 0.04 mm of a several-mm build-up (a 0.1 Hz, ±24° swing), and while a
-/// set-up waits its chambers hold their pressures and pass no flow, while the bisection runs the
-/// rod follows the lever up to the bracket's upper end. Spreading the work keeps every step's
-/// cost flat: a reversal on all cylinders at once cost ≈ 7 000 instructions in one step.
+/// needs [`SETUP_UNITS`] + [`BISECT_ITERATIONS`] = 16 units (one bisection iteration each), so
+/// with all four cylinders reversing in one step the last one is done 64 steps (63 ms at
+/// 2^−10 s) later; the rod has then moved ≈ 0.04 mm of a several-mm build-up (a 0.1 Hz, ±24°
+/// swing). While a set-up waits, its chambers hold their pressures and pass no flow; while the
+/// bisection runs, the rod follows the lever up to the bracket's upper end. Spreading the work
+/// keeps every step's cost flat: a reversal on all cylinders at once cost ≈ 7 000 instructions
+/// in one step.
 pub const REVERSAL_UNITS_PER_STEP: u8 = 1;
 
-/// Estimator state (≈ 100 bytes).
+/// Estimator state (300 bytes on the thumb targets; `pto model-cost` prints it).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct State {
@@ -520,16 +521,14 @@ fn reversal_unit(
         } else {
             c.ratio_ret
         };
-        for _ in 0..BISECT_PER_UNIT.min(cs.bisect_left) {
-            let m = Fx::from_bits((cs.u_bal.to_bits() + cs.u_bal_hi.to_bits()) >> 1);
-            let (pn, po) = (p_new_at(k, cs, m, lo, hi), p_old_at(k, cs, m, lo, hi));
-            if po.saturating_sub(ratio.qmul(pn)) > ZERO {
-                cs.u_bal = m;
-            } else {
-                cs.u_bal_hi = m;
-            }
+        let m = Fx::from_bits((cs.u_bal.to_bits() + cs.u_bal_hi.to_bits()) >> 1);
+        let (pn, po) = (p_new_at(k, cs, m, lo, hi), p_old_at(k, cs, m, lo, hi));
+        if po.saturating_sub(ratio.qmul(pn)) > ZERO {
+            cs.u_bal = m;
+        } else {
+            cs.u_bal_hi = m;
         }
-        cs.bisect_left = cs.bisect_left.saturating_sub(BISECT_PER_UNIT);
+        cs.bisect_left -= 1;
         if cs.bisect_left == 0 && cs.from_rest {
             // From rest both chambers start at LP: skip to the play.
             cs.travel = cs.travel.saturating_add(cs.u_bal);

@@ -121,7 +121,8 @@ pub fn mul_dt(x: Fx, dt_log2: u8) -> Fx {
 /// `fixed`'s `saturating_mul` widens both operands to `i64` and runs a generic overflow-checked
 /// 64 × 64 multiply: ≈ 20 Cortex-M4 instructions per product, measured as ≈ 1 400 of the
 /// ≈ 3 200 instructions a step cost. The product of two `i32` fits `i64` exactly, so it is one
-/// `smull`, a 64-bit shift and a one-compare range check (≈ 8 instructions) — hand-written for that reason.
+/// `smull`, a 64-bit shift and a one-compare range check (≈ 8 instructions) — hand-written for
+/// that reason.
 /// The result is the same bits as `saturating_mul` (floor of the exact product, saturated to the
 /// Q16.16 range; property-tested against it).
 pub trait QMul {
@@ -216,7 +217,12 @@ mod tests {
 
     proptest::proptest! {
         #[test]
-        fn qmul_equals_fixed_saturating_mul_anywhere(a in proptest::num::i32::ANY, b in proptest::num::i32::ANY, sa in 0u32..24, sb in 0u32..24) {
+        fn qmul_equals_fixed_saturating_mul_anywhere(
+            a in proptest::num::i32::ANY,
+            b in proptest::num::i32::ANY,
+            sa in 0u32..24,
+            sb in 0u32..24,
+        ) {
             // Shifted operands cover small magnitudes as well as the saturating ones.
             let (x, y) = (Fx::from_bits(a >> sa), Fx::from_bits(b >> sb));
             proptest::prop_assert_eq!(x.qmul(y), x.saturating_mul(y));

@@ -140,11 +140,21 @@ impl<const R: usize, const C: usize> Table2<R, C> {
                 hi = mid;
             }
         }
-        let (a, b) = (col(lo), col(hi));
-        let f = y
-            .saturating_sub(a)
-            .qmul(recip(b.saturating_sub(a)))
-            .min(ONE);
+        self.row_in_cell(lo, (col(lo), col(hi)), y)
+    }
+
+    /// The row coordinate of `y` inside the cell from row `lo` to `lo + 1` whose column values
+    /// are `a`, `b` (held at the cell's edges; division-free through [`recip`]).
+    fn row_in_cell(&self, lo: usize, (a, b): (Fx, Fx), y: Fx) -> Fx {
+        let f = if y <= a {
+            ZERO
+        } else if y >= b {
+            ONE
+        } else {
+            y.saturating_sub(a)
+                .qmul(recip(b.saturating_sub(a)))
+                .min(ONE)
+        };
         self.r0
             .saturating_add(self.dr.qmul(Fx::from_num(lo).saturating_add(f)))
     }
@@ -171,17 +181,7 @@ impl<const R: usize, const C: usize> Table2<R, C> {
             b = col(lo + 1);
         }
         *row = lo as u8;
-        let f = if y <= a {
-            ZERO
-        } else if y >= b {
-            ONE
-        } else {
-            y.saturating_sub(a)
-                .qmul(recip(b.saturating_sub(a)))
-                .min(ONE)
-        };
-        self.r0
-            .saturating_add(self.dr.qmul(Fx::from_num(lo).saturating_add(f)))
+        self.row_in_cell(lo, (a, b), y)
     }
 }
 
