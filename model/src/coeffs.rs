@@ -57,16 +57,17 @@ pub struct CylinderCoeffs {
 pub struct Coefficients {
     /// dt = 2^−dt_log2 s.
     pub dt_log2: u8,
-    /// Encoder count → rad, as Q32.32 (i64) so a 16 384-count encoder keeps full precision.
-    pub rad_per_count_q32: i64,
-    /// α of the α–β–γ shaft tracker, Q1.31. The tracker runs in Q32.32: at 1 kHz a shaft at
-    /// 0.2 rad/s advances 2e-4 rad per step, 13 LSB of Q16.16, and truncating that every step
+    /// Encoder count → rad, as the fraction bits of Q32.32 so a 16 384-count encoder keeps full
+    /// precision (< 2^29: ≥ 64 counts per revolution).
+    pub rad_per_count_q32: i32,
+    /// α of the α–β–γ shaft tracker, Q1.31 (< 1). The tracker runs in Q32.32: at 1 kHz a shaft
+    /// at 0.2 rad/s advances 2e-4 rad per step, 13 LSB of Q16.16, and truncating that every step
     /// biased the speed by +0.026 rad/s (10 %).
-    pub alpha_q31: i64,
-    /// β/dt of the α–β–γ shaft tracker, 1/s, Q16.16 (as i64).
-    pub beta_over_dt_q16: i64,
-    /// 2γ/dt² of the α–β–γ shaft tracker, 1/s², Q16.16 (as i64).
-    pub gamma_over_dt2_q16: i64,
+    pub alpha_q31: i32,
+    /// β/dt of the α–β–γ shaft tracker, 1/s, Q16.16 (< 2^23 over the validated bandwidth and dt).
+    pub beta_over_dt_q16: i32,
+    /// 2γ/dt² of the α–β–γ shaft tracker, 1/s², Q16.16 (< 2^28 likewise).
+    pub gamma_over_dt2_q16: i32,
     /// Cylinders.
     pub cyl: [CylinderCoeffs; 4],
     /// Lever arm d (mm) vs s·θ (rad), per geometry. In mm so that d·F stays exact to
@@ -266,7 +267,7 @@ impl ModelConfig {
         let fx = Fx::saturating_from_num;
         let two_pi = 2.0 * core::f64::consts::PI;
         let rad_per_count_q32 =
-            (two_pi / f64::from(self.encoder_counts_per_rev) * 4_294_967_296.0) as i64;
+            (two_pi / f64::from(self.encoder_counts_per_rev) * 4_294_967_296.0) as i32;
         // Fading-memory α–β–γ tracker (a triple pole at r = exp(−2π·bw·dt)): α = 1 − r³,
         // β = 1.5(1 − r)²(1 + r), γ = ½(1 − r)³. Its constant-acceleration model follows the
         // sinusoidal shaft with ≈0.3 % speed error at 4 Hz, where an α–β tracker lags by
@@ -351,9 +352,10 @@ impl ModelConfig {
         Ok(Coefficients {
             dt_log2: k,
             rad_per_count_q32,
-            alpha_q31: (f64::from(alpha) * 2_147_483_648.0) as i64,
-            beta_over_dt_q16: (f64::from(beta / dt) * 65_536.0) as i64,
-            gamma_over_dt2_q16: (f64::from(2.0 * gamma / (dt * dt)) * 65_536.0) as i64,
+            // (Float-to-integer casts saturate: α rounds to at most i32::MAX = 1 − 2^−31.)
+            alpha_q31: (f64::from(alpha) * 2_147_483_648.0) as i32,
+            beta_over_dt_q16: (f64::from(beta / dt) * 65_536.0) as i32,
+            gamma_over_dt2_q16: (f64::from(2.0 * gamma / (dt * dt)) * 65_536.0) as i32,
             cyl,
             arm,
             ext,

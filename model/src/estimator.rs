@@ -15,7 +15,7 @@
 use crate::coeffs::{Coefficients, CylinderCoeffs, N_ARM};
 use crate::fx::{
     Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, PressureVariance, QMul, Rpm, Seconds,
-    Torque, ZERO, clamp, mul_dt, recip, sqrt0,
+    Torque, ZERO, clamp, mul_dt, recip, shr64, sqrt0,
 };
 use crate::table::Table1;
 
@@ -243,14 +243,16 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     // below can leave i64, so the 64-bit saturating forms (≈ 8 instructions each on a 32-bit
     // core) are not needed. Plain operators: the test builds' overflow checks (and the property
     // tests' extreme inputs) verify this budget; the release build emits the same code.
-    let half = 1i64 << (dtl - 1);
+    // The run-time shifts by dt (1..=25 bits) go through the two-word `shr64`.
+    let n = u32::from(dtl);
+    let half = 1i64 << (n - 1);
     let pred_theta = s.theta_q32
-        + ((s.omega_q32 + half) >> dtl)
-        + ((s.accel_q32 + (1i64 << (2 * dtl))) >> (2 * dtl + 1));
-    let pred_omega = s.omega_q32 + ((s.accel_q32 + half) >> dtl);
+        + shr64(s.omega_q32 + half, n)
+        + shr64(s.accel_q32 + (1i64 << (2 * n)), 2 * n + 1);
+    let pred_omega = s.omega_q32 + shr64(s.accel_q32 + half, n);
     match inp.encoder {
         Some(count) => {
-            let theta_meas = i64::from(count) * k.rad_per_count_q32;
+            let theta_meas = i64::from(count) * i64::from(k.rad_per_count_q32);
             if !s.enc_init {
                 s.theta_q32 = theta_meas;
                 s.omega_q32 = 0;
@@ -259,12 +261,19 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
                 s.enc_last = count;
                 s.hp_at_enc_change = inp.hp.map_or(s.p2, |p| p.0);
             } else {
-                let r = (theta_meas - pred_theta).clamp(-(1i64 << 31), 1i64 << 31);
-                s.theta_q32 = (pred_theta + ((r * k.alpha_q31 + (1 << 30)) >> 31))
+                // The residual held to ±0.5 rad fits an i32, so each gain product is one
+                // 32 × 32 → 64 multiply.
+                let r = i64::from(
+                    (theta_meas - pred_theta).clamp(i64::from(i32::MIN), i64::from(i32::MAX))
+                        as i32,
+                );
+                s.theta_q32 = (pred_theta + ((r * i64::from(k.alpha_q31) + (1 << 30)) >> 31))
                     .clamp(-THETA_LIM_Q32, THETA_LIM_Q32);
-                s.omega_q32 = (pred_omega + ((r * k.beta_over_dt_q16 + (1 << 15)) >> 16))
+                s.omega_q32 = (pred_omega
+                    + ((r * i64::from(k.beta_over_dt_q16) + (1 << 15)) >> 16))
                     .clamp(-OMEGA_LIM_Q32, OMEGA_LIM_Q32);
-                s.accel_q32 = (s.accel_q32 + ((r * k.gamma_over_dt2_q16 + (1 << 15)) >> 16))
+                s.accel_q32 = (s.accel_q32
+                    + ((r * i64::from(k.gamma_over_dt2_q16) + (1 << 15)) >> 16))
                     .clamp(-ACCEL_LIM_Q32, ACCEL_LIM_Q32);
             }
             if count != s.enc_last {
