@@ -317,11 +317,18 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
             (&k.arm[0], &k.ext[0], 0)
         }
     };
-    let mut q_pump = ZERO;
-    let mut q_lp_net = ZERO; // flow taken from LP by the cylinders (suction − idle bypass return)
     let mut torque_cyl = [Torque::ZERO; 4];
     let mut torque = ZERO;
-    let mut budget = REVERSAL_UNITS_PER_STEP;
+    let mut sh = Shared {
+        k,
+        ext: ext_table,
+        lp: s.lp,
+        lo: s.lp.saturating_sub(k.check_drop),
+        hi: s.p2.saturating_add(k.check_drop),
+        budget: REVERSAL_UNITS_PER_STEP,
+        q_pump: ZERO,
+        q_lp: ZERO,
+    };
     // The lever on each side of the shaft (s = ±1): the arm tables are per geometry, so every
     // cylinder on one side shares s·θ, the signed arm s·d and the rod speed v = s·d·θ̇ (mm/s).
     let lever = |th: Fx, negative: bool| {
@@ -337,12 +344,11 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     for (i, (c, cs)) in k.cyl.iter().zip(s.cyl.iter_mut()).enumerate() {
         let on = duty & (1 << i) != 0;
         let lv = &levers[usize::from(c.side < ZERO)];
-        let o = cylinder(k, c, cs, lv, ext_table, on, (s.p2, s.lp), &mut budget);
-        q_pump = q_pump.saturating_add(o.q_pump);
-        q_lp_net = q_lp_net.saturating_add(o.q_lp);
-        torque_cyl[i] = Torque(o.torque_nm);
-        torque = torque.saturating_add(o.torque_nm);
+        let t = cylinder(&mut sh, c, cs, lv, on);
+        torque_cyl[i] = Torque(t);
+        torque = torque.saturating_add(t);
     }
+    let (q_pump, q_lp_net) = (sh.q_pump, sh.q_lp);
     // --- Valve, relief, motor.
     let dp = s.p2.saturating_sub(s.lp).max(ZERO);
     let q_valve = k.valve_flow.at(s.aperture, dp);
@@ -464,30 +470,34 @@ struct Lever {
     v: Fx,
 }
 
-/// One cylinder's contribution to the step (kept out of line: the step would otherwise carry
-/// four unrolled copies of it, ×4 the flash).
-#[derive(Clone, Copy, Default)]
-struct CylOut {
+/// What the cylinders of one step share.
+struct Shared<'a> {
+    k: &'a Coefficients,
+    /// Rod-eye extension table of the geometry on duty.
+    ext: &'a Table1<N_ARM>,
+    /// LP, bar.
+    lp: Fx,
+    /// LP less the check valve's drop: a chamber at it sucks, bar.
+    lo: Fx,
+    /// P2 plus the check valve's drop: a chamber at it delivers, bar.
+    hi: Fx,
+    /// Reversal work units left this step.
+    budget: u8,
+    /// Flow the cylinders deliver into HP so far, L/min.
     q_pump: Fx,
+    /// Flow the cylinders take from LP so far (suction − idle bypass return), L/min.
     q_lp: Fx,
-    torque_nm: Fx,
 }
 
 /// One unit of a cylinder's pending reversal work (see [`REVERSAL_UNITS_PER_STEP`]).
 #[inline(never)]
-fn reversal_unit(
-    k: &Coefficients,
-    c: &CylinderCoeffs,
-    cs: &mut CylState,
-    (ext, th): (&Table1<N_ARM>, Fx),
-    lo: Fx,
-    hi: Fx,
-) {
+fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
+    let (k, lo, hi) = (sh.k, sh.lo, sh.hi);
     if cs.setup_left == SETUP_UNITS {
         // (1) Chamber lengths at the rod's position and the new chamber's strain per mm: a
         // chamber of length L (dead volume + chamber) moved by u changes its strain by u/L.
         // 1000/L is taken as (1024/L)·(1000/1024) so the reciprocal keeps 1e-5 precision.
-        let pos = ext.at(th);
+        let pos = sh.ext.at(th);
         let l_cap = c.dead_cap_mm.saturating_add(pos);
         let l_rod = c
             .dead_rod_mm
@@ -550,30 +560,26 @@ fn reversal_unit(
 /// 1000/1024, exact in Q16.16.
 const KMS: Fx = Fx::from_bits(64_000);
 
-/// Flows (L/min) and torque (N·m) of one cylinder; advances its stroke state, spending the
-/// step's reversal work `budget`.
-#[allow(clippy::too_many_arguments)]
+/// Torque of one cylinder (N·m); adds its flows to the step's sums and advances its stroke
+/// state, spending the step's reversal work budget. Kept out of line: the step would otherwise
+/// carry four unrolled copies of it, ×4 the flash.
 #[inline(never)]
 fn cylinder(
-    k: &Coefficients,
+    sh: &mut Shared,
     c: &CylinderCoeffs,
     cs: &mut CylState,
     lever: &Lever,
-    ext_table: &Table1<N_ARM>,
     on: bool,
-    (p2, lp): (Fx, Fx),
-    budget: &mut u8,
-) -> CylOut {
+) -> Fx {
+    let (k, lo, hi) = (sh.k, sh.lo, sh.hi);
     let dtl = k.dt_log2;
-    let mut out = CylOut::default();
     let (th, sd, v) = (lever.th, lever.sd, lever.v);
     if !on {
         // Idle: bypassed to LP; LP·A_rod pushes the rod out, the rod volume flows to LP.
         let a_rod_q = c.q_cap.saturating_sub(c.q_ann);
-        out.q_lp = a_rod_q.qmul(v);
-        let f = lp.qmul(c.f_cap.saturating_sub(c.f_ann));
-        out.torque_nm = sd.qmul(f).saturating_neg();
-        return out;
+        sh.q_lp = sh.q_lp.saturating_add(a_rod_q.qmul(v));
+        let f = sh.lp.qmul(c.f_cap.saturating_sub(c.f_ann));
+        return sd.qmul(f).saturating_neg();
     }
     let dir: i8 = if v > ZERO {
         1
@@ -589,8 +595,6 @@ fn cylinder(
     // pressures through the oil's strain law p = P(strain) (inverse strain table). (A linear
     // pressure–travel law put the new chamber at ~45 bar instead of ~19 bar when the forces
     // balance, so the torque built up too early.)
-    let lo = lp.saturating_sub(k.check_drop);
-    let hi = p2.saturating_add(k.check_drop);
     if dir != cs.dir {
         cs.from_rest = cs.dir == 0;
         cs.dir = dir;
@@ -598,9 +602,9 @@ fn cylinder(
         cs.setup_left = SETUP_UNITS;
         cs.bisect_left = 0;
     }
-    if (cs.setup_left > 0 || cs.bisect_left > 0) && *budget > 0 {
-        *budget -= 1;
-        reversal_unit(k, c, cs, (ext_table, th), lo, hi);
+    if (cs.setup_left | cs.bisect_left) != 0 && sh.budget > 0 {
+        sh.budget -= 1;
+        reversal_unit(sh, c, cs, th);
     }
     let speed = v.abs();
     let mm = mul_dt(speed, dtl); // mm this step = mm/s × dt
@@ -628,10 +632,10 @@ fn cylinder(
         if cs.travel < e_end {
             cs.travel = cs.travel.saturating_add(mm);
         } else {
-            out.q_pump = q_del;
+            sh.q_pump = sh.q_pump.saturating_add(q_del);
         }
         if u >= cs.u_suc {
-            out.q_lp = q_suc;
+            sh.q_lp = sh.q_lp.saturating_add(q_suc);
         }
         // Once delivering (sucking) the chamber follows P2 (LP), which may have moved since the
         // reversal the strain constants were taken at.
@@ -661,6 +665,5 @@ fn cylinder(
         .qmul(c.f_cap)
         .saturating_sub(cs.p_rod.qmul(c.f_ann)); // kN
     // mm·kN = N·m.
-    out.torque_nm = sd.qmul(f_hyd).saturating_neg();
-    out
+    sd.qmul(f_hyd).saturating_neg()
 }
