@@ -609,10 +609,12 @@ fn cylinder(
     let speed = v.abs();
     let mm = mul_dt(speed, dtl); // mm this step = mm/s × dt
     if cs.setup_left == 0 {
-        let (q_del, q_suc) = if dir >= 0 {
-            (c.q_ann.qmul(speed), c.q_cap.qmul(speed))
+        // Flow per unit rod speed of the delivering and the sucking chamber (the flows
+        // themselves are taken only when they pass a check valve).
+        let (a_del, a_suc) = if dir >= 0 {
+            (c.q_ann, c.q_cap)
         } else {
-            (c.q_cap.qmul(speed), c.q_ann.qmul(speed))
+            (c.q_cap, c.q_ann)
         };
         // While the bisection runs, u_bal is known to lie in [u_bal, u_bal_hi]: the rod follows
         // the lever up to the upper end.
@@ -632,10 +634,10 @@ fn cylinder(
         if cs.travel < e_end {
             cs.travel = cs.travel.saturating_add(mm);
         } else {
-            sh.q_pump = sh.q_pump.saturating_add(q_del);
+            sh.q_pump = sh.q_pump.saturating_add(a_del.qmul(speed));
         }
         if u >= cs.u_suc {
-            sh.q_lp = sh.q_lp.saturating_add(q_suc);
+            sh.q_lp = sh.q_lp.saturating_add(a_suc.qmul(speed));
         }
         // Once delivering (sucking) the chamber follows P2 (LP), which may have moved since the
         // reversal the strain constants were taken at.
