@@ -15,7 +15,7 @@
 use crate::coeffs::{Coefficients, CylinderCoeffs, N_ARM};
 use crate::fx::{
     Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, PressureVariance, QMul, Rpm, Seconds,
-    Torque, ZERO, clamp, mul_dt, recip, shr64, sqrt0,
+    Torque, ZERO, clamp, mul_dt, mul_frac, recip, shr64, sqrt0,
 };
 use crate::table::Table1;
 
@@ -99,6 +99,10 @@ pub struct Estimate {
     pub aperture: Aperture,
     /// [`fault`] bits.
     pub faults: u16,
+    /// Stroke-reversal work units spent this step (0 or up to [`REVERSAL_UNITS_PER_STEP`]).
+    /// The step's background slot: the scheduler refreshes its feed-forward only in a step that
+    /// spent none, so the two never add up in one step.
+    pub reversal_units: u8,
 }
 
 impl Estimate {
@@ -307,7 +311,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let cmd = clamp(inp.aperture_cmd.0, ZERO, Fx::from_num(100));
     s.aperture = s
         .aperture
-        .saturating_add(k.spool_gain.qmul(cmd.saturating_sub(s.aperture)));
+        .saturating_add(mul_frac(k.spool_gain, cmd.saturating_sub(s.aperture)));
     // --- Cylinders: delivered flow, suction flow, torque.
     let config = usize::from(inp.config);
     let (arm_table, ext_table, duty) = match (k.arm.get(config), k.ext.get(config)) {
@@ -348,7 +352,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         torque_cyl[i] = Torque(t);
         torque = torque.saturating_add(t);
     }
-    let (q_pump, q_lp_net) = (sh.q_pump, sh.q_lp);
+    let (q_pump, q_lp_net, sh_budget) = (sh.q_pump, sh.q_lp, sh.budget);
     // --- Valve, relief, motor.
     let dp = s.p2.saturating_sub(s.lp).max(ZERO);
     let q_valve = k.valve_flow.at(s.aperture, dp);
@@ -365,7 +369,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     s.var = s.var.saturating_add(k.q_step.at(s.p2));
     s.q_mean = s
         .q_mean
-        .saturating_add(k.mean_gain.qmul(q_pump.saturating_sub(s.q_mean)));
+        .saturating_add(mul_frac(k.mean_gain, q_pump.saturating_sub(s.q_mean)));
     // --- Correct P2 with the HP transducer.
     let hp = inp
         .hp
@@ -377,8 +381,8 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
             let s_innov = s.var.saturating_add(k.r);
             if innov.qmul(innov) <= k.gate_sq.qmul(s_innov) {
                 let g = k.gain(s.var);
-                s.p2 = clamp(s.p2.saturating_add(g.qmul(innov)), P_MIN, P_MAX);
-                s.var = ONE.saturating_sub(g).qmul(s.var);
+                s.p2 = clamp(s.p2.saturating_add(mul_frac(g, innov)), P_MIN, P_MAX);
+                s.var = mul_frac(ONE.saturating_sub(g), s.var);
                 s.rejected = 0;
             } else {
                 faults |= fault::INNOVATION;
@@ -405,7 +409,10 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         .map(|p| p.0)
         .filter(|p| *p >= k.lp_range.0 && *p <= k.lp_range.1)
     {
-        Some(z) => s.lp = s.lp.saturating_add(k.gain_lp.qmul(z.saturating_sub(s.lp))),
+        Some(z) => {
+            s.lp =
+                s.lp.saturating_add(mul_frac(k.gain_lp, z.saturating_sub(s.lp)))
+        }
         None => faults |= fault::LP_SENSOR,
     }
     if inp.motor.is_none_or(|m| m.0 < ZERO || m.0 > k.motor_max) {
@@ -430,6 +437,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         autonomy: Seconds(k.autonomy.at(s.aperture, s.p2)),
         aperture: Aperture(s.aperture),
         faults,
+        reversal_units: REVERSAL_UNITS_PER_STEP - sh_budget,
     }
 }
 
@@ -493,6 +501,27 @@ struct Shared<'a> {
 #[inline(never)]
 fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
     let (k, lo, hi) = (sh.k, sh.lo, sh.hi);
+    if cs.setup_left == 0 {
+        // Force balance A_o·p_old(u) = A_n·p_new(u) (p_old falls, p_new rises): bisection.
+        let ratio = if cs.dir >= 0 {
+            c.ratio_ext
+        } else {
+            c.ratio_ret
+        };
+        let m = Fx::from_bits((cs.u_bal.to_bits() + cs.u_bal_hi.to_bits()) >> 1);
+        let (pn, po) = (p_new_at(k, cs, m, lo, hi), p_old_at(k, cs, m, lo, hi));
+        if po.saturating_sub(ratio.qmul(pn)) > ZERO {
+            cs.u_bal = m;
+        } else {
+            cs.u_bal_hi = m;
+        }
+        cs.bisect_left -= 1;
+        if cs.bisect_left == 0 && cs.from_rest {
+            // From rest both chambers start at LP: skip to the play.
+            cs.travel = cs.travel.saturating_add(cs.u_bal);
+        }
+        return;
+    }
     if cs.setup_left == SETUP_UNITS {
         // (1) Chamber lengths at the rod's position and the new chamber's strain per mm: a
         // chamber of length L (dead volume + chamber) moved by u changes its strain by u/L.
@@ -523,7 +552,7 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
         };
         cs.ms_new0 = k.ms_of_p.at(clamp(p_new0, lo, hi));
         cs.ms_old0 = k.ms_of_p.at(clamp(p_old0, lo, hi));
-    } else if cs.setup_left > 0 {
+    } else {
         // (4) Travel for the new chamber to reach P2 (delivery) and the old one LP (suction):
         // strain to go × L / 1000; the bisection's bracket.
         let to_hi = k.ms_of_p.at(hi).saturating_sub(cs.ms_new0).max(ZERO);
@@ -533,26 +562,6 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
         cs.u_bal = ZERO;
         cs.u_bal_hi = cs.u_end.max(cs.u_suc);
         cs.bisect_left = BISECT_ITERATIONS;
-    } else {
-        // Force balance A_o·p_old(u) = A_n·p_new(u) (p_old falls, p_new rises): bisection.
-        let ratio = if cs.dir >= 0 {
-            c.ratio_ext
-        } else {
-            c.ratio_ret
-        };
-        let m = Fx::from_bits((cs.u_bal.to_bits() + cs.u_bal_hi.to_bits()) >> 1);
-        let (pn, po) = (p_new_at(k, cs, m, lo, hi), p_old_at(k, cs, m, lo, hi));
-        if po.saturating_sub(ratio.qmul(pn)) > ZERO {
-            cs.u_bal = m;
-        } else {
-            cs.u_bal_hi = m;
-        }
-        cs.bisect_left -= 1;
-        if cs.bisect_left == 0 && cs.from_rest {
-            // From rest both chambers start at LP: skip to the play.
-            cs.travel = cs.travel.saturating_add(cs.u_bal);
-        }
-        return;
     }
     cs.setup_left -= 1;
 }
@@ -564,13 +573,7 @@ const KMS: Fx = Fx::from_bits(64_000);
 /// state, spending the step's reversal work budget. Kept out of line: the step would otherwise
 /// carry four unrolled copies of it, ×4 the flash.
 #[inline(never)]
-fn cylinder(
-    sh: &mut Shared,
-    c: &CylinderCoeffs,
-    cs: &mut CylState,
-    lever: &Lever,
-    on: bool,
-) -> Fx {
+fn cylinder(sh: &mut Shared, c: &CylinderCoeffs, cs: &mut CylState, lever: &Lever, on: bool) -> Fx {
     let (k, lo, hi) = (sh.k, sh.lo, sh.hi);
     let dtl = k.dt_log2;
     let (th, sd, v) = (lever.th, lever.sd, lever.v);

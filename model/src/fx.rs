@@ -160,6 +160,15 @@ impl QMul for Fx {
     }
 }
 
+/// `f × x` for a fraction `f` in [0, 1] (a filter or interpolation gain): |f·x| ≤ |x|, so the
+/// product needs no range check (3 instructions where [`QMul::qmul`] takes 7). Same bits as
+/// `f.qmul(x)` (floor of the exact product) for every such `f`; the gains passed are built in
+/// [0, 1] by the configuration.
+#[inline(always)]
+pub fn mul_frac(f: Fx, x: Fx) -> Fx {
+    Fx::from_bits(((i64::from(f.to_bits()) * i64::from(x.to_bits())) >> 16) as i32)
+}
+
 /// Saturating clamp to [lo, hi].
 #[inline]
 pub fn clamp(x: Fx, lo: Fx, hi: Fx) -> Fx {
@@ -255,6 +264,12 @@ mod tests {
     }
 
     proptest::proptest! {
+        #[test]
+        fn mul_frac_equals_qmul_for_fractions(f in 0i32..=65_536, x in proptest::num::i32::ANY) {
+            let (f, x) = (Fx::from_bits(f), Fx::from_bits(x));
+            proptest::prop_assert_eq!(mul_frac(f, x), f.qmul(x));
+        }
+
         #[test]
         fn shr64_equals_the_64_bit_shift(a in proptest::num::i64::ANY, n in 1u32..=31) {
             proptest::prop_assert_eq!(shr64(a, n), a >> n);

@@ -200,6 +200,8 @@ pub struct SchedulerState {
     /// Lower row of the valve-table cell the feed-forward inversion is in (see
     /// [`crate::table::Table2::invert_r_tracking`]).
     pub ff_row: u8,
+    /// Feed-forward aperture of the last refresh, %.
+    pub ff: Fx,
 }
 
 /// The aperture at which the steady valve flow equals `q` L/min at P2 − LP = `dp` bar: the
@@ -243,29 +245,35 @@ pub fn step(
     }
     let dp = est.p2.0.saturating_sub(est.lp.0).max(ZERO);
     let speed = measured_rpm.map_or(est.motor_rpm.0, |r| r.0);
+    // The feed-forward (the valve table inverted at the flow to pass) is refreshed only in a
+    // step in which the estimator spent no stroke-reversal work: the two share one background
+    // slot, so a step never pays for both. Its inputs (the pump flow averaged over a wave
+    // period, a speed setpoint, P2 − LP) move slowly; a reversal holds it for at most
+    // 4 × 16 steps.
+    let refresh = est.reversal_units == 0;
     // (feed-forward, error, kp, ki)
     let (ff, err, kp, ki) = match mode {
         Mode::Fixed(a) => (a.0, ZERO, ZERO, ZERO),
-        Mode::HoldPressure(p) => (
-            k.valve_flow
-                .invert_r_tracking(dp, est.q_pump_mean.0, &mut st.ff_row),
-            est.p2.0.saturating_sub(p.0),
-            sc.kp_p,
-            sc.ki_p,
-        ),
+        Mode::HoldPressure(p) => {
+            if refresh {
+                st.ff = k
+                    .valve_flow
+                    .invert_r_tracking(dp, est.q_pump_mean.0, &mut st.ff_row);
+            }
+            (st.ff, est.p2.0.saturating_sub(p.0), sc.kp_p, sc.ki_p)
+        }
         Mode::HoldSpeed(r) | Mode::MaxAutonomy(r) => {
             let target = if matches!(mode, Mode::MaxAutonomy(_)) {
                 r.0.saturating_add(r.0.qmul(sc.margin))
             } else {
                 r.0
             };
-            (
-                k.valve_flow
-                    .invert_r_tracking(dp, target.qmul(sc.lpm_per_rpm), &mut st.ff_row),
-                target.saturating_sub(speed),
-                sc.kp_s,
-                sc.ki_s,
-            )
+            if refresh {
+                st.ff =
+                    k.valve_flow
+                        .invert_r_tracking(dp, target.qmul(sc.lpm_per_rpm), &mut st.ff_row);
+            }
+            (st.ff, target.saturating_sub(speed), sc.kp_s, sc.ki_s)
         }
     };
     let span = sc.max.saturating_sub(sc.min);

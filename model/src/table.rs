@@ -4,7 +4,7 @@
 //! subtraction, a multiplication and a truncation. Outside the grid the end segments are held
 //! (clamped), never extrapolated.
 
-use crate::fx::{Fx, ONE, QMul, ZERO, recip};
+use crate::fx::{Fx, ONE, QMul, ZERO, mul_frac, recip};
 
 /// Locates `x` on a grid: (index of the lower node, fraction in [0, 1]).
 ///
@@ -23,13 +23,11 @@ fn locate(x: Fx, x0: Fx, inv_dx: Fx, n: usize) -> (usize, Fx) {
     (i as usize, Fx::from_bits(((p >> 16) as i32) & 0xffff))
 }
 
-/// a + f·(b − a) for a fraction f ∈ [0, 1]: |f·(b − a)| ≤ |b − a|, so the product needs no
-/// range check (same bits as the saturating product: floor of the exact value).
+/// a + f·(b − a) for a fraction f ∈ [0, 1] (the product needs no range check, see
+/// [`mul_frac`]).
 #[inline(always)]
 fn lerp(a: Fx, b: Fx, f: Fx) -> Fx {
-    let d = b.saturating_sub(a);
-    let t = (i64::from(f.to_bits()) * i64::from(d.to_bits())) >> 16;
-    a.saturating_add(Fx::from_bits(t as i32))
+    a.saturating_add(mul_frac(f, b.saturating_sub(a)))
 }
 
 /// A 1-D table of `N` values on a uniform grid.
