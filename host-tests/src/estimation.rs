@@ -555,7 +555,8 @@ impl Reference {
                 } else {
                     Self::t1(&k.gain_coarse, self.var).clamp(0.0, 1.0)
                 };
-                self.p2 += g * innov;
+                // The reading held to the model's pressure range, as in the fixed-point model.
+                self.p2 += g * (z.clamp(-1.0, 400.0) - self.p2);
                 self.var *= 1.0 - g;
                 self.rejected = 0;
             } else {
@@ -574,7 +575,7 @@ impl Reference {
         if let Some(z) = inp.lp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.lp_sensor_range_bar.0) && *p <= f64::from(c.lp_sensor_range_bar.1)
         }) {
-            self.lp += k.gain_lp.to_num::<f64>() * (z - self.lp);
+            self.lp += k.gain_lp.to_num::<f64>() * (z.clamp(-1.0, 400.0) - self.lp);
         }
         RefOut {
             p2: self.p2,

@@ -22,6 +22,10 @@ pub const N_ARM: usize = 65;
 pub const ARM_RANGE_RAD: f32 = 0.6;
 /// Upper end of the pressure axes, bar.
 pub const P_MAX_BAR: f32 = 160.0;
+/// Upper end of the LP capacitance table's axis, bar.
+pub const LP_MAX_BAR: f32 = 32.0;
+/// Points of the LP capacitance table over 0..[`LP_MAX_BAR`] (1 bar steps).
+pub const N_LP: usize = 33;
 /// Autonomy reported when the motor would never slow below the minimum speed, s.
 pub const AUTONOMY_CAP_S: f32 = 30_000.0;
 
@@ -86,7 +90,7 @@ pub struct Coefficients {
     /// dP2/dt per net HP inflow, bar/s per L/min, vs P2.
     pub inv_c_hp: Table1<N_NODE>,
     /// dLP/dt per net LP inflow, bar/s per L/min, vs LP.
-    pub inv_c_lp: Table1<N_PRESSURE>,
+    pub inv_c_lp: Table1<N_LP>,
     /// Motor speed per valve flow, rpm per L/min (Eq. 9 with the load line).
     pub rpm_per_lpm: Fx,
     /// Spool lag gain per step, dt/τ (1 = ideal valve).
@@ -168,6 +172,23 @@ fn capacitance(cfg: &ModelConfig, a: &AccumulatorConfig, p: f32) -> f32 {
         (a.volume_l - acc_fluid(a, p)) / (a.polytropic_index * (p + P_ATM_BAR))
     };
     gas + (a.line_volume_l + acc_fluid(a, p)) / modulus_bar(cfg, p)
+}
+
+/// Node value of a capacitance table with node spacing `h` bar. The capacitance jumps at the
+/// precharge (gas below it: none; just above it: the whole accumulator), and a linear
+/// interpolation smears the jump over the cell that holds it. Sampled plainly, the cell just
+/// above the precharge would see up to 3 000× the real dP/dV (the reference bench's HP node:
+/// 1/C from 185 to 0.06 bar/(L/min·s) over 25–26.25 bar), a stiff node that amplified every
+/// flow error where P2 settles just above the precharge (the blocked runs' end, the 71 bar
+/// discharge). So the last
+/// node below the precharge takes the value just above it: the smear falls below the
+/// precharge, where the accumulator is empty and P2 passes through quickly.
+fn capacitance_node(cfg: &ModelConfig, a: &AccumulatorConfig, p: f32, h: f32) -> f32 {
+    if p <= a.precharge_bar && p + h > a.precharge_bar {
+        capacitance(cfg, a, a.precharge_bar * (1.0 + f32::EPSILON))
+    } else {
+        capacitance(cfg, a, p)
+    }
 }
 
 /// Lever geometry: φ0 such that the eye is at mid-stroke at θ = 0.
@@ -333,10 +354,16 @@ impl ModelConfig {
             self.steady_flow(a, dp)
         });
         let autonomy = Table2::sample((0.0, 100.0), (0.0, P_MAX_BAR), |a, p| self.autonomy_s(a, p));
+        let (h_hp, h_lp) = (
+            P_MAX_BAR / (N_NODE - 1) as f32,
+            LP_MAX_BAR / (N_LP - 1) as f32,
+        );
         let inv_c_hp = Table1::sample(0.0, P_MAX_BAR, |p| {
-            1.0 / (60.0 * capacitance(self, &self.hp, p))
+            1.0 / (60.0 * capacitance_node(self, &self.hp, p, h_hp))
         });
-        let inv_c_lp = Table1::sample(0.0, 32.0, |p| 1.0 / (60.0 * capacitance(self, &self.lp, p)));
+        let inv_c_lp = Table1::sample(0.0, LP_MAX_BAR, |p| {
+            1.0 / (60.0 * capacitance_node(self, &self.lp, p, h_lp))
+        });
         let spool_gain = if self.spool_time_constant_ms <= 0.0 {
             1.0
         } else {
@@ -370,7 +397,7 @@ impl ModelConfig {
             relief_setting: fx(self.relief_setting_bar),
             relief_gain: fx(self.relief_gain_lpm_per_bar),
             q_step: Table1::sample(0.0, P_MAX_BAR, |p| {
-                let ic = 1.0 / (60.0 * capacitance(self, &self.hp, p));
+                let ic = 1.0 / (60.0 * capacitance_node(self, &self.hp, p, h_hp));
                 let qf = self.process_noise_lpm_per_sqrt_s * ic;
                 (qf * qf * dt).max(1.0 / 65_536.0)
             }),
@@ -410,5 +437,44 @@ impl Coefficients {
         } else {
             self.gain_coarse.at(var).min(ONE).max(ZERO)
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Just above an accumulator's precharge the node tables give the accumulator's own dP/dV
+    /// (the jump to the empty accumulator's stiffness is smeared below the precharge, not
+    /// above it).
+    #[test]
+    fn capacitance_tables_are_soft_just_above_the_precharge() {
+        let cfg = ModelConfig::reference();
+        let k = cfg.coefficients().unwrap();
+        fn check<const N: usize>(
+            cfg: &ModelConfig,
+            name: &str,
+            acc: &AccumulatorConfig,
+            table: &Table1<N>,
+            p_max: f32,
+        ) {
+            let h = p_max / (N - 1) as f32;
+            let below = 1.0 / (60.0 * capacitance(cfg, acc, acc.precharge_bar - h));
+            let mut worst = 0.0f32;
+            for i in 1..=20 {
+                let p = acc.precharge_bar + 2.0 * h * i as f32 / 20.0;
+                let exact = 1.0 / (60.0 * capacitance(cfg, acc, p));
+                let got: f32 = table.at(Fx::from_num(p)).to_num();
+                worst = worst.max((got / exact - 1.0).abs());
+            }
+            println!(
+                "{name}: dP/dV one cell below the precharge {below:.3}, up to two cells above \
+                 within {:.1} % of the exact 1/C",
+                100.0 * worst
+            );
+            assert!(worst < 0.05, "{name}: {worst}");
+        }
+        check(&cfg, "HP", &cfg.hp, &k.inv_c_hp, P_MAX_BAR);
+        check(&cfg, "LP", &cfg.lp, &k.inv_c_lp, LP_MAX_BAR);
     }
 }
