@@ -5,12 +5,16 @@ use crate::bench::{BAR, Bench, Load};
 use crate::scenario::{Scenario, ValveSpec};
 use crate::sim::{SimResult, Trace};
 use pto_model::config::{AccumulatorConfig, CylinderConfig, GeometryConfig};
-use pto_model::estimator::Inputs;
+use pto_model::estimator::{Inputs, P_MAX, P_MIN};
 use pto_model::fx::{Aperture, Fx, Pressure, Rpm};
 use pto_model::table::{Table1, Table2};
 use pto_model::{Coefficients, ModelConfig};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+
+/// The fixed-point model's pressure range, bar (its Q16.16 bounds, exactly).
+const P_MIN_BAR: f64 = P_MIN.to_bits() as f64 / 65_536.0;
+const P_MAX_BAR: f64 = P_MAX.to_bits() as f64 / 65_536.0;
 use rand_distr::{Distribution, Normal};
 
 const RPM: f64 = 30.0 / std::f64::consts::PI;
@@ -540,9 +544,10 @@ impl Reference {
             (self.p2 - k.relief_setting.to_num::<f64>()).max(0.0) * k.relief_gain.to_num::<f64>();
         let motor_rpm = q_valve * k.rpm_per_lpm.to_num::<f64>();
         let inv_c_hp = Self::t1(&k.inv_c_hp, self.p2);
-        self.p2 = (self.p2 + (q_pump - q_valve - q_relief) * inv_c_hp * dt).clamp(-1.0, 400.0);
+        self.p2 =
+            (self.p2 + (q_pump - q_valve - q_relief) * inv_c_hp * dt).clamp(P_MIN_BAR, P_MAX_BAR);
         self.lp = (self.lp + (q_valve + q_relief - q_lp) * Self::t1(&k.inv_c_lp, self.lp) * dt)
-            .clamp(-1.0, 400.0);
+            .clamp(P_MIN_BAR, P_MAX_BAR);
         let r = f64::from(c.pressure_noise_bar).powi(2);
         self.var += Self::t1(&k.q_step, self.p2);
         if let Some(z) = inp.hp.map(|p| f64::from(p.to_f32())).filter(|p| {
@@ -556,7 +561,7 @@ impl Reference {
                     Self::t1(&k.gain_coarse, self.var).clamp(0.0, 1.0)
                 };
                 // The reading held to the model's pressure range, as in the fixed-point model.
-                self.p2 += g * (z.clamp(-1.0, 400.0) - self.p2);
+                self.p2 += g * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.p2);
                 self.var *= 1.0 - g;
                 self.rejected = 0;
             } else {
@@ -575,7 +580,7 @@ impl Reference {
         if let Some(z) = inp.lp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.lp_sensor_range_bar.0) && *p <= f64::from(c.lp_sensor_range_bar.1)
         }) {
-            self.lp += k.gain_lp.to_num::<f64>() * (z.clamp(-1.0, 400.0) - self.lp);
+            self.lp += k.gain_lp.to_num::<f64>() * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.lp);
         }
         RefOut {
             p2: self.p2,

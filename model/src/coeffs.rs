@@ -180,9 +180,9 @@ fn capacitance(cfg: &ModelConfig, a: &AccumulatorConfig, p: f32) -> f32 {
 /// above the precharge would see up to 3 000× the real dP/dV (the reference bench's HP node:
 /// 1/C from 185 to 0.06 bar/(L/min·s) over 25–26.25 bar), a stiff node that amplified every
 /// flow error where P2 settles just above the precharge (the blocked runs' end, the 71 bar
-/// discharge). So the last
-/// node below the precharge takes the value just above it: the smear falls below the
-/// precharge, where the accumulator is empty and P2 passes through quickly.
+/// discharge). So the node at or just below the precharge takes the value just above it: the
+/// smear falls into the cell below, where the accumulator is empty and P2 passes through
+/// quickly.
 fn capacitance_node(cfg: &ModelConfig, a: &AccumulatorConfig, p: f32, h: f32) -> f32 {
     if p <= a.precharge_bar && p + h > a.precharge_bar {
         capacitance(cfg, a, a.precharge_bar * (1.0 + f32::EPSILON))
@@ -355,8 +355,8 @@ impl ModelConfig {
         });
         let autonomy = Table2::sample((0.0, 100.0), (0.0, P_MAX_BAR), |a, p| self.autonomy_s(a, p));
         let (h_hp, h_lp) = (
-            P_MAX_BAR / (N_NODE - 1) as f32,
-            LP_MAX_BAR / (N_LP - 1) as f32,
+            Table1::<N_NODE>::spacing(0.0, P_MAX_BAR),
+            Table1::<N_LP>::spacing(0.0, LP_MAX_BAR),
         );
         let inv_c_hp = Table1::sample(0.0, P_MAX_BAR, |p| {
             1.0 / (60.0 * capacitance_node(self, &self.hp, p, h_hp))
@@ -458,7 +458,7 @@ mod tests {
             table: &Table1<N>,
             p_max: f32,
         ) {
-            let h = p_max / (N - 1) as f32;
+            let h = Table1::<N>::spacing(0.0, p_max);
             let below = 1.0 / (60.0 * capacitance(cfg, acc, acc.precharge_bar - h));
             let mut worst = 0.0f32;
             for i in 1..=20 {

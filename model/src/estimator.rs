@@ -220,8 +220,10 @@ impl State {
     }
 }
 
-const P_MIN: Fx = Fx::from_bits(-65_536); // −1 bar
-const P_MAX: Fx = Fx::from_bits(400 << 16);
+/// Lower end of the pressure states' range (P2, LP), bar: vacuum.
+pub const P_MIN: Fx = Fx::from_bits(-65_536);
+/// Upper end of the pressure states' range (P2, LP), bar.
+pub const P_MAX: Fx = Fx::from_bits(400 << 16);
 const FLOW_LIM: Fx = Fx::from_bits(1000 << 16);
 const THETA_LIM_Q32: i64 = 1 << 61;
 const OMEGA_LIM_Q32: i64 = 100 << 32;

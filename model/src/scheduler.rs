@@ -204,6 +204,16 @@ pub struct SchedulerState {
     pub ff: Fx,
 }
 
+/// The feed-forward aperture for `q` L/min at P2 − LP = `dp` bar: refreshed when `refresh`,
+/// else the last one.
+#[inline(always)]
+fn feed_forward(k: &Coefficients, st: &mut SchedulerState, refresh: bool, dp: Fx, q: Fx) -> Fx {
+    if refresh {
+        st.ff = k.valve_flow.invert_r_tracking(dp, q, &mut st.ff_row);
+    }
+    st.ff
+}
+
 /// The aperture at which the steady valve flow equals `q` L/min at P2 − LP = `dp` bar: the
 /// inverse of the valve table along its aperture axis ([`crate::table::Table2::invert_r`]; the
 /// step uses its bounded-work form, [`crate::table::Table2::invert_r_tracking`]).
@@ -254,26 +264,24 @@ pub fn step(
     // (feed-forward, error, kp, ki)
     let (ff, err, kp, ki) = match mode {
         Mode::Fixed(a) => (a.0, ZERO, ZERO, ZERO),
-        Mode::HoldPressure(p) => {
-            if refresh {
-                st.ff = k
-                    .valve_flow
-                    .invert_r_tracking(dp, est.q_pump_mean.0, &mut st.ff_row);
-            }
-            (st.ff, est.p2.0.saturating_sub(p.0), sc.kp_p, sc.ki_p)
-        }
+        Mode::HoldPressure(p) => (
+            feed_forward(k, st, refresh, dp, est.q_pump_mean.0),
+            est.p2.0.saturating_sub(p.0),
+            sc.kp_p,
+            sc.ki_p,
+        ),
         Mode::HoldSpeed(r) | Mode::MaxAutonomy(r) => {
             let target = if matches!(mode, Mode::MaxAutonomy(_)) {
                 r.0.saturating_add(r.0.qmul(sc.margin))
             } else {
                 r.0
             };
-            if refresh {
-                st.ff =
-                    k.valve_flow
-                        .invert_r_tracking(dp, target.qmul(sc.lpm_per_rpm), &mut st.ff_row);
-            }
-            (st.ff, target.saturating_sub(speed), sc.kp_s, sc.ki_s)
+            (
+                feed_forward(k, st, refresh, dp, target.qmul(sc.lpm_per_rpm)),
+                target.saturating_sub(speed),
+                sc.kp_s,
+                sc.ki_s,
+            )
         }
     };
     let span = sc.max.saturating_sub(sc.min);

@@ -42,9 +42,14 @@ pub struct Table1<const N: usize> {
 }
 
 impl<const N: usize> Table1<N> {
+    /// Node spacing of a table over [x0, x1].
+    pub fn spacing(x0: f32, x1: f32) -> f32 {
+        (x1 - x0) / (N - 1) as f32
+    }
+
     /// Builds a table by sampling `f` on [x0, x1] (configuration time).
     pub fn sample(x0: f32, x1: f32, f: impl Fn(f32) -> f32) -> Self {
-        let dx = (x1 - x0) / (N - 1) as f32;
+        let dx = Self::spacing(x0, x1);
         let mut y = [ZERO; N];
         for (i, v) in y.iter_mut().enumerate() {
             *v = Fx::saturating_from_num(f(x0 + dx * i as f32));
