@@ -77,6 +77,7 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
         motor_leak_lpm_per_bar: (b.motor_leak * 6e4 * BAR) as f32,
         motor_mech_efficiency: b.motor_eta_mech as f32,
         load_nm_per_rpm: load_nm_per_rpm as f32,
+        motor_inertia_kg_m2: b.motor_inertia as f32,
         ..r
     };
     c.validate().map_err(|e| e.to_string())?;
@@ -275,6 +276,8 @@ pub struct Reference {
     /// LP, bar.
     pub lp: f64,
     aperture: f64,
+    /// Valve/motor flow, L/min (`None` before the first step).
+    q_motor: Option<f64>,
     rejected: u32,
     cyl: [RefCyl; 4],
 }
@@ -326,6 +329,7 @@ impl Reference {
             var: sigma * sigma,
             lp,
             aperture: 0.0,
+            q_motor: None,
             rejected: 0,
             cyl: [RefCyl::default(); 4],
         }
@@ -352,6 +356,14 @@ impl Reference {
         let lo = y(i, j) + fc * (y(i, j + 1) - y(i, j));
         let hi = y(i + 1, j) + fc * (y(i + 1, j + 1) - y(i + 1, j));
         lo + fr * (hi - lo)
+    }
+
+    /// A per-row column of a 2-D table (`Table2::at_with`) at row coordinate `r`.
+    fn row_lerp<const R: usize, const C: usize>(t: &Table2<R, C>, col: &[Fx; R], r: f64) -> f64 {
+        let u = ((r - t.r0.to_num::<f64>()) * t.inv_dr.to_num::<f64>()).clamp(0.0, (R - 1) as f64);
+        let i = (u as usize).min(R - 2);
+        let (a, b) = (col[i].to_num::<f64>(), col[i + 1].to_num::<f64>());
+        a + (u - i as f64) * (b - a)
     }
 
     /// One step, mirroring `pto_model::estimator::step`.
@@ -539,10 +551,18 @@ impl Reference {
                 torque -= side * d * self.lp * (f(cc.f_cap) - f(cc.f_ann));
             }
         }
-        let q_valve = Self::t2(&k.valve_flow, self.aperture, (self.p2 - self.lp).max(0.0));
+        let dp = (self.p2 - self.lp).max(0.0);
+        let q_ss = Self::t2(&k.valve_flow, self.aperture, dp);
+        let q = self.q_motor.unwrap_or(q_ss);
+        let g = (k.motor_gain0.to_num::<f64>()
+            + (q_ss + q) * Self::row_lerp(&k.valve_flow, &k.motor_gain_valve, self.aperture))
+        .min(1.0);
+        let q = q + g * (q_ss - q);
+        self.q_motor = Some(q);
+        let motor_rpm = q * k.rpm_per_lpm.to_num::<f64>();
+        let q_valve = if dp > 0.0 { q } else { 0.0 };
         let q_relief =
             (self.p2 - k.relief_setting.to_num::<f64>()).max(0.0) * k.relief_gain.to_num::<f64>();
-        let motor_rpm = q_valve * k.rpm_per_lpm.to_num::<f64>();
         let inv_c_hp = Self::t1(&k.inv_c_hp, self.p2);
         self.p2 =
             (self.p2 + (q_pump - q_valve - q_relief) * inv_c_hp * dt).clamp(P_MIN_BAR, P_MAX_BAR);

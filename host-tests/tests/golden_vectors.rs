@@ -95,6 +95,11 @@ fn reference_bench_model_config_matches_the_firmware_default() {
         fw.load_nm_per_rpm,
         "load_nm_per_rpm",
     );
+    close(
+        from_bench.motor_inertia_kg_m2,
+        fw.motor_inertia_kg_m2,
+        "motor_inertia_kg_m2",
+    );
     assert_eq!(from_bench.cylinders, fw.cylinders);
     assert_eq!(from_bench.geometries, fw.geometries);
     assert_eq!(from_bench.valve_area_mm2, fw.valve_area_mm2);

@@ -6,8 +6,10 @@
 //! both closed-loop targets. The selection covers Test III, a torque run, Test II with all four
 //! cylinders at the relief (the worst fixed-vs-f64 torque before the pressure nodes kept their
 //! sub-LSB bits), a blocked input and the 71 bar discharge (both cross the HP precharge), the
-//! experimental runs and the irregular sea. The Test I runs with the HP accumulator below its
-//! precharge and the blocked runs at 15–25 % are left to `pto validate` (see the README).
+//! experimental runs and the irregular sea; a blocked input at 25 % (P2 ends below the precharge
+//! with the motor stopped, on the stiff empty node). The Test I runs with one or two cylinders
+//! (HP accumulator empty) meet the P2 and motor-speed targets, asserted on one of them below;
+//! their model-only P2 and torque are left to `pto validate` (see the README).
 
 use pto_host::bench::Bench;
 use pto_host::validate::{self, target};
@@ -24,6 +26,7 @@ fn model_tracks_the_full_simulation_on_representative_runs() {
         "test2-cfg1-c1234",
         "blocked-ap10",
         "exp-discharge-71",
+        "blocked-ap25",
     ];
     let sel: Vec<_> = pto_host::scenario::builtin()
         .into_iter()
@@ -72,6 +75,31 @@ fn model_tracks_the_full_simulation_on_representative_runs() {
         );
         assert!(r.pass, "{}", r.scenario);
     }
+}
+
+/// Test I with one cylinder: the HP accumulator is empty and P2 follows the motor, whose rotor
+/// inertia the model carries (the quasi-static valve/motor law missed the speed by 10–13 %).
+#[test]
+fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
+    let sel: Vec<_> = pto_host::scenario::builtin()
+        .into_iter()
+        .filter(|s| s.name == "test1-cfg1-c1")
+        .collect();
+    assert_eq!(sel.len(), 1);
+    let rep = validate::run(&Bench::reference(), &sel, false);
+    assert!(rep.errors.is_empty(), "{:?}", rep.errors);
+    let r = &rep.rows[0];
+    let motor = r.motor_rms_rel.expect("Test I runs the motor");
+    println!(
+        "{}: P2 RMS {:.3} bar (target {}), motor {:.2} % (target {} %)",
+        r.scenario,
+        r.p2_rms_bar,
+        target::P2_RMS_BAR,
+        100.0 * motor,
+        100.0 * target::MOTOR_RMS_REL
+    );
+    assert!(r.p2_rms_bar <= target::P2_RMS_BAR);
+    assert!(motor <= target::MOTOR_RMS_REL);
 }
 
 #[test]

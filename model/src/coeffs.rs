@@ -26,6 +26,9 @@ pub const P_MAX_BAR: f32 = 160.0;
 pub const LP_MAX_BAR: f32 = 32.0;
 /// Points of the LP capacitance table over 0..[`LP_MAX_BAR`] (1 bar steps).
 pub const N_LP: usize = 33;
+/// Ceiling of [`Coefficients::motor_gain_valve`], per L/min: at the closed valve 1/K² is
+/// infinite; any value ≥ 1 per L/min already makes a 1 L/min flow settle within the step.
+pub const MOTOR_GAIN_VALVE_CAP: f32 = 256.0;
 /// Autonomy reported when the motor would never slow below the minimum speed, s.
 pub const AUTONOMY_CAP_S: f32 = 30_000.0;
 
@@ -93,6 +96,15 @@ pub struct Coefficients {
     pub inv_c_lp: Table1<N_LP>,
     /// Motor speed per valve flow, rpm per L/min (Eq. 9 with the load line).
     pub rpm_per_lpm: Fx,
+    /// The valve/motor flow's relaxation per step toward the steady flow, from the motor's own
+    /// load line: dt·β/L (≈ dt/τ with τ = J/c the rotor's time constant, 0.134 s on the
+    /// reference bench). See [`ModelConfig::motor_inductance`].
+    pub motor_gain0: Fx,
+    /// The valve's share of that relaxation per L/min of flow at the valve table's aperture
+    /// nodes (read with [`Table2::at_with`]): dt/(L·K(a)²), held to [`MOTOR_GAIN_VALVE_CAP`]
+    /// near the closed valve. The step's gain is `motor_gain0 + (Q_ss + Q)·motor_gain_valve(a)`
+    /// (≤ 1).
+    pub motor_gain_valve: [Fx; N_APERTURE],
     /// Spool lag gain per step, dt/τ (1 = ideal valve).
     pub spool_gain: Fx,
     /// Relief setting, bar.
@@ -239,6 +251,18 @@ impl ModelConfig {
             + self.motor_leak_lpm_per_bar * self.bar_per_rpm())
     }
 
+    /// Hydraulic inductance of the valve/motor branch, bar per L/min/s: the pressure that
+    /// accelerates the rotor, L = J·rpm_per_lpm/κ with κ = (60/2π)·D·η_m/J the rotor's
+    /// acceleration per bar (rpm/s per bar; D in m³/rad, bar in Pa). The branch obeys
+    /// L·dQ/dt = ΔP − F(Q), F(Q) = Q²/K² + β·Q the steady pressure drop of [`Self::steady_flow`]
+    /// (1.03 bar per L/min/s on the reference bench).
+    pub fn motor_inductance(&self) -> f32 {
+        let d_rad = self.motor_displacement_cm3 * 1e-6 / (2.0 * core::f32::consts::PI);
+        let kappa = 60.0 / (2.0 * core::f32::consts::PI) * d_rad * self.motor_mech_efficiency * 1e5
+            / self.motor_inertia_kg_m2;
+        self.rpm_per_lpm() / kappa
+    }
+
     /// Steady valve/motor flow, L/min, at aperture `a` % and P2 − LP = `dp` bar: the root of
     /// Q = K·sqrt(dp − β·Q) with β the motor's bar per L/min.
     pub fn steady_flow(&self, a: f32, dp: f32) -> f32 {
@@ -369,6 +393,7 @@ impl ModelConfig {
         } else {
             (dt / (self.spool_time_constant_ms * 1e-3)).min(1.0)
         };
+        let inductance = self.motor_inductance();
         let r = self.pressure_noise_bar * self.pressure_noise_bar;
         // LP: steady-state gain for the flow uncertainty at nominal LP.
         let ic_lp = 1.0 / (60.0 * capacitance(self, &self.lp, lp_nom));
@@ -393,6 +418,16 @@ impl ModelConfig {
             inv_c_hp,
             inv_c_lp,
             rpm_per_lpm: fx(self.rpm_per_lpm()),
+            motor_gain0: fx(dt * self.bar_per_rpm() * self.rpm_per_lpm() / inductance),
+            motor_gain_valve: core::array::from_fn(|i| {
+                let kv = self.valve_k(100.0 * i as f32 / (N_APERTURE - 1) as f32);
+                let cap = MOTOR_GAIN_VALVE_CAP;
+                fx(if kv <= 0.0 {
+                    cap
+                } else {
+                    (dt / (inductance * kv * kv)).min(cap)
+                })
+            }),
             spool_gain: fx(spool_gain),
             relief_setting: fx(self.relief_setting_bar),
             relief_gain: fx(self.relief_gain_lpm_per_bar),

@@ -99,10 +99,11 @@ pub struct Estimate {
     pub aperture: Aperture,
     /// [`fault`] bits.
     pub faults: u16,
-    /// Stroke-reversal work units spent this step (0 or up to [`REVERSAL_UNITS_PER_STEP`]).
-    /// The step's background slot: the scheduler refreshes its feed-forward only in a step that
-    /// spent none, so the two never add up in one step.
-    pub reversal_units: u8,
+    /// Background work units the estimator spent this step: stroke-reversal units (up to
+    /// [`REVERSAL_UNITS_PER_STEP`]) or, in a step without them, one for the autonomy refresh
+    /// (every [`AUTONOMY_EVERY`]th step). The step's background slot: the scheduler refreshes
+    /// its feed-forward only in a step that spent none, so no two of them add up in one step.
+    pub background_units: u8,
 }
 
 impl Estimate {
@@ -170,7 +171,10 @@ pub const BISECT_ITERATIONS: u8 = 12;
 /// in one step.
 pub const REVERSAL_UNITS_PER_STEP: u8 = 1;
 
-/// Estimator state (304 bytes together with the scheduler's; `pto model-cost` prints it).
+/// Steps between autonomy refreshes (8 ms at 2^−10 s; more while reversals hold the slot).
+pub const AUTONOMY_EVERY: u8 = 8;
+
+/// Estimator state (320 bytes together with the scheduler's; `pto model-cost` prints it).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct State {
@@ -200,6 +204,17 @@ pub struct State {
     pub lp_lo: u16,
     /// Effective spool aperture, %.
     pub aperture: Fx,
+    /// Valve/motor flow, L/min: the rotor's speed as the flow it passes (it lags the steady
+    /// flow of the pressure across the branch by the rotor's inertia).
+    pub q_motor: Fx,
+    /// The 16 bits of the valve/motor flow below its Q16.16 LSB.
+    pub q_motor_lo: u16,
+    /// The valve/motor flow has been set to its steady value (first step).
+    pub flow_init: bool,
+    /// Autonomy at the last refresh, s.
+    pub autonomy: Fx,
+    /// Steps since the last autonomy refresh (wraps).
+    pub autonomy_tick: u8,
     /// Averaged pump flow, L/min.
     pub q_mean: Fx,
     /// Cylinders.
@@ -262,14 +277,22 @@ fn node_step(p: &mut Fx, lo: &mut u16, net_inflow: Fx, dp_per_flow: Fx, dtl: u8)
     (*p, *lo) = split((ext(*p, *lo) + d).clamp(ext(P_MIN, 0), ext(P_MAX, 0)));
 }
 
-/// An observer correction p += g·(z − p) with g ∈ [0, 1], kept to 2^−32 bar like
-/// [`node_step`]: the Q16.16 product g·(z − p) is exact in Q32.32. The reading is first held to
-/// the physical pressure range (a transducer's accepted range may reach past it, e.g. −2 bar),
-/// so the result, between p and that, needs no 64-bit clamp.
+/// x += g·(target − x) with g ∈ [0, 1], x kept to 16 bits below its Q16.16 LSB like
+/// [`node_step`]: the Q16.16 product g·(target − x) is exact in Q32.32. The result lies between
+/// x and the target, so it needs no clamp (the difference of two values in range must not
+/// overflow: both are held to a physical range well inside ±2^15).
+#[inline]
+fn relax(x: &mut Fx, lo: &mut u16, g: Fx, target: Fx) {
+    let d = target - *x;
+    (*x, *lo) = split(ext(*x, *lo) + i64::from(g.to_bits()) * i64::from(d.to_bits()));
+}
+
+/// An observer correction p += g·(z − p) with g ∈ [0, 1] ([`relax`]). The reading is first held
+/// to the physical pressure range (a transducer's accepted range may reach past it, e.g.
+/// −2 bar), so the result, between p and that, stays inside it.
 #[inline]
 fn correct(p: &mut Fx, lo: &mut u16, g: Fx, z: Fx) {
-    let innov = clamp(z, P_MIN, P_MAX) - *p;
-    (*p, *lo) = split(ext(*p, *lo) + i64::from(g.to_bits()) * i64::from(innov.to_bits()));
+    relax(p, lo, g, clamp(z, P_MIN, P_MAX));
 }
 
 /// Advances the estimator by one step. Cannot fail; every reading may be missing or wrong.
@@ -389,15 +412,34 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         torque_cyl[i] = Torque(t);
         torque = torque.saturating_add(t);
     }
-    let (q_pump, q_lp_net, sh_budget) = (sh.q_pump, sh.q_lp, sh.budget);
+    let (q_pump, q_lp_net) = (sh.q_pump, sh.q_lp);
+    let mut background_units = REVERSAL_UNITS_PER_STEP - sh.budget;
     // --- Valve, relief, motor.
+    // The rotor's inertia: L·dQ/dt = ΔP − F(Q) with F the branch's steady pressure drop
+    // (`ModelConfig::motor_inductance`). F(Q_ss) = ΔP, and F(Q_ss) − F(Q) = (Q_ss − Q)·(β +
+    // (Q_ss + Q)/K²) exactly for the turbulent valve, so one explicit step is a relaxation
+    // toward the steady flow with gain dt/L·(β + (Q_ss + Q)/K²). Held to 1 (where the valve's
+    // resistance makes the branch faster than a step, e.g. near closed), the flow takes its
+    // steady value: it never overshoots, so the step is stable at every aperture.
     let dp = s.p2.saturating_sub(s.lp).max(ZERO);
-    let q_valve = k.valve_flow.at(s.aperture, dp);
+    let (q_ss, gain_valve) = k.valve_flow.at_with(s.aperture, dp, &k.motor_gain_valve);
+    if !s.flow_init {
+        (s.q_motor, s.q_motor_lo) = (q_ss, 0);
+        s.flow_init = true;
+    }
+    let g = k
+        .motor_gain0
+        .saturating_add(q_ss.saturating_add(s.q_motor).qmul(gain_valve))
+        .min(ONE);
+    relax(&mut s.q_motor, &mut s.q_motor_lo, g, q_ss);
+    let motor_rpm = s.q_motor.qmul(k.rpm_per_lpm);
+    // A coasting rotor that outruns the pressure across it (P2 down to LP: an empty HP node
+    // when the pump stops) draws the rest through the make-up valve from LP, not from HP.
+    let q_valve = if dp > ZERO { s.q_motor } else { ZERO };
     let q_relief =
         s.p2.saturating_sub(k.relief_setting)
             .max(ZERO)
             .qmul(k.relief_gain);
-    let motor_rpm = q_valve.qmul(k.rpm_per_lpm);
     // --- Predict.
     let net_hp = q_pump.saturating_sub(q_valve).saturating_sub(q_relief);
     let dp_per_flow = k.inv_c_hp.at(s.p2);
@@ -457,6 +499,15 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     if s.p2 > k.trip || hp.is_some_and(|z| z > k.trip) {
         faults |= fault::OVERPRESSURE;
     }
+    // Autonomy changes over seconds: it is refreshed in the background slot, every
+    // AUTONOMY_EVERY-th step unless a reversal holds the slot (then in the next free step), so
+    // its table lookup adds to neither a reversal's work nor the scheduler's feed-forward.
+    s.autonomy_tick = s.autonomy_tick.wrapping_add(1);
+    if background_units == 0 && s.autonomy_tick >= AUTONOMY_EVERY {
+        s.autonomy = k.autonomy.at(s.aperture, s.p2);
+        s.autonomy_tick = 0;
+        background_units = 1;
+    }
     Estimate {
         p2: Pressure(s.p2),
         p2_var: PressureVariance(s.var),
@@ -470,10 +521,10 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         torque: Torque(torque),
         torque_cyl,
         motor_rpm: Rpm(motor_rpm),
-        autonomy: Seconds(k.autonomy.at(s.aperture, s.p2)),
+        autonomy: Seconds(s.autonomy),
         aperture: Aperture(s.aperture),
         faults,
-        reversal_units: REVERSAL_UNITS_PER_STEP - sh_budget,
+        background_units,
     }
 }
 
@@ -733,7 +784,66 @@ mod tests {
         assert!(err_lsb < 1.0);
     }
 
+    /// The rotor's inertia: at full aperture (the valve's share of the pressure is ≈ 1 %) the
+    /// valve/motor flow rises toward its steady value with the rotor's time constant J/c (rad/s
+    /// units: 0.01 kg·m² / (0.00784 N·m/rpm × 60/2π) = 0.134 s on the reference bench), and a
+    /// closing valve stops it within the step (the gain is held to 1: no overshoot).
+    #[test]
+    fn motor_flow_lags_by_the_rotor_time_constant_and_stops_with_the_valve() {
+        let cfg = crate::ModelConfig::reference();
+        let k = cfg.coefficients().unwrap();
+        let dt = 1.0 / f64::from(1u32 << k.dt_log2);
+        // Just above the precharge the accumulator holds P2 (≈ 0.1 bar over the rise).
+        let mut s = State::new(
+            Pressure::from_num(30.0),
+            Pressure::from_num(8.0),
+            Pressure::ZERO,
+        );
+        s.aperture = Fx::from_num(100);
+        s.flow_init = true;
+        let inp = Inputs {
+            aperture_cmd: Aperture::from_num(100.0),
+            ..Inputs::default()
+        };
+        let q_ss = f64::from(k.valve_flow.at(s.aperture, s.p2 - s.lp).to_num::<f32>());
+        let mut steps = 0u32;
+        while f64::from(s.q_motor.to_num::<f32>()) < (1.0 - (-1f64).exp()) * q_ss {
+            step(&k, &mut s, &inp);
+            steps += 1;
+            assert!(steps < 10_000);
+        }
+        let tau = f64::from(steps) * dt;
+        let c_rad = f64::from(cfg.load_nm_per_rpm) * 60.0 / (2.0 * core::f64::consts::PI);
+        let tau_rotor = f64::from(cfg.motor_inertia_kg_m2) / c_rad;
+        println!(
+            "flow reaches 63 % of {q_ss:.3} L/min after {tau:.4} s; rotor J/c = {tau_rotor:.4} s"
+        );
+        assert!((tau / tau_rotor - 1.0).abs() < 0.05, "{tau} vs {tau_rotor}");
+        // Close the valve at once (no spool lag in this state): the flow stops in one step.
+        s.aperture = ZERO;
+        let inp = Inputs {
+            aperture_cmd: Aperture::ZERO,
+            ..Inputs::default()
+        };
+        let e = step(&k, &mut s, &inp);
+        assert_eq!(s.q_motor, ZERO);
+        assert_eq!(e.motor_rpm.0, ZERO);
+    }
+
     proptest! {
+        /// A relaxation never overshoots its target (the fraction bits may carry it less than
+        /// one LSB past it), for any flows and gains in range.
+        #[test]
+        fn relaxation_never_overshoots(
+            x in 0i32..(1000 << 16), lo in any::<u16>(), t in 0i32..(1000 << 16),
+            g in 0i32..=65_536,
+        ) {
+            let (mut xx, mut ll) = (Fx::from_bits(x), lo);
+            relax(&mut xx, &mut ll, Fx::from_bits(g), Fx::from_bits(t));
+            let (a, b) = (x.min(t), x.max(t));
+            prop_assert!(xx.to_bits() >= a && xx.to_bits() <= b, "{} not in [{a}, {b}]", xx.to_bits());
+        }
+
         /// An observer correction lands between the estimate and the reading (the fraction
         /// bits may carry it less than one LSB past the reading) and inside the pressure range,
         /// for readings outside it too.

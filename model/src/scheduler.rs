@@ -256,11 +256,11 @@ pub fn step(
     let dp = est.p2.0.saturating_sub(est.lp.0).max(ZERO);
     let speed = measured_rpm.map_or(est.motor_rpm.0, |r| r.0);
     // The feed-forward (the valve table inverted at the flow to pass) is refreshed only in a
-    // step in which the estimator spent no stroke-reversal work: the two share one background
-    // slot, so a step never pays for both. Its inputs (the pump flow averaged over a wave
-    // period, a speed setpoint, P2 − LP) move slowly; a reversal holds it for at most
-    // 4 × 16 steps.
-    let refresh = est.reversal_units == 0;
+    // step in which the estimator spent no background work (stroke-reversal units, the
+    // autonomy refresh): they share one background slot, so a step never pays for two. Its
+    // inputs (the pump flow averaged over a wave period, a speed setpoint, P2 − LP) move
+    // slowly; a reversal holds it for at most 4 × 16 steps.
+    let refresh = est.background_units == 0;
     // (feed-forward, error, kp, ki)
     let (ff, err, kp, ki) = match mode {
         Mode::Fixed(a) => (a.0, ZERO, ZERO, ZERO),

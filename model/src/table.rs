@@ -118,6 +118,18 @@ impl<const R: usize, const C: usize> Table2<R, C> {
         lerp(lo, hi, fr)
     }
 
+    /// [`Self::at`], and at the same row coordinate the linear interpolation of `col`, a
+    /// function of the row coordinate alone sampled on the same row nodes: one row locate
+    /// serves both.
+    #[inline(never)]
+    pub fn at_with(&self, r: Fx, c: Fx, col: &[Fx; R]) -> (Fx, Fx) {
+        let (i, fr) = locate(r, self.r0, self.inv_dr, R);
+        let (j, fc) = locate(c, self.c0, self.inv_dc, C);
+        let lo = lerp(self.y[i][j], self.y[i][j + 1], fc);
+        let hi = lerp(self.y[i + 1][j], self.y[i + 1][j + 1], fc);
+        (lerp(lo, hi, fr), lerp(col[i], col[i + 1], fr))
+    }
+
     /// The row coordinate r at which [`Table2::at`]`(r, c)` equals `y`, for a table that does
     /// not decrease along its rows (held at the first / last row outside the range). At fixed c
     /// the bilinear table is piecewise linear in r: the bracketing cell is found by bisection

@@ -116,7 +116,7 @@ fn feed_forward_is_held_while_a_reversal_is_worked_on() {
         p2: Pressure::from_num(100.0),
         lp: Pressure::from_num(3.0),
         q_pump_mean: Flow::from_num(q),
-        reversal_units: units,
+        background_units: units,
         ..Default::default()
     };
     let mut st = SchedulerState::default();
