@@ -11,11 +11,11 @@ use pto_model::table::{Table1, Table2};
 use pto_model::{Coefficients, ModelConfig};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
 
 /// The fixed-point model's pressure range, bar (its Q16.16 bounds, exactly).
 const P_MIN_BAR: f64 = P_MIN.to_bits() as f64 / 65_536.0;
 const P_MAX_BAR: f64 = P_MAX.to_bits() as f64 / 65_536.0;
-use rand_distr::{Distribution, Normal};
 
 const RPM: f64 = 30.0 / std::f64::consts::PI;
 
@@ -335,35 +335,34 @@ impl Reference {
         }
     }
 
-    fn t1<const N: usize>(t: &Table1<N>, x: f64) -> f64 {
-        let (x0, inv) = (t.x0.to_num::<f64>(), t.inv_dx.to_num::<f64>());
-        let u = ((x - x0) * inv).clamp(0.0, (N - 1) as f64);
-        let i = (u as usize).min(N - 2);
-        let f = u - i as f64;
-        let (a, b) = (t.y[i].to_num::<f64>(), t.y[i + 1].to_num::<f64>());
+    /// Cell and fraction of `x` on a table axis from `x0` with `inv` nodes per unit and `n`
+    /// nodes (held to the ends), as `pto_model::table` locates it.
+    fn locate(x: f64, x0: Fx, inv: Fx, n: usize) -> (usize, f64) {
+        let u = ((x - x0.to_num::<f64>()) * inv.to_num::<f64>()).clamp(0.0, (n - 1) as f64);
+        let i = (u as usize).min(n - 2);
+        (i, u - i as f64)
+    }
+
+    /// Linear interpolation between nodes `i` and `i + 1` of `ys`.
+    fn lerp(ys: &[Fx], (i, f): (usize, f64)) -> f64 {
+        let (a, b) = (ys[i].to_num::<f64>(), ys[i + 1].to_num::<f64>());
         a + f * (b - a)
     }
 
+    fn t1<const N: usize>(t: &Table1<N>, x: f64) -> f64 {
+        Self::lerp(&t.y, Self::locate(x, t.x0, t.inv_dx, N))
+    }
+
     fn t2<const R: usize, const C: usize>(t: &Table2<R, C>, r: f64, c: f64) -> f64 {
-        let loc = |x: f64, x0: Fx, inv: Fx, n: usize| {
-            let u = ((x - x0.to_num::<f64>()) * inv.to_num::<f64>()).clamp(0.0, (n - 1) as f64);
-            let i = (u as usize).min(n - 2);
-            (i, u - i as f64)
-        };
-        let (i, fr) = loc(r, t.r0, t.inv_dr, R);
-        let (j, fc) = loc(c, t.c0, t.inv_dc, C);
-        let y = |a: usize, b: usize| t.y[a][b].to_num::<f64>();
-        let lo = y(i, j) + fc * (y(i, j + 1) - y(i, j));
-        let hi = y(i + 1, j) + fc * (y(i + 1, j + 1) - y(i + 1, j));
+        let (i, fr) = Self::locate(r, t.r0, t.inv_dr, R);
+        let col = Self::locate(c, t.c0, t.inv_dc, C);
+        let (lo, hi) = (Self::lerp(&t.y[i], col), Self::lerp(&t.y[i + 1], col));
         lo + fr * (hi - lo)
     }
 
     /// A per-row column of a 2-D table (`Table2::at_with`) at row coordinate `r`.
     fn row_lerp<const R: usize, const C: usize>(t: &Table2<R, C>, col: &[Fx; R], r: f64) -> f64 {
-        let u = ((r - t.r0.to_num::<f64>()) * t.inv_dr.to_num::<f64>()).clamp(0.0, (R - 1) as f64);
-        let i = (u as usize).min(R - 2);
-        let (a, b) = (col[i].to_num::<f64>(), col[i + 1].to_num::<f64>());
-        a + (u - i as f64) * (b - a)
+        Self::lerp(col, Self::locate(r, t.r0, t.inv_dr, R))
     }
 
     /// One step, mirroring `pto_model::estimator::step`.

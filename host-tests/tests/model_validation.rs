@@ -14,6 +14,18 @@
 use pto_host::bench::Bench;
 use pto_host::validate::{self, target};
 
+/// `pto validate`'s rows for the named built-in scenarios (every one must exist and run).
+fn validate_named(names: &[&str]) -> Vec<validate::Row> {
+    let sel: Vec<_> = pto_host::scenario::builtin()
+        .into_iter()
+        .filter(|s| names.contains(&s.name.as_str()))
+        .collect();
+    assert_eq!(sel.len(), names.len());
+    let rep = validate::run(&Bench::reference(), &sel, false);
+    assert!(rep.errors.is_empty(), "{:?}", rep.errors);
+    rep.rows
+}
+
 #[test]
 fn model_tracks_the_full_simulation_on_representative_runs() {
     let names = [
@@ -28,14 +40,7 @@ fn model_tracks_the_full_simulation_on_representative_runs() {
         "exp-discharge-71",
         "blocked-ap25",
     ];
-    let sel: Vec<_> = pto_host::scenario::builtin()
-        .into_iter()
-        .filter(|s| names.contains(&s.name.as_str()))
-        .collect();
-    assert_eq!(sel.len(), names.len());
-    let rep = validate::run(&Bench::reference(), &sel, false);
-    assert!(rep.errors.is_empty(), "{:?}", rep.errors);
-    for r in &rep.rows {
+    for r in &validate_named(&names) {
         println!(
             "{:<18} P2 RMS {:.3} bar, no-HP max {:.3} bar, torque {:?}, motor {:?}, fx-f64 {:.4} bar / {:.3} N·m",
             r.scenario,
@@ -81,14 +86,8 @@ fn model_tracks_the_full_simulation_on_representative_runs() {
 /// inertia the model carries (the quasi-static valve/motor law missed the speed by 10–13 %).
 #[test]
 fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
-    let sel: Vec<_> = pto_host::scenario::builtin()
-        .into_iter()
-        .filter(|s| s.name == "test1-cfg1-c1")
-        .collect();
-    assert_eq!(sel.len(), 1);
-    let rep = validate::run(&Bench::reference(), &sel, false);
-    assert!(rep.errors.is_empty(), "{:?}", rep.errors);
-    let r = &rep.rows[0];
+    let rows = validate_named(&["test1-cfg1-c1"]);
+    let r = &rows[0];
     let motor = r.motor_rms_rel.expect("Test I runs the motor");
     println!(
         "{}: P2 RMS {:.3} bar (target {}), motor {:.2} % (target {} %)",

@@ -251,6 +251,11 @@ impl ModelConfig {
             + self.motor_leak_lpm_per_bar * self.bar_per_rpm())
     }
 
+    /// The motor's pressure drop per valve flow on its load line (β), bar per L/min.
+    pub fn motor_bar_per_lpm(&self) -> f32 {
+        self.bar_per_rpm() * self.rpm_per_lpm()
+    }
+
     /// Hydraulic inductance of the valve/motor branch, bar per L/min/s: the pressure that
     /// accelerates the rotor, L = J·rpm_per_lpm/κ with κ = (60/2π)·D·η_m/J the rotor's
     /// acceleration per bar (rpm/s per bar; D in m³/rad, bar in Pa). The branch obeys
@@ -270,7 +275,7 @@ impl ModelConfig {
         if k <= 0.0 || dp <= 0.0 {
             return 0.0;
         }
-        let beta = self.bar_per_rpm() * self.rpm_per_lpm();
+        let beta = self.motor_bar_per_lpm();
         let k2 = k * k;
         // Q² + K²βQ − K²·dp = 0, the stable form of the positive root.
         2.0 * k2 * dp / (k2 * beta + sqrtf(k2 * k2 * beta * beta + 4.0 * k2 * dp))
@@ -418,16 +423,17 @@ impl ModelConfig {
             inv_c_hp,
             inv_c_lp,
             rpm_per_lpm: fx(self.rpm_per_lpm()),
-            motor_gain0: fx(dt * self.bar_per_rpm() * self.rpm_per_lpm() / inductance),
-            motor_gain_valve: core::array::from_fn(|i| {
-                let kv = self.valve_k(100.0 * i as f32 / (N_APERTURE - 1) as f32);
-                let cap = MOTOR_GAIN_VALVE_CAP;
-                fx(if kv <= 0.0 {
-                    cap
+            motor_gain0: fx(dt * self.motor_bar_per_lpm() / inductance),
+            // Sampled on the valve table's aperture rows (0..100 %, N_APERTURE nodes).
+            motor_gain_valve: Table1::<N_APERTURE>::sample(0.0, 100.0, |a| {
+                let kv = self.valve_k(a);
+                if kv <= 0.0 {
+                    MOTOR_GAIN_VALVE_CAP
                 } else {
-                    (dt / (inductance * kv * kv)).min(cap)
-                })
-            }),
+                    (dt / (inductance * kv * kv)).min(MOTOR_GAIN_VALVE_CAP)
+                }
+            })
+            .y,
             spool_gain: fx(spool_gain),
             relief_setting: fx(self.relief_setting_bar),
             relief_gain: fx(self.relief_gain_lpm_per_bar),
