@@ -407,8 +407,11 @@ impl Reference {
         } else {
             (dt / (f64::from(c.spool_time_constant_ms) * 1e-3)).min(1.0)
         };
-        self.aperture +=
-            spool * (f64::from(inp.aperture_cmd.to_f32()).clamp(0.0, 100.0) - self.aperture);
+        let cmd = f64::from(inp.aperture_cmd.to_f32()).clamp(0.0, 100.0);
+        self.aperture = match self.q_motor {
+            Some(_) => self.aperture + spool * (cmd - self.aperture),
+            None => cmd,
+        };
         let config = usize::from(inp.config).min(3);
         let (mut q_pump, mut q_lp, mut torque) = (0.0, 0.0, 0.0);
         let mut budget = pto_model::estimator::REVERSAL_UNITS_PER_STEP;
@@ -496,7 +499,7 @@ impl Reference {
                         }
                         cs.bisect_left -= 1;
                         if cs.bisect_left == 0 && cs.from_rest {
-                            cs.travel += cs.u_bal;
+                            cs.travel += cs.u_bal + 0.5 * f(k.play_mm);
                         }
                     }
                 }

@@ -209,8 +209,9 @@ pub struct State {
     pub q_motor: Fx,
     /// The 16 bits of the valve/motor flow below its Q16.16 LSB.
     pub q_motor_lo: u16,
-    /// The valve/motor flow has been set to its steady value (first step).
-    pub flow_init: bool,
+    /// The first step has run: it set the spool to the command and the valve/motor flow to its
+    /// steady value.
+    pub started: bool,
     /// Autonomy at the last refresh, s.
     pub autonomy: Fx,
     /// Steps since the last autonomy refresh (wraps).
@@ -368,10 +369,16 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     );
     let omega = Fx::from_bits(((s.omega_q32 + (1 << 15)) >> 16) as i32);
     // --- Spool lag.
+    // The first step takes the spool as settled at the command (a state started from known
+    // pressures is a bench at rest or in steady running, not a valve half way through a move).
     let cmd = clamp(inp.aperture_cmd.0, ZERO, Fx::from_num(100));
-    s.aperture = s
-        .aperture
-        .saturating_add(mul_frac(k.spool_gain, cmd.saturating_sub(s.aperture)));
+    if s.started {
+        s.aperture = s
+            .aperture
+            .saturating_add(mul_frac(k.spool_gain, cmd.saturating_sub(s.aperture)));
+    } else {
+        s.aperture = cmd;
+    }
     // --- Cylinders: delivered flow, suction flow, torque.
     let config = usize::from(inp.config);
     let (arm_table, ext_table, duty) = match (k.arm.get(config), k.ext.get(config)) {
@@ -423,9 +430,9 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     // steady value: it never overshoots, so the step is stable at every aperture.
     let dp = s.p2.saturating_sub(s.lp).max(ZERO);
     let (q_ss, gain_valve) = k.valve_flow.at_with(s.aperture, dp, &k.motor_gain_valve);
-    if !s.flow_init {
+    if !s.started {
         (s.q_motor, s.q_motor_lo) = (q_ss, 0);
-        s.flow_init = true;
+        s.started = true;
     }
     let g = k
         .motor_gain0
@@ -604,8 +611,12 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
         }
         cs.bisect_left -= 1;
         if cs.bisect_left == 0 && cs.from_rest {
-            // From rest both chambers start at LP: skip to the play.
-            cs.travel = cs.travel.saturating_add(cs.u_bal);
+            // From rest both chambers start at LP and the eye sits in the middle of its free
+            // play: skip the balance and half the play.
+            cs.travel = cs
+                .travel
+                .saturating_add(cs.u_bal)
+                .saturating_add(Fx::from_bits(k.play_mm.to_bits() >> 1));
         }
         return;
     }
@@ -800,7 +811,7 @@ mod tests {
             Pressure::ZERO,
         );
         s.aperture = Fx::from_num(100);
-        s.flow_init = true;
+        s.started = true;
         let inp = Inputs {
             aperture_cmd: Aperture::from_num(100.0),
             ..Inputs::default()
