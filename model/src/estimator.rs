@@ -369,15 +369,18 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     );
     let omega = Fx::from_bits(((s.omega_q32 + (1 << 15)) >> 16) as i32);
     // --- Spool lag.
-    // The first step takes the spool as settled at the command (a state started from known
-    // pressures is a bench at rest or in steady running, not a valve half way through a move).
+    // The first step takes the spool as settled at the command and the valve/motor flow at its
+    // steady value (a state started from known pressures is a bench at rest or in steady
+    // running, not a valve or a rotor half way through a change).
+    let first = !s.started;
+    s.started = true;
     let cmd = clamp(inp.aperture_cmd.0, ZERO, Fx::from_num(100));
-    if s.started {
+    if first {
+        s.aperture = cmd;
+    } else {
         s.aperture = s
             .aperture
             .saturating_add(mul_frac(k.spool_gain, cmd.saturating_sub(s.aperture)));
-    } else {
-        s.aperture = cmd;
     }
     // --- Cylinders: delivered flow, suction flow, torque.
     let config = usize::from(inp.config);
@@ -430,9 +433,8 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     // steady value: it never overshoots, so the step is stable at every aperture.
     let dp = s.p2.saturating_sub(s.lp).max(ZERO);
     let (q_ss, gain_valve) = k.valve_flow.at_with(s.aperture, dp, &k.motor_gain_valve);
-    if !s.started {
+    if first {
         (s.q_motor, s.q_motor_lo) = (q_ss, 0);
-        s.started = true;
     }
     let g = k
         .motor_gain0
@@ -616,7 +618,7 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
             cs.travel = cs
                 .travel
                 .saturating_add(cs.u_bal)
-                .saturating_add(Fx::from_bits(k.play_mm.to_bits() >> 1));
+                .saturating_add(k.play_mm >> 1u32);
         }
         return;
     }
