@@ -528,6 +528,9 @@ impl Reference {
                         cs.travel += step_mm;
                     } else {
                         q_pump += q_del;
+                        if u < cs.u_suc {
+                            cs.travel += step_mm;
+                        }
                     }
                     if u >= cs.u_suc {
                         q_lp += q_suc;

@@ -107,6 +107,88 @@ pub struct Report {
     pub pass: bool,
 }
 
+/// One step of the four-cylinder run as the firmware measured it, with what the host model
+/// (the same code, bit for bit) was doing in it.
+#[derive(Debug, Clone, Serialize)]
+pub struct StepTrace {
+    /// Step index in the run.
+    pub step: usize,
+    /// Instructions the firmware counted for the estimator + scheduler step.
+    pub instructions: u32,
+    /// Background work units the estimator spent (stroke-reversal set-up or bisection, or the
+    /// autonomy refresh; 0: the scheduler refreshed its feed-forward instead).
+    pub background_units: u8,
+    /// Per cylinder: `S` set-up pending, `B` bisecting, `b` a chamber still building up or
+    /// relaxing (a strain table read),
+    /// `D` delivering, `-` off duty.
+    pub phases: String,
+}
+
+/// Per-step cost of the four-cylinder run, lockstep with the host model: after each step the
+/// firmware's last step cost is read back (a status request per step: ≈ 2× the time of
+/// [`measure`]'s run). For finding which steps set the maximum.
+pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, String> {
+    use pto_model::estimator::{self, State};
+    let qemu_elf = qemu::build(Build::Qemu)?;
+    let (four, p2, lp) = four_cylinder_inputs()?;
+    let mode = Mode::HoldPressure(Pressure::from_num(100.0));
+    let mut q = Qemu::boot(&qemu_elf, false)?;
+    pil::prime(&mut q, p2, lp, mode)?;
+    let k = pto_model::config::ModelConfig::reference()
+        .coefficients()
+        .map_err(|e| e.to_string())?;
+    // As the firmware's `Reset`: P2 known to 1 bar.
+    let mut st = State::new(
+        Pressure::from_num(p2),
+        Pressure::from_num(lp),
+        Pressure::from_num(1.0),
+    );
+    let mut out = Vec::with_capacity(four.len());
+    for (i, inp) in four.iter().enumerate() {
+        pil::replay_step(&mut q, i as u32, inp)?;
+        let status = pil::status(&mut q)?;
+        let e = estimator::step(&k, &mut st, inp);
+        let phases = st
+            .cyl
+            .iter()
+            .enumerate()
+            .map(|(c, cs)| {
+                if inp.on_duty & (1 << c) == 0 {
+                    '-'
+                } else if cs.setup_left > 0 {
+                    'S'
+                } else if cs.bisect_left > 0 {
+                    'B'
+                } else if cs.travel < cs.u_end.saturating_add(k.play_mm)
+                    || cs.travel.saturating_sub(k.play_mm) < cs.u_suc
+                {
+                    'b'
+                } else {
+                    'D'
+                }
+            })
+            .collect();
+        out.push(StepTrace {
+            step: i,
+            instructions: status.step_cost_last,
+            background_units: e.background_units,
+            phases,
+        });
+    }
+    q.link.send(&pto_model::protocol::ToFirmware::Exit(0))?;
+    Ok(out)
+}
+
+/// The four-cylinder window of the torque run (Config 1) and its start pressures.
+fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), String> {
+    golden::clean_inputs(
+        &crate::bench::Bench::reference(),
+        "torque-cfg1-c1234",
+        Some(FOUR_CYLINDER_START_S),
+        6 * 1024,
+    )
+}
+
 /// Builds both firmwares, measures.
 pub fn measure() -> Result<Report, String> {
     let qemu_elf = qemu::build(Build::Qemu)?;
@@ -122,12 +204,7 @@ pub fn measure() -> Result<Report, String> {
     // The golden vectors run two cylinders; the costliest case is all four on duty through a
     // stroke reversal (each reversal queues set-up and bisection work): 6 s of the four-cylinder
     // torque run (Config 1), which reverses every 5 s.
-    let (four, p2_four, lp_four) = golden::clean_inputs(
-        &crate::bench::Bench::reference(),
-        "torque-cfg1-c1234",
-        Some(FOUR_CYLINDER_START_S),
-        6 * 1024,
-    )?;
+    let (four, p2_four, lp_four) = four_cylinder_inputs()?;
     let mut q = Qemu::boot(&qemu_elf, false)?;
     let mut step = Vec::new();
     // Fresh maxima per mode: the firmware keeps one running maximum, so measure the cheapest

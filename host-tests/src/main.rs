@@ -168,6 +168,11 @@ enum Cmd {
         /// Machine-readable output.
         #[arg(long)]
         json: bool,
+        /// Also write the four-cylinder run's cost step by step (CSV: step, instructions,
+        /// background units, each cylinder's phase) to this file, to see which steps set the
+        /// maximum.
+        #[arg(long, value_name = "CSV")]
+        trace: Option<PathBuf>,
     },
     /// Wall time, real-time factor and accuracy of Test III and a 1000 s irregular sea.
     Bench {
@@ -240,7 +245,7 @@ fn main() -> ExitCode {
             json,
         ),
         Cmd::Pil { bench, json } => pil_cmd(bench.as_ref(), json),
-        Cmd::FwCost { json } => fw_cost_cmd(json),
+        Cmd::FwCost { json, trace } => fw_cost_cmd(json, trace.as_deref()),
     };
     match result {
         Ok(true) => ExitCode::SUCCESS,
@@ -756,11 +761,24 @@ fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
     Ok(pass)
 }
 
-fn fw_cost_cmd(json: bool) -> Result<bool> {
+fn fw_cost_cmd(json: bool, trace: Option<&Path>) -> Result<bool> {
     eprintln!(
         "building both firmwares and replaying the golden vectors (and a four-cylinder run) under QEMU…"
     );
     let r = pto_host::fw_cost::measure().map_err(anyhow::Error::msg)?;
+    if let Some(path) = trace {
+        eprintln!("tracing the four-cylinder run step by step…");
+        let t = pto_host::fw_cost::trace_four_cylinders().map_err(anyhow::Error::msg)?;
+        let mut csv = String::from("step,instructions,background_units,phases\n");
+        for s in &t {
+            csv += &format!(
+                "{},{},{},{}\n",
+                s.step, s.instructions, s.background_units, s.phases
+            );
+        }
+        write_atomic(path, csv.as_bytes())?;
+        eprintln!("wrote {}", path.display());
+    }
     if json {
         println!("{}", serde_json::to_string_pretty(&r)?);
     } else {

@@ -34,21 +34,23 @@ pub fn replay(
     prime(q, p2, lp, mode)?;
     let mut out = Vec::with_capacity(inputs.len());
     for (i, inp) in inputs.iter().enumerate() {
-        let tick = i as u32;
-        let r = q
-            .link
-            .request(&ToFirmware::Replay { tick, inputs: *inp }, |r| match r {
-                FromFirmware::Output {
-                    tick: t,
-                    estimate,
-                    command,
-                    ..
-                } if *t == tick => Some((*estimate, *command)),
-                _ => None,
-            })?;
-        out.push(r);
+        out.push(replay_step(q, i as u32, inp)?);
     }
     Ok(out)
+}
+
+/// One replayed step, answered for `tick`.
+pub fn replay_step(q: &mut Qemu, tick: u32, inp: &Inputs) -> Result<(Estimate, Command), String> {
+    q.link
+        .request(&ToFirmware::Replay { tick, inputs: *inp }, |r| match r {
+            FromFirmware::Output {
+                tick: t,
+                estimate,
+                command,
+                ..
+            } if *t == tick => Some((*estimate, *command)),
+            _ => None,
+        })
 }
 
 /// The firmware's counters.

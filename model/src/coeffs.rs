@@ -75,6 +75,11 @@ pub struct Coefficients {
     pub beta_over_dt_q16: i32,
     /// 2γ/dt² of the α–β–γ shaft tracker, 1/s², Q16.16 (< 2^28 likewise).
     pub gamma_over_dt2_q16: i32,
+    /// The rounding term of the tracker's × dt in Q32.32: 2^(dt_log2 − 1) (a run-time 64-bit
+    /// shift to build it costs ≈ 14 Cortex-M4 instructions a step).
+    pub round_dt_q32: i64,
+    /// The rounding term of its × dt²/2: 2^(2·dt_log2).
+    pub round_dt2_q32: i64,
     /// Cylinders.
     pub cyl: [CylinderCoeffs; 4],
     /// Lever arm d (mm) vs s·θ (rad), per geometry. In mm so that d·F stays exact to
@@ -151,6 +156,9 @@ pub struct Coefficients {
     /// Open check-valve pressure drop, bar.
     pub check_drop: Fx,
 }
+
+/// ⌊2π · 2^32⌋: a full turn in the tracker's Q32.32 angle.
+const TWO_PI_Q32: u64 = 26_986_075_409;
 
 /// Trapped-air bulk modulus (physics.md), bar.
 fn modulus_bar(cfg: &ModelConfig, p: f32) -> f32 {
@@ -315,9 +323,10 @@ impl ModelConfig {
         let k = self.dt_log2;
         let dt = powf(2.0, -f32::from(k));
         let fx = Fx::saturating_from_num;
-        let two_pi = 2.0 * core::f64::consts::PI;
+        // 2π·2^32 / counts, floored, in integers (no f64 arithmetic in the firmware image: the
+        // soft-float double routines cost ≈ 3 KB of flash). ≥ 64 counts (validated): < 2^29.
         let rad_per_count_q32 =
-            (two_pi / f64::from(self.encoder_counts_per_rev) * 4_294_967_296.0) as i32;
+            (TWO_PI_Q32 / u64::from(self.encoder_counts_per_rev)).min(i32::MAX as u64) as i32;
         // Fading-memory α–β–γ tracker (a triple pole at r = exp(−2π·bw·dt)): α = 1 − r³,
         // β = 1.5(1 − r)²(1 + r), γ = ½(1 − r)³. Its constant-acceleration model follows the
         // sinusoidal shaft with ≈0.3 % speed error at 4 Hz, where an α–β tracker lags by
@@ -409,10 +418,13 @@ impl ModelConfig {
         Ok(Coefficients {
             dt_log2: k,
             rad_per_count_q32,
-            // (Float-to-integer casts saturate: α rounds to at most i32::MAX = 1 − 2^−31.)
-            alpha_q31: (f64::from(alpha) * 2_147_483_648.0) as i32,
-            beta_over_dt_q16: (f64::from(beta / dt) * 65_536.0) as i32,
-            gamma_over_dt2_q16: (f64::from(2.0 * gamma / (dt * dt)) * 65_536.0) as i32,
+            // (Scaling an f32 by a power of two is exact, and float-to-integer casts saturate:
+            // α rounds to at most i32::MAX = 1 − 2^−31.)
+            alpha_q31: (alpha * 2_147_483_648.0) as i32,
+            beta_over_dt_q16: (beta / dt * 65_536.0) as i32,
+            gamma_over_dt2_q16: (2.0 * gamma / (dt * dt) * 65_536.0) as i32,
+            round_dt_q32: 1i64 << (k - 1),
+            round_dt2_q32: 1i64 << (2 * k),
             cyl,
             arm,
             ext,

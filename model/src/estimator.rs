@@ -15,7 +15,7 @@
 use crate::coeffs::{Coefficients, CylinderCoeffs, N_ARM};
 use crate::fx::{
     Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, PressureVariance, QMul, Rpm, Seconds,
-    Torque, ZERO, clamp, mul_dt, mul_frac, recip, shr64, sqrt0,
+    Torque, ZERO, clamp, mul_bounded, mul_dt, mul_frac, recip, shr64, sqrt0,
 };
 use crate::table::Table1;
 
@@ -225,11 +225,12 @@ pub struct State {
 }
 
 impl State {
-    /// A state starting from known pressures (bar) with the given P2 standard deviation.
+    /// A state starting from known pressures (bar, held to [`P_MIN`, `P_MAX`] like every
+    /// pressure state) with the given P2 standard deviation.
     pub fn new(p2: Pressure, lp: Pressure, sigma: Pressure) -> Self {
         State {
-            p2: p2.0,
-            lp: lp.0,
+            p2: clamp(p2.0, P_MIN, P_MAX),
+            lp: clamp(lp.0, P_MIN, P_MAX),
             var: sigma.0.qmul(sigma.0),
             ..State::default()
         }
@@ -310,10 +311,10 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     // tests' extreme inputs) verify this budget; the release build emits the same code.
     // The run-time shifts by dt (1..=25 bits) go through the two-word `shr64`.
     let n = u32::from(dtl);
-    let half = 1i64 << (n - 1);
+    let half = k.round_dt_q32;
     let pred_theta = s.theta_q32
         + shr64(s.omega_q32 + half, n)
-        + shr64(s.accel_q32 + (1i64 << (2 * n)), 2 * n + 1);
+        + shr64(s.accel_q32 + k.round_dt2_q32, 2 * n + 1);
     let pred_omega = s.omega_q32 + shr64(s.accel_q32 + half, n);
     match inp.encoder {
         Some(count) => {
@@ -681,7 +682,7 @@ fn cylinder(sh: &mut Shared, c: &CylinderCoeffs, cs: &mut CylState, lever: &Leve
         // Idle: bypassed to LP; LP·A_rod pushes the rod out, the rod volume flows to LP.
         let a_rod_q = c.q_cap.saturating_sub(c.q_ann);
         sh.q_lp = sh.q_lp.saturating_add(a_rod_q.qmul(v));
-        let f = sh.lp.qmul(c.f_cap.saturating_sub(c.f_ann));
+        let f = mul_bounded(sh.lp, c.f_cap.saturating_sub(c.f_ann));
         return sd.qmul(f).saturating_neg();
     }
     let dir: i8 = if v > ZERO {
@@ -734,10 +735,17 @@ fn cylinder(sh: &mut Shared, c: &CylinderCoeffs, cs: &mut CylState, lever: &Leve
         } else {
             cs.travel.saturating_sub(k.play_mm)
         };
+        // The travel counts until the new chamber delivers and the old one sucks (then it is
+        // not needed: kept bounded). (Counting stopped at delivery alone once left an old
+        // chamber that needs more travel than the new one short of LP for the rest of the
+        // stroke: above LP, no suction flow, its strain table read every step.)
         if cs.travel < e_end {
             cs.travel = cs.travel.saturating_add(mm);
         } else {
             sh.q_pump = sh.q_pump.saturating_add(a_del.qmul(speed));
+            if u < cs.u_suc {
+                cs.travel = cs.travel.saturating_add(mm);
+            }
         }
         if u >= cs.u_suc {
             sh.q_lp = sh.q_lp.saturating_add(a_suc.qmul(speed));
@@ -765,10 +773,7 @@ fn cylinder(sh: &mut Shared, c: &CylinderCoeffs, cs: &mut CylState, lever: &Leve
         // flow; the eye's travel is counted.
         cs.travel = cs.travel.saturating_add(mm);
     }
-    let f_hyd = cs
-        .p_cap
-        .qmul(c.f_cap)
-        .saturating_sub(cs.p_rod.qmul(c.f_ann)); // kN
+    let f_hyd = mul_bounded(cs.p_cap, c.f_cap).saturating_sub(mul_bounded(cs.p_rod, c.f_ann)); // kN
     // mm·kN = N·m.
     sd.qmul(f_hyd).saturating_neg()
 }
@@ -841,6 +846,67 @@ mod tests {
         let e = step(&k, &mut s, &inp);
         assert_eq!(s.q_motor, ZERO);
         assert_eq!(e.motor_rpm.0, ZERO);
+    }
+
+    /// Mid-stroke (the shaft at full speed), every cylinder on duty has one chamber at
+    /// P2 + drop delivering and the other at LP − drop sucking, in both directions, every
+    /// geometry and around several lever positions: the rod's travel counts on until the old
+    /// chamber reaches LP, also where (the rod off centre) that chamber is the longer one and
+    /// needs more travel than the new one does to reach P2. (The travel used to stop at
+    /// delivery, and such an old chamber stayed above LP for the rest of the stroke, passing no
+    /// flow.)
+    #[test]
+    fn both_chambers_reach_their_check_valves_by_mid_stroke() {
+        let cfg = crate::ModelConfig::reference();
+        let k = cfg.coefficients().unwrap();
+        let n = 1u32 << k.dt_log2;
+        let counts = f64::from(cfg.encoder_counts_per_rev);
+        let (p2, lp) = (Pressure::from_num(100.0), Pressure::from_num(8.0));
+        let (mut worst, mut checked) = (0.0f32, 0);
+        // ±8° at 0.1 Hz around three lever positions, P2 held at 100 bar by its transducer.
+        let (amp, f) = (8f64.to_radians(), 0.1);
+        for offset_deg in [-15.0f64, 0.0, 15.0] {
+            for config in 0..4u8 {
+                let mut s = State::new(p2, lp, Pressure::ZERO);
+                // Two periods; the shaft at full speed at t = j/(2f): 10 s and 15 s are
+                // mid-stroke after a reversal each way.
+                for i in 0..=(15 * n) {
+                    let t = f64::from(i) / f64::from(n);
+                    let theta =
+                        offset_deg.to_radians() + amp * (2.0 * core::f64::consts::PI * f * t).sin();
+                    let count = theta / (2.0 * core::f64::consts::PI) * counts;
+                    let inp = Inputs {
+                        encoder: Some(count.round() as i32),
+                        hp: Some(p2),
+                        lp: Some(lp),
+                        motor: None,
+                        aperture_cmd: Aperture::from_num(10.0),
+                        on_duty: 0b1111,
+                        config,
+                    };
+                    let e = step(&k, &mut s, &inp);
+                    if i == 10 * n || i == 15 * n {
+                        let (lo, hi) = (e.lp.0 - k.check_drop, e.p2.0 + k.check_drop);
+                        for cs in &s.cyl {
+                            let (p_hi, p_lo) = if cs.p_cap > cs.p_rod {
+                                (cs.p_cap, cs.p_rod)
+                            } else {
+                                (cs.p_rod, cs.p_cap)
+                            };
+                            worst = worst
+                                .max((p_hi - hi).abs().to_num())
+                                .max((p_lo - lo).abs().to_num());
+                            checked += 1;
+                        }
+                    }
+                }
+            }
+        }
+        println!(
+            "{checked} chamber pairs mid-stroke: worst {worst:.4} bar from P2 + drop / LP − drop"
+        );
+        assert_eq!(checked, 96);
+        assert!(worst < 0.01, "{worst}");
     }
 
     proptest! {
