@@ -119,21 +119,20 @@ pub struct StepTrace {
     /// autonomy refresh; 0: the scheduler refreshed its feed-forward instead).
     pub background_units: u8,
     /// Per cylinder: `S` set-up pending, `B` bisecting, `b` a chamber still building up or
-    /// relaxing (a strain table read),
-    /// `D` delivering, `-` off duty.
+    /// relaxing (a strain table read), `D` delivering and sucking, `-` off duty.
     pub phases: String,
 }
 
-/// Per-step cost of the four-cylinder run, lockstep with the host model: after each step the
-/// firmware's last step cost is read back (a status request per step: ≈ 2× the time of
-/// [`measure`]'s run). For finding which steps set the maximum.
+/// Per-step cost of the four-cylinder run: after each step the firmware's last step cost is
+/// read back (a status request per step: ≈ 2× the time of [`measure`]'s run), and the host
+/// model (the same code, bit for bit) stepped alongside gives each cylinder's phase, which the
+/// firmware's output does not carry. For finding which steps set the maximum.
 pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, String> {
     use pto_model::estimator::{self, State};
     let qemu_elf = qemu::build(Build::Qemu)?;
     let (four, p2, lp) = four_cylinder_inputs()?;
-    let mode = Mode::HoldPressure(Pressure::from_num(100.0));
     let mut q = Qemu::boot(&qemu_elf, false)?;
-    pil::prime(&mut q, p2, lp, mode)?;
+    pil::prime(&mut q, p2, lp, hold_p2())?;
     let k = pto_model::config::ModelConfig::reference()
         .coefficients()
         .map_err(|e| e.to_string())?;
@@ -145,9 +144,9 @@ pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, String> {
     );
     let mut out = Vec::with_capacity(four.len());
     for (i, inp) in four.iter().enumerate() {
-        pil::replay_step(&mut q, i as u32, inp)?;
+        let (e, _) = pil::replay_step(&mut q, i as u32, inp)?;
         let status = pil::status(&mut q)?;
-        let e = estimator::step(&k, &mut st, inp);
+        estimator::step(&k, &mut st, inp);
         let phases = st
             .cyl
             .iter()
@@ -177,6 +176,11 @@ pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, String> {
     }
     q.link.send(&pto_model::protocol::ToFirmware::Exit(0))?;
     Ok(out)
+}
+
+/// The hold-P2 mode of the measured runs (100 bar).
+fn hold_p2() -> Mode {
+    Mode::HoldPressure(Pressure::from_num(100.0))
 }
 
 /// The four-cylinder window of the torque run (Config 1) and its start pressures.
@@ -211,14 +215,14 @@ pub fn measure() -> Result<Report, String> {
     // case first.
     for (label, mode) in [
         ("fixed aperture", Mode::Fixed(Aperture::from_num(10.0))),
-        ("hold P2", Mode::HoldPressure(Pressure::from_num(100.0))),
+        ("hold P2", hold_p2()),
     ] {
         step.push(step_cost(&mut q, start, mode, label)?);
     }
     step.push(step_cost(
         &mut q,
         (four.as_slice(), p2_four, lp_four),
-        Mode::HoldPressure(Pressure::from_num(100.0)),
+        hold_p2(),
         "hold P2, 4 cylinders",
     )?);
     q.link.send(&pto_model::protocol::ToFirmware::Exit(0))?;

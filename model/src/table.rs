@@ -111,11 +111,7 @@ impl<const R: usize, const C: usize> Table2<R, C> {
     /// Bilinear interpolation at (r, c) (out of line, like [`Table1::at`]).
     #[inline(never)]
     pub fn at(&self, r: Fx, c: Fx) -> Fx {
-        let (i, fr) = locate(r, self.r0, self.inv_dr, R);
-        let (j, fc) = locate(c, self.c0, self.inv_dc, C);
-        let lo = lerp(self.y[i][j], self.y[i][j + 1], fc);
-        let hi = lerp(self.y[i + 1][j], self.y[i + 1][j + 1], fc);
-        lerp(lo, hi, fr)
+        self.bilinear(r, c).2
     }
 
     /// [`Self::at`], and at the same row coordinate the linear interpolation of `col`, a
@@ -123,11 +119,18 @@ impl<const R: usize, const C: usize> Table2<R, C> {
     /// serves both.
     #[inline(never)]
     pub fn at_with(&self, r: Fx, c: Fx, col: &[Fx; R]) -> (Fx, Fx) {
+        let (i, fr, v) = self.bilinear(r, c);
+        (v, lerp(col[i], col[i + 1], fr))
+    }
+
+    /// The row cell and fraction of `r`, and the bilinear value at (r, c).
+    #[inline(always)]
+    fn bilinear(&self, r: Fx, c: Fx) -> (usize, Fx, Fx) {
         let (i, fr) = locate(r, self.r0, self.inv_dr, R);
         let (j, fc) = locate(c, self.c0, self.inv_dc, C);
         let lo = lerp(self.y[i][j], self.y[i][j + 1], fc);
         let hi = lerp(self.y[i + 1][j], self.y[i + 1][j + 1], fc);
-        (lerp(lo, hi, fr), lerp(col[i], col[i + 1], fr))
+        (i, fr, lerp(lo, hi, fr))
     }
 
     /// The row coordinate r at which [`Table2::at`]`(r, c)` equals `y`, for a table that does
