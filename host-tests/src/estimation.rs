@@ -61,6 +61,7 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
         cylinders,
         geometries,
         free_play_mm: (b.free_play * 1e3) as f32,
+        seal_friction_n_s_per_m: b.seal_friction as f32,
         chamber_dead_volume_cm3: (b.chamber_dead_volume * 1e6) as f32,
         oil_bulk_modulus_mpa: (b.oil.liquid_modulus * 1e-6) as f32,
         oil_density_kg_m3: b.oil.density as f32,
@@ -432,6 +433,7 @@ impl Reference {
                     cs.dir
                 };
                 let play = f(k.play_mm);
+                let seal = v * f(k.seal_kn_per_mm_s);
                 let drop = f(k.check_drop);
                 let (lo, hi) = (self.lp - drop, self.p2 + drop);
                 let pressures = |st: &(f64, f64, f64, f64), u: f64| {
@@ -550,7 +552,7 @@ impl Reference {
                 } else {
                     cs.travel += step_mm;
                 }
-                torque -= side * d * (cs.p.0 * f(cc.f_cap) - cs.p.1 * f(cc.f_ann));
+                torque -= side * d * (cs.p.0 * f(cc.f_cap) - cs.p.1 * f(cc.f_ann) - seal);
             } else {
                 q_lp += (f(cc.q_cap) - f(cc.q_ann)) * v;
                 torque -= side * d * self.lp * (f(cc.f_cap) - f(cc.f_ann));

@@ -153,6 +153,9 @@ pub struct Coefficients {
     pub bar_per_rpm: Fx,
     /// Rod-fixation free play, mm.
     pub play_mm: Fx,
+    /// Seal friction, kN per mm/s (2 kN·s/m = 0.002 kN per mm/s on the reference bench: 131
+    /// LSB, 0.05 % resolution).
+    pub seal_kn_per_mm_s: Fx,
     /// Open check-valve pressure drop, bar.
     pub check_drop: Fx,
 }
@@ -476,6 +479,7 @@ impl ModelConfig {
             mean_gain: fx(dt / 10.0).max(Fx::DELTA),
             bar_per_rpm: fx(self.bar_per_rpm()),
             play_mm: fx(self.free_play_mm),
+            seal_kn_per_mm_s: fx(self.seal_friction_n_s_per_m * 1e-6),
             check_drop: fx(self.check_valve_drop_bar),
         })
     }

@@ -57,6 +57,9 @@ pub struct ModelConfig {
     pub geometries: [GeometryConfig; 4],
     /// Rod-fixation free play, mm.
     pub free_play_mm: f32,
+    /// Viscous friction of a rod's seals, N·s/m: a force against the rod's speed, felt at the
+    /// shaft while the rod follows its eye (not while the eye crosses the free play).
+    pub seal_friction_n_s_per_m: f32,
     /// Chamber dead volume incl. its hose, cm³.
     pub chamber_dead_volume_cm3: f32,
     /// Oil liquid bulk modulus, MPa.
@@ -195,6 +198,7 @@ impl ModelConfig {
                 g(100.0, 400.0, 509.9),
             ],
             free_play_mm: 4.0,
+            seal_friction_n_s_per_m: 2000.0,
             // 15 cm³ + 1 m of 9.5 mm hose.
             chamber_dead_volume_cm3: 85.88,
             oil_bulk_modulus_mpa: 1600.0,
@@ -286,6 +290,12 @@ impl ModelConfig {
             check("geometries.oc_mm", g.oc_mm, g.ob_mm + 1.0, 20_000.0)?;
         }
         check("free_play_mm", self.free_play_mm, 0.0, 50.0)?;
+        check(
+            "seal_friction_n_s_per_m",
+            self.seal_friction_n_s_per_m,
+            0.0,
+            100_000.0,
+        )?;
         check(
             "chamber_dead_volume_cm3",
             self.chamber_dead_volume_cm3,
