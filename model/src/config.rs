@@ -57,8 +57,8 @@ pub struct ModelConfig {
     pub geometries: [GeometryConfig; 4],
     /// Rod-fixation free play, mm.
     pub free_play_mm: f32,
-    /// Viscous friction of a rod's seals, N·s/m: a force against the rod's speed, felt at the
-    /// shaft while the rod follows its eye (not while the eye crosses the free play).
+    /// Viscous friction of a rod's seals, N·s/m: a force against the rod's speed, which adds
+    /// c·d²·θ̇ to the restraining torque of every rod on duty (counted all stroke long).
     pub seal_friction_n_s_per_m: f32,
     /// Chamber dead volume incl. its hose, cm³.
     pub chamber_dead_volume_cm3: f32,

@@ -10,7 +10,8 @@
 //! steady valve table, relief flow → P2 and LP predicted through the nodes' capacitance tables →
 //! scalar Kalman correction of P2 (gain from a table of the prior variance, innovation gating,
 //! reset after a run of rejections) and a fixed-gain correction of LP → torque from the chamber
-//! pressures → motor speed (Eq. 9 on the load line) and autonomy (table).
+//! pressures and the rods' seal friction → motor speed (Eq. 9 on the load line) and autonomy
+//! (table).
 
 use crate::coeffs::{Coefficients, CylinderCoeffs, N_ARM};
 use crate::fx::{
@@ -854,6 +855,28 @@ mod tests {
         assert_eq!(e.motor_rpm.0, ZERO);
     }
 
+    /// A step's readings with the lever at `theta` (rad, as the encoder counts it) and both
+    /// transducers reading `p2` and `lp`; valve at 10 %, no motor-speed reading.
+    fn held_inputs(
+        cfg: &crate::ModelConfig,
+        theta: f64,
+        p2: Pressure,
+        lp: Pressure,
+        on_duty: u8,
+        config: u8,
+    ) -> Inputs {
+        let count = theta / (2.0 * core::f64::consts::PI) * f64::from(cfg.encoder_counts_per_rev);
+        Inputs {
+            encoder: Some(count.round() as i32),
+            hp: Some(p2),
+            lp: Some(lp),
+            motor: None,
+            aperture_cmd: Aperture::from_num(10.0),
+            on_duty,
+            config,
+        }
+    }
+
     /// Mid-stroke (the shaft at full speed), every cylinder on duty has one chamber at
     /// P2 + drop delivering and the other at LP − drop sucking, in both directions, every
     /// geometry and around several lever positions: the rod's travel counts on until the old
@@ -866,7 +889,6 @@ mod tests {
         let cfg = crate::ModelConfig::reference();
         let k = cfg.coefficients().unwrap();
         let n = 1u32 << k.dt_log2;
-        let counts = f64::from(cfg.encoder_counts_per_rev);
         let (p2, lp) = (Pressure::from_num(100.0), Pressure::from_num(8.0));
         let (mut worst, mut checked) = (0.0f32, 0);
         // ±8° at 0.1 Hz around three lever positions, P2 held at 100 bar by its transducer.
@@ -880,16 +902,7 @@ mod tests {
                     let t = f64::from(i) / f64::from(n);
                     let theta =
                         offset_deg.to_radians() + amp * (2.0 * core::f64::consts::PI * f * t).sin();
-                    let count = theta / (2.0 * core::f64::consts::PI) * counts;
-                    let inp = Inputs {
-                        encoder: Some(count.round() as i32),
-                        hp: Some(p2),
-                        lp: Some(lp),
-                        motor: None,
-                        aperture_cmd: Aperture::from_num(10.0),
-                        on_duty: 0b1111,
-                        config,
-                    };
+                    let inp = held_inputs(&cfg, theta, p2, lp, 0b1111, config);
                     let e = step(&k, &mut s, &inp);
                     if i == 10 * n || i == 15 * n {
                         let (lo, hi) = (e.lp.0 - k.check_drop, e.p2.0 + k.check_drop);
@@ -930,7 +943,6 @@ mod tests {
         .coefficients()
         .unwrap();
         let n = 1u32 << k.dt_log2;
-        let counts = f64::from(cfg.encoder_counts_per_rev);
         let (p2, lp) = (Pressure::from_num(60.0), Pressure::from_num(8.0));
         let c = f64::from(cfg.seal_friction_n_s_per_m) * 1e-6; // kN per mm/s
         let (mut worst, mut checked) = (0.0f64, 0);
@@ -942,15 +954,7 @@ mod tests {
             for i in 0..=(10 * n) {
                 let t = f64::from(i) / f64::from(n);
                 let theta = 20f64.to_radians() * (2.0 * core::f64::consts::PI * 0.1 * t).sin();
-                let inp = Inputs {
-                    encoder: Some((theta / (2.0 * core::f64::consts::PI) * counts).round() as i32),
-                    hp: Some(p2),
-                    lp: Some(lp),
-                    motor: None,
-                    aperture_cmd: Aperture::from_num(10.0),
-                    on_duty: 0b0101,
-                    config,
-                };
+                let inp = held_inputs(&cfg, theta, p2, lp, 0b0101, config);
                 let (e, e0) = (step(&k, &mut s, &inp), step(&k0, &mut s0, &inp));
                 if i == 5 * n || i == 10 * n {
                     let omega: f64 = e.omega.0.to_num();
