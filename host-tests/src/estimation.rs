@@ -281,6 +281,21 @@ pub struct Reference {
     q_motor: Option<f64>,
     rejected: u32,
     cyl: [RefCyl; 4],
+    /// The motor reading's filters while they run.
+    meas: Option<RefMeas>,
+    /// Steps the motor reading still waits.
+    meas_wait: u32,
+}
+
+/// The motor reading's state of the reference (`pto_model::estimator::State`'s `q_meas`,
+/// `f_meas`, `meas_odd`, `meas_band`).
+#[derive(Debug, Clone, Copy)]
+struct RefMeas {
+    q: f64,
+    f: f64,
+    odd: bool,
+    /// The dead band, bar.
+    band: f64,
 }
 
 /// Per-cylinder stroke state of the reference, as `pto_model::estimator::CylState`.
@@ -333,6 +348,8 @@ impl Reference {
             q_motor: None,
             rejected: 0,
             cyl: [RefCyl::default(); 4],
+            meas: None,
+            meas_wait: 0,
         }
     }
 
@@ -364,6 +381,50 @@ impl Reference {
     /// A per-row column of a 2-D table (`Table2::at_with`) at row coordinate `r`.
     fn row_lerp<const R: usize, const C: usize>(t: &Table2<R, C>, col: &[Fx; R], r: f64) -> f64 {
         Self::lerp(col, Self::locate(r, t.r0, t.inv_dr, R))
+    }
+
+    /// P2 from the motor speed, mirroring `pto_model::estimator::motor_reading` (its
+    /// coefficients as the fixed-point model holds them, the work alternating between two steps
+    /// as there).
+    fn motor_reading(&mut self, rpm: f64, cmd: f64, lp_dp: f64, dp: f64, q_ss: f64, g: f64) {
+        let k = &*self.k;
+        let f = |x: Fx| x.to_num::<f64>();
+        let q_m = (rpm * f64::from(k.lpm_per_rpm_q24) / 16_777_216.0).min(1000.0);
+        let slope = g * f(k.motor_reading_ldt);
+        let fm = (lp_dp - slope * (q_ss - q_m)).clamp(P_MIN_BAR, P_MAX_BAR);
+        let a = f(k.motor_reading_filter);
+        let Some(m) = self.meas.as_mut() else {
+            self.meas = Some(RefMeas {
+                q: q_m,
+                f: fm,
+                odd: false,
+                band: 0.0,
+            });
+            return;
+        };
+        m.odd = !m.odd;
+        if m.odd {
+            if slope > f(k.motor_reading_max_slope)
+                || (cmd - self.aperture).abs()
+                    > f64::from(self.cfg.motor_reading_spool_tolerance_pct)
+            {
+                self.meas = None;
+                self.meas_wait = u32::from(k.motor_reading_warm_steps);
+                return;
+            }
+            m.f += a * (fm - m.f);
+            m.q += a * (q_m - m.q);
+            m.band = dp * f(k.motor_reading_band);
+            return;
+        }
+        if self.meas_wait > 0 {
+            self.meas_wait -= 1;
+        } else if q_m >= f(k.motor_reading_min_lpm) {
+            let z = m.f + (q_m - m.q) * f(k.motor_reading_lt);
+            let e = z - self.p2;
+            let e = e - e.clamp(-m.band, m.band);
+            self.p2 = (self.p2 + f(k.motor_reading_gain) * e).clamp(P_MIN_BAR, P_MAX_BAR);
+        }
     }
 
     /// One step, mirroring `pto_model::estimator::step`.
@@ -561,9 +622,9 @@ impl Reference {
         let dp = (self.p2 - self.lp).max(0.0);
         let q_ss = Self::t2(&k.valve_flow, self.aperture, dp);
         let q = self.q_motor.unwrap_or(q_ss);
-        let g = (k.motor_gain0.to_num::<f64>()
-            + (q_ss + q) * Self::row_lerp(&k.valve_flow, &k.motor_gain_valve, self.aperture))
-        .min(1.0);
+        let gain_valve = Self::row_lerp(&k.valve_flow, &k.motor_gain_valve, self.aperture);
+        let g = (k.motor_gain0.to_num::<f64>() + (q_ss + q) * gain_valve).min(1.0);
+        let lp_dp = self.lp + dp;
         let q = q + g * (q_ss - q);
         self.q_motor = Some(q);
         let motor_rpm = q * k.rpm_per_lpm.to_num::<f64>();
@@ -602,6 +663,21 @@ impl Reference {
                     self.var = r;
                     self.rejected = 0;
                 }
+            }
+        }
+        // Without the HP reading: P2 from the motor speed, as `estimator::motor_reading`.
+        let hp_ok = inp.hp.map(|p| f64::from(p.to_f32())).is_some_and(|p| {
+            p >= f64::from(c.hp_sensor_range_bar.0) && p <= f64::from(c.hp_sensor_range_bar.1)
+        });
+        let motor = inp
+            .motor
+            .map(|m| f64::from(m.to_f32()))
+            .filter(|m| *m >= 0.0 && *m <= f64::from(c.motor_sensor_max_rpm));
+        match motor.filter(|_| !hp_ok) {
+            Some(rpm) => self.motor_reading(rpm, cmd, lp_dp, dp, q_ss, g),
+            None => {
+                self.meas = None;
+                self.meas_wait = 0;
             }
         }
         if let Some(z) = inp.lp.map(|p| f64::from(p.to_f32())).filter(|p| {

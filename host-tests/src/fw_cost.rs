@@ -225,6 +225,15 @@ pub fn measure() -> Result<Report, String> {
         hold_p2(),
         "hold P2, 4 cylinders",
     )?);
+    // The same without the HP reading: the motor speed corrects P2 instead (its filters and
+    // reading in place of the Kalman update).
+    let no_hp: Vec<Inputs> = four.iter().map(|i| Inputs { hp: None, ..*i }).collect();
+    step.push(step_cost(
+        &mut q,
+        (no_hp.as_slice(), p2_four, lp_four),
+        hold_p2(),
+        "hold P2, 4 cylinders, no HP",
+    )?);
     q.link.send(&pto_model::protocol::ToFirmware::Exit(0))?;
     let size = vec![size(&bench_elf, "bench")?, size(&qemu_elf, "qemu")?];
     let pass = step.iter().all(|s| s.max <= target::STEP_INSTRUCTIONS)

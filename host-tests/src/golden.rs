@@ -28,7 +28,9 @@ fn golden_faults(i: usize, enc: Option<i32>, hp: f64) -> (Option<i32>, Option<f6
     let hp = match i {
         600..900 => None,
         1200..1260 => Some(-60.0),
-        1500..1520 => Some(hp + if i.is_multiple_of(2) { 30.0 } else { -30.0 }),
+        // The spool settling after the valve opened, then the motor speed as the P2 reading.
+        1300..1750 => None,
+        1800..1820 => Some(hp + if i.is_multiple_of(2) { 30.0 } else { -30.0 }),
         _ => Some(hp),
     };
     let enc = if (1700..1750).contains(&i) { None } else { enc };
@@ -37,6 +39,12 @@ fn golden_faults(i: usize, enc: Option<i32>, hp: f64) -> (Option<i32>, Option<f6
 
 fn no_faults(_: usize, enc: Option<i32>, hp: f64) -> (Option<i32>, Option<f64>) {
     (enc, Some(hp))
+}
+
+/// No HP reading at any step (for [`scenario_inputs`]: the model's P2 from the model and the
+/// motor speed).
+pub fn no_hp(_: usize, enc: Option<i32>, _: f64) -> (Option<i32>, Option<f64>) {
+    (enc, None)
 }
 
 /// Model inputs made from a full-simulation run of scenario `name`: `steps` steps of 2^−10 s

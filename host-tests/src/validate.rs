@@ -43,6 +43,10 @@ pub struct Row {
     pub scenario: String,
     /// P2 RMS error with the HP transducer, bar.
     pub p2_rms_bar: f64,
+    /// P2 max error with the HP transducer, bar (not a target: where the HP accumulator runs
+    /// empty, P2 falls several bar within one 8 ms trace sample, faster than a filter of a
+    /// 0.5 bar-noise transducer follows).
+    pub p2_max_bar: f64,
     /// P2 max error, model only, first 60 s, bar.
     pub p2_model_only_max_bar: f64,
     /// Torque RMS error / peak torque (None when the input does not move: no restraining
@@ -50,7 +54,8 @@ pub struct Row {
     pub torque_rms_of_peak: Option<f64>,
     /// Motor speed RMS error / RMS speed (None when the motor does not turn).
     pub motor_rms_rel: Option<f64>,
-    /// Max |P2 fixed − P2 f64|, bar.
+    /// Max |P2 fixed − P2 f64|, bar, over both runs (with the HP transducer, and without it for
+    /// the first 60 s).
     pub fixed_vs_f64_bar: f64,
     /// RMS |torque fixed − torque f64|, N·m.
     pub fixed_vs_f64_nm: f64,
@@ -123,6 +128,7 @@ fn validate_scenario(
     let (mut se_p2, mut se_tq, mut se_w, mut ss_w, mut peak_tq) = (0.0, 0.0, 0.0, 0.0, 0.0f64);
     let (mut d_p2, mut d_tq, mut se_d_tq) = (0.0f64, 0.0f64, 0.0f64);
     let mut count = 0.0f64;
+    let mut max_p2 = 0.0f64;
     for i in 0..n {
         let t = i as f64 * dt;
         let truth = truth_at(tr, t);
@@ -141,6 +147,7 @@ fn validate_scenario(
         se_d_tq += (tq - r.torque).powi(2);
         // Judge after the first wave period's start-up transient of the tracker (1 s).
         if t >= 1.0 {
+            max_p2 = max_p2.max((p2 - truth.p2).abs());
             se_p2 += (p2 - truth.p2).powi(2);
             se_tq += (tq - truth.torque).powi(2);
             se_w += (w - truth.motor_rpm).powi(2);
@@ -149,7 +156,7 @@ fn validate_scenario(
             count += 1.0;
         }
     }
-    // Without the HP transducer, from the known start, for 60 s.
+    // Without the HP transducer, from the known start, for 60 s (the f64 model alongside).
     let mut synth = SensorSynth::new(SensorSpec::default(), seed + 1);
     let mut st = State::new(
         Pressure::from_num(t0.p2 as f32),
@@ -158,6 +165,8 @@ fn validate_scenario(
     );
     let m = ((target::MODEL_ONLY_WINDOW_S.min(s.duration_s)) / dt) as usize;
     let mut max_mo = 0.0f64;
+    let mut rf_mo = Reference::new(mcfg, k, t0.p2, t0.lp, 0.0);
+    let mut d_p2_mo = 0.0f64;
     for i in 0..m {
         let t = i as f64 * dt;
         let truth: Truth = truth_at(tr, t);
@@ -166,17 +175,20 @@ fn validate_scenario(
         let inp = estimation::inputs(Some(enc), None, Some(lp), Some(motor), ap, duty, config);
         let e = estimator::step(k, &mut st, &inp);
         max_mo = max_mo.max((f64::from(e.p2.to_f32()) - truth.p2).abs());
+        let r = rf_mo.step(&inp);
+        d_p2_mo = d_p2_mo.max((f64::from(e.p2.to_f32()) - r.p2).abs());
     }
     let rms = |se: f64| (se / count.max(1.0)).sqrt();
     let motor_rms_rel = (ss_w / count.max(1.0) > 1.0).then(|| (se_w / ss_w).sqrt());
     let row = Row {
         scenario: s.name.clone(),
         p2_rms_bar: rms(se_p2),
+        p2_max_bar: max_p2,
         p2_model_only_max_bar: max_mo,
         torque_rms_of_peak: (!matches!(s.motion, crate::motion::MotionSpec::Blocked { .. }))
             .then(|| rms(se_tq) / peak_tq.max(1.0)),
         motor_rms_rel,
-        fixed_vs_f64_bar: d_p2,
+        fixed_vs_f64_bar: d_p2.max(d_p2_mo),
         fixed_vs_f64_nm: (se_d_tq / n.max(1) as f64).sqrt(),
         fixed_vs_f64_nm_max: d_tq,
         pass: false,

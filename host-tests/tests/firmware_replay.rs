@@ -1,6 +1,7 @@
-//! Bit-exact replay: the golden vectors and ≥ 10 000-step full-simulation traces (Test III and
-//! an irregular sea) streamed to the QEMU firmware give, step for step, the same estimate and
-//! scheduler output as the model crate run on the host.
+//! Bit-exact replay: the golden vectors and ≥ 10 000-step full-simulation traces (Test III, an
+//! irregular sea, and Test I with one cylinder without the HP transducer) streamed to the QEMU
+//! firmware give, step for step, the same estimate and scheduler output as the model crate run
+//! on the host.
 
 use pto_host::bench::Bench;
 use pto_host::golden;
@@ -66,6 +67,37 @@ fn firmware_matches_the_host_model_bit_for_bit() {
         assert_eq!(first_diff, None, "{name}: firmware and host differ");
         assert!(torque_span > 100.0, "{name}: the trace exercises the pump");
     }
+    // 3. Test I with one cylinder without the HP transducer: the HP accumulator runs empty each
+    // wave and the motor speed corrects P2 (the same inputs with that correction switched off
+    // must give another P2, or the trace would not exercise it).
+    let (inputs, p2, lp) =
+        golden::scenario_inputs(&bench, "test1-cfg1-c1", None, 12_000, golden::no_hp).unwrap();
+    let host = golden::run(&k, &inputs, p2, lp).unwrap();
+    let mut k_off = k.clone();
+    k_off.motor_reading_gain = pto_model::fx::Fx::ZERO;
+    let off = golden::run(&k_off, &inputs, p2, lp).unwrap();
+    let p2_span = host
+        .iter()
+        .zip(&off)
+        .map(|((a, _), (b, _))| (a.p2.to_f32() - b.p2.to_f32()).abs())
+        .fold(0.0f32, f32::max);
+    let t0 = Instant::now();
+    let fw = pil::replay(&mut q, &inputs, p2, lp, mode).unwrap();
+    let first_diff = host.iter().zip(&fw).position(|(a, b)| a != b);
+    println!(
+        "test1-cfg1-c1 without HP: {} steps replayed in {:.1} s, first difference at {:?} (the \
+         motor reading moves P2 by up to {:.2} bar)",
+        fw.len(),
+        t0.elapsed().as_secs_f64(),
+        first_diff,
+        p2_span
+    );
+    assert_eq!(fw.len(), inputs.len());
+    assert_eq!(
+        first_diff, None,
+        "test1-cfg1-c1 without HP: firmware and host differ"
+    );
+    assert!(p2_span > 1.0, "the trace exercises the motor reading");
     let st = pil::status(&mut q).unwrap();
     println!(
         "status: {} frames ok, {} dropped, {} steps, step cost {} (max {}) instructions",

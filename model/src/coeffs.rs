@@ -158,6 +158,38 @@ pub struct Coefficients {
     pub seal_kn_per_mm_s: Fx,
     /// Open check-valve pressure drop, bar.
     pub check_drop: Fx,
+    /// Motor flow per rpm, L/min per rpm, Q8.24 (1/[`Self::rpm_per_lpm`]: 0.0086 on the
+    /// reference bench, to 6·10^−8).
+    pub lpm_per_rpm_q24: i32,
+    /// Low-pass gain of the motor reading's filters (`estimator::motor_reading`), per second
+    /// step: 2·dt/τ.
+    pub motor_reading_filter: Fx,
+    /// The rotor's inductance per step, L/dt, bar per L/min (the branch's dF/dQ is the step's
+    /// relaxation gain times this).
+    pub motor_reading_ldt: Fx,
+    /// L/τ: the reading's pressure per L/min of measured flow above its low-passed value.
+    pub motor_reading_lt: Fx,
+    /// P2's gain toward the reading, per second step: 2·dt/T (0: the reading is not used).
+    pub motor_reading_gain: Fx,
+    /// Largest dF/dQ at which the reading is used, bar per L/min.
+    pub motor_reading_max_slope: Fx,
+    /// Smallest measured motor flow at which the reading is used, L/min.
+    pub motor_reading_min_lpm: Fx,
+    /// Largest |command − spool| at which the reading is used, %.
+    pub motor_reading_spool_tol: Fx,
+    /// The reading's dead band as a fraction of ΔP.
+    pub motor_reading_band: Fx,
+    /// Correction steps (every second step) the reading's filters run before P2 takes it:
+    /// three filter time constants.
+    pub motor_reading_warm_steps: u16,
+}
+
+/// An f32 coefficient in Q16.16, saturated. Out of line: the conversion is ≈ 100 bytes of
+/// Cortex-M4 code, and [`ModelConfig::coefficients`] makes some 60 of them (inlined, they cost
+/// the firmware image ≈ 4 KB of flash).
+#[inline(never)]
+fn fx(x: f32) -> Fx {
+    Fx::saturating_from_num(x)
 }
 
 /// ⌊2π · 2^32⌋: a full turn in the tracker's Q32.32 angle.
@@ -321,11 +353,11 @@ impl ModelConfig {
     }
 
     /// Turns the validated configuration into coefficients.
+    #[inline(never)]
     pub fn coefficients(&self) -> Result<Coefficients, ConfigError> {
         self.validate()?;
         let k = self.dt_log2;
         let dt = powf(2.0, -f32::from(k));
-        let fx = Fx::saturating_from_num;
         // 2π·2^32 / counts, floored, in integers (no f64 arithmetic in the firmware image: the
         // soft-float double routines cost ≈ 3 KB of flash). ≥ 64 counts (validated): < 2^29.
         let rad_per_count_q32 =
@@ -481,6 +513,23 @@ impl ModelConfig {
             play_mm: fx(self.free_play_mm),
             seal_kn_per_mm_s: fx(self.seal_friction_n_s_per_m * 1e-6),
             check_drop: fx(self.check_valve_drop_bar),
+            // Float-to-integer casts saturate; ≥ 1/10 000 rpm per L/min by validation.
+            lpm_per_rpm_q24: (16_777_216.0 / self.rpm_per_lpm()) as i32,
+            // The reading's filters run every second step (`estimator::motor_reading`).
+            motor_reading_filter: fx((2.0 * dt / (self.motor_reading_filter_ms * 1e-3)).min(1.0)),
+            motor_reading_ldt: fx(inductance / dt),
+            motor_reading_lt: fx(inductance / (self.motor_reading_filter_ms * 1e-3)),
+            motor_reading_gain: if self.motor_reading_time_constant_ms > 0.0 {
+                fx((2.0 * dt / (self.motor_reading_time_constant_ms * 1e-3)).min(1.0))
+            } else {
+                Fx::ZERO
+            },
+            motor_reading_max_slope: fx(self.motor_reading_max_slope_bar_per_lpm),
+            motor_reading_min_lpm: fx(self.motor_reading_min_rpm / self.rpm_per_lpm()),
+            motor_reading_spool_tol: fx(self.motor_reading_spool_tolerance_pct),
+            motor_reading_band: fx(self.motor_reading_band_pct * 1e-2),
+            motor_reading_warm_steps: (1.5 * self.motor_reading_filter_ms * 1e-3 / dt)
+                .clamp(1.0, 60_000.0) as u16,
         })
     }
 }

@@ -111,6 +111,26 @@ pub struct ModelConfig {
     pub process_noise_lpm_per_sqrt_s: f32,
     /// Innovation gate, in standard deviations.
     pub gate_sigma: f32,
+    /// Without the HP transducer, P2 is read from the motor speed (the rotor's equation
+    /// L·dQ/dt = P2 − LP − F(Q) solved for P2, see `estimator::motor_reading`): the low-pass time
+    /// constant of that reading, ms (it sets the reading's noise, L·σ_Q/τ, against its lag).
+    pub motor_reading_filter_ms: f32,
+    /// Time constant with which P2 follows that reading, ms (0 = P2 from the model alone).
+    pub motor_reading_time_constant_ms: f32,
+    /// Dead band of that reading, % of ΔP = P2 − LP: P2 follows only the part of the
+    /// difference beyond it (the reduced motor model's own accuracy).
+    pub motor_reading_band_pct: f32,
+    /// The reading is used only while the branch's steady pressure drop changes by at most this
+    /// per L/min of flow (dF/dQ, bar per L/min): near the closed valve the flow says little
+    /// about the pressure.
+    pub motor_reading_max_slope_bar_per_lpm: f32,
+    /// … and only while the motor turns at least this fast, rpm (the sensor's noise, rectified
+    /// at standstill, is not a flow).
+    pub motor_reading_min_rpm: f32,
+    /// … and only while the spool sits within this of its command, % (while it moves, the
+    /// plant's valve and the model's need not be at the same opening: on the reference bench
+    /// 1 % of aperture at 25 % is ≈ 2.5 bar of valve drop at 100 bar).
+    pub motor_reading_spool_tolerance_pct: f32,
     /// After this long of consecutive rejected HP readings the estimate is reset to them, ms.
     pub gate_reset_ms: f32,
     /// Overpressure trip, bar.
@@ -248,6 +268,21 @@ impl ModelConfig {
             // 100 bar) it is below the variance's floor of one Q16.16 LSB per step, which rules.
             process_noise_lpm_per_sqrt_s: 0.05,
             gate_sigma: 5.0,
+            // Reading noise L·σ_Q/τ = 1.03 bar per L/min/s × 0.017 L/min (2 rpm) / 50 ms ≈
+            // 0.36 bar per step, averaged over 25 ms of steps. Measured on Test I without the HP
+            // transducer (`pto validate`, an earlier form of the reading): 20/50 ms filters and
+            // 10/25/50 ms time constants gave 0.9–6.6 bar; 50/25 the least in the runs where the
+            // accumulator empties each wave.
+            motor_reading_filter_ms: 50.0,
+            motor_reading_time_constant_ms: 25.0,
+            // Motor speed RMS error of the reduced model against the full simulation: 0.4–1.9 %
+            // (`pto validate`). 1 % kept the gas-node runs 0.5–0.7 bar off (model alone: 0.02–0.14).
+            motor_reading_band_pct: 2.0,
+            // 5× the motor's own load line (7.7 bar per L/min on the reference bench).
+            motor_reading_max_slope_bar_per_lpm: 40.0,
+            // 6 σ of the 2 rpm sensor noise.
+            motor_reading_min_rpm: 12.0,
+            motor_reading_spool_tolerance_pct: 0.05,
             gate_reset_ms: 250.0,
             trip_bar: 140.0,
             autonomy_min_rpm: 50.0,
@@ -400,6 +435,44 @@ impl ModelConfig {
             100.0,
         )?;
         check("gate_sigma", self.gate_sigma, 2.0, 50.0)?;
+        check(
+            "motor_reading_filter_ms",
+            self.motor_reading_filter_ms,
+            1.0,
+            10_000.0,
+        )?;
+        if self.motor_reading_time_constant_ms != 0.0 {
+            check(
+                "motor_reading_time_constant_ms",
+                self.motor_reading_time_constant_ms,
+                1.0,
+                100_000.0,
+            )?;
+        }
+        check(
+            "motor_reading_band_pct",
+            self.motor_reading_band_pct,
+            0.0,
+            50.0,
+        )?;
+        check(
+            "motor_reading_max_slope_bar_per_lpm",
+            self.motor_reading_max_slope_bar_per_lpm,
+            0.1,
+            10_000.0,
+        )?;
+        check(
+            "motor_reading_min_rpm",
+            self.motor_reading_min_rpm,
+            0.0,
+            self.motor_sensor_max_rpm,
+        )?;
+        check(
+            "motor_reading_spool_tolerance_pct",
+            self.motor_reading_spool_tolerance_pct,
+            0.0,
+            100.0,
+        )?;
         check("gate_reset_ms", self.gate_reset_ms, 1.0, 60_000.0)?;
         check("trip_bar", self.trip_bar, 1.0, 400.0)?;
         check("autonomy_min_rpm", self.autonomy_min_rpm, 1.0, 5000.0)?;

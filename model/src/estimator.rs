@@ -9,9 +9,10 @@
 //! [`REVERSAL_UNITS_PER_STEP`]) → valve/motor flow from the
 //! steady valve table, relief flow → P2 and LP predicted through the nodes' capacitance tables →
 //! scalar Kalman correction of P2 (gain from a table of the prior variance, innovation gating,
-//! reset after a run of rejections) and a fixed-gain correction of LP → torque from the chamber
-//! pressures and the rods' seal friction → motor speed (Eq. 9 on the load line) and autonomy
-//! (table).
+//! reset after a run of rejections) or, without the HP transducer, a correction of P2 by the
+//! motor speed read as a pressure (`motor_reading`) → a fixed-gain correction of LP → torque
+//! from the chamber pressures and the rods' seal friction → motor speed (Eq. 9 on the load line)
+//! and autonomy (table).
 
 use crate::coeffs::{Coefficients, CylinderCoeffs, N_ARM};
 use crate::fx::{
@@ -195,7 +196,7 @@ pub struct State {
     pub hp_at_enc_change: Fx,
     /// P2, bar.
     pub p2: Fx,
-    /// The 16 bits of P2 below its Q16.16 LSB (units of 2^−32 bar): see [`node_step`].
+    /// The 16 bits of P2 below its Q16.16 LSB (units of 2^−32 bar): see `node_step`.
     pub p2_lo: u16,
     /// P2 variance, bar².
     pub var: Fx,
@@ -223,6 +224,25 @@ pub struct State {
     pub cyl: [CylState; 4],
     /// Consecutive rejected HP readings.
     pub rejected: u16,
+    /// Measured motor flow (speed / rpm per L/min), low-passed, L/min (the motor reading, used
+    /// without the HP transducer: see `estimator::motor_reading`).
+    pub q_meas: Fx,
+    /// LP + F(measured motor flow), low-passed, bar.
+    pub f_meas: Fx,
+    /// The motor reading's step: odd (the guards, F and both filters) or even (P2's
+    /// correction).
+    pub meas_odd: bool,
+    /// The reading's dead band as of the last odd step, bar.
+    pub meas_band: Fx,
+    /// `q_meas` and `f_meas` follow the motor sensor. They run while the HP reading is missing,
+    /// the spool stands at its command and the valve is open enough, and restart from the
+    /// sensor after any of these changes.
+    pub meas_live: bool,
+    /// Correction steps the reading still waits before P2 takes it: set to
+    /// [`Coefficients::motor_reading_warm_steps`] while the spool moves or the valve is near
+    /// closed (the rotor may then be accelerating, which filters started from one sample do not
+    /// know yet).
+    pub meas_wait: u16,
 }
 
 impl State {
@@ -436,6 +456,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     // resistance makes the branch faster than a step, e.g. near closed), the flow takes its
     // steady value: it never overshoots, so the step is stable at every aperture.
     let dp = s.p2.saturating_sub(s.lp).max(ZERO);
+    let lp_dp = s.lp.saturating_add(dp);
     let (q_ss, gain_valve) = k.valve_flow.at_with(s.aperture, dp, &k.motor_gain_valve);
     if first {
         (s.q_motor, s.q_motor_lo) = (q_ss, 0);
@@ -469,8 +490,11 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         .hp
         .map(|p| p.0)
         .filter(|p| *p >= k.hp_range.0 && *p <= k.hp_range.1);
+    let motor = inp.motor.filter(|m| m.0 >= ZERO && m.0 <= k.motor_max);
     match hp {
         Some(z) => {
+            // The motor reading restarts when the transducer goes missing again.
+            (s.meas_live, s.meas_wait) = (false, 0);
             let innov = z.saturating_sub(s.p2);
             let s_innov = s.var.saturating_add(k.r);
             if innov.qmul(innov) <= k.gate_sq.qmul(s_innov) {
@@ -495,7 +519,14 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
                 }
             }
         }
-        None => faults |= fault::HP_SENSOR,
+        None => {
+            faults |= fault::HP_SENSOR;
+            // Without it, correct P2 with the motor speed.
+            match motor {
+                Some(m) => motor_reading(k, s, m.0, cmd, lp_dp, dp, q_ss, g),
+                None => (s.meas_live, s.meas_wait) = (false, 0),
+            }
+        }
     }
     // --- Correct LP with a fixed gain.
     match inp
@@ -506,7 +537,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         Some(z) => correct(&mut s.lp, &mut s.lp_lo, k.gain_lp, z),
         None => faults |= fault::LP_SENSOR,
     }
-    if inp.motor.is_none_or(|m| m.0 < ZERO || m.0 > k.motor_max) {
+    if motor.is_none() {
         faults |= fault::MOTOR_SENSOR;
     }
     if s.p2 > k.trip || hp.is_some_and(|z| z > k.trip) {
@@ -539,6 +570,124 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         faults,
         background_units,
     }
+}
+
+/// P2 read from the motor speed, for a step without the HP transducer.
+///
+/// The rotor's equation L·dQ/dt = P2 − LP − F(Q) (see the valve/motor step in [`step`]) read
+/// backwards: the measured flow Q_m (speed / rpm per L/min) and its rate give
+/// P2 = LP + F(Q_m) + L·dQ_m/dt. Both terms are low-passed with the same first-order filter
+/// (τ = `ModelConfig::motor_reading_filter_ms`): the rate is that filter's own derivative
+/// (Q_m − Q̄)/τ, so the reading is P2 itself low-passed, not a noisy difference of two samples,
+/// and F is taken at each step's own aperture and flow before the filter, so the valve's
+/// square law and a moving aperture do not bias it. F(Q_m) needs no inverse table: the step's
+/// steady flow Q_ss at the model's ΔP satisfies F(Q_ss) = ΔP, and for F(Q) = β·Q + Q²/K²,
+/// F(Q_ss) − F(Q_m) = (Q_ss − Q_m)·(β + (Q_ss + Q_m)/K²) ≈ (Q_ss − Q_m)·g·L/dt with g the
+/// step's relaxation gain of the valve/motor flow. P2 then moves toward the reading (time
+/// constant T = `motor_reading_time_constant_ms`) less a band of `motor_reading_band_pct` of
+/// ΔP: the reduced model's motor (Eq. 9 on the load line)
+/// is good to 1–2 % of ΔP (its speed's RMS error against the full simulation), so a reading
+/// that close is no evidence against the model — at 100 bar, where the model alone drifts by
+/// 0.02 bar in a minute, the reading's ≈ 1 bar bias would otherwise set the error.
+///
+/// Where the accumulator is empty, P2 follows the pump flow within a fraction of a second and
+/// a pump-flow error of 1 L/min is ≈ 8 bar of P2; the motor speed is then the best P2 sensor
+/// left (Test I with one cylinder: model-only P2 3.2–4.4 → 1.2–1.3 bar). The reading is
+/// skipped where it says little: the valve near closed (dF/dQ above
+/// `motor_reading_max_slope_bar_per_lpm`), the motor below `motor_reading_min_rpm`; and the
+/// filters restart after the spool has moved (the plant's valve and the model's need not open
+/// at the same instant, and 1 % of aperture is several bar of valve drop at 100 bar), P2 taking
+/// the reading only after three filter time constants. (When the HP reading goes missing the
+/// filters start at once: a state started from known pressures has its rotor at steady speed.)
+/// The work alternates between two steps (the guards, F and both filters at half rate in one,
+/// the correction in the other), so that a step costs about what one with the transducer's
+/// Kalman update does.
+// The step's own values, passed as they are (inlined into the step: its only caller).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn motor_reading(
+    k: &Coefficients,
+    s: &mut State,
+    rpm: Fx,
+    cmd: Fx,
+    lp_dp: Fx,
+    dp: Fx,
+    q_ss: Fx,
+    g: Fx,
+) {
+    // 0 ≤ rpm ≤ 10 000 (< 2^30 bits; the caller range-checks it) × L/min per rpm (< 2^31
+    // bits): < 2^61; held to the flow range like every flow the nodes take.
+    let q_m = Fx::from_bits(
+        ((i64::from(rpm.to_bits()) * i64::from(k.lpm_per_rpm_q24) + (1 << 23)) >> 24)
+            .min(i64::from(FLOW_LIM.to_bits())) as i32,
+    );
+    if !s.meas_live {
+        s.q_meas = q_m;
+        s.f_meas = lp_plus_f(lp_dp, q_ss, q_m, mul_bounded(g, k.motor_reading_ldt));
+        (s.meas_live, s.meas_odd) = (true, false);
+        return;
+    }
+    // The work alternates between two steps, each filter running at half rate, so that a
+    // step costs about what the HP transducer's Kalman update it replaces does: the guards, F
+    // and both filters in one, P2's correction in the other.
+    s.meas_odd = !s.meas_odd;
+    if s.meas_odd {
+        // dF/dQ = g·L/dt: g ≤ 1 and L/dt < 2^15 bar per L/min (a saturated coefficient), so
+        // the product fits.
+        let slope = mul_bounded(g, k.motor_reading_ldt);
+        if slope > k.motor_reading_max_slope
+            || cmd.saturating_sub(s.aperture).abs() > k.motor_reading_spool_tol
+        {
+            // The valve near closed, or the spool moving: no reading; the filters restart
+            // once both end, and P2 takes the reading after they have run a while.
+            (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps);
+            return;
+        }
+        let f = lp_plus_f(lp_dp, q_ss, q_m, slope);
+        s.f_meas = filter(s.f_meas, k.motor_reading_filter, f);
+        // The derivative L·(Q_m − Q̄)/τ of the next step takes Q̄ as of this one.
+        s.q_meas = filter(s.q_meas, k.motor_reading_filter, q_m);
+        // ΔP ≤ 400 bar × a band ≤ 0.5: fits.
+        s.meas_band = mul_bounded(dp, k.motor_reading_band);
+        return;
+    }
+    if s.meas_wait > 0 {
+        s.meas_wait -= 1;
+    } else if q_m >= k.motor_reading_min_lpm {
+        let z = s
+            .f_meas
+            .saturating_add(q_m.saturating_sub(s.q_meas).qmul(k.motor_reading_lt));
+        // Only the part of the innovation beyond the band counts: inside it the reading does
+        // not know P2 better than the model does.
+        let e = z.saturating_sub(s.p2);
+        let e = e - clamp(e, -s.meas_band, s.meas_band);
+        // P2 += gain·e, rounded (|e| < 2^31 bits × gain ≤ 2^16 bits: < 2^47), held to the
+        // pressure range. The node's bits below the LSB are left as they are: a correction of
+        // a noisy reading needs none.
+        let d =
+            (i64::from(k.motor_reading_gain.to_bits()) * i64::from(e.to_bits()) + (1 << 15)) >> 16;
+        s.p2 = clamp(s.p2.saturating_add(Fx::from_bits(d as i32)), P_MIN, P_MAX);
+    }
+}
+
+/// LP + F(Q_m), bar, from F(Q_ss) = ΔP: F(Q_ss) − F(Q_m) = (Q_ss − Q_m)·dF/dQ.
+#[inline(always)]
+fn lp_plus_f(lp_dp: Fx, q_ss: Fx, q_m: Fx, slope: Fx) -> Fx {
+    clamp(
+        lp_dp.saturating_sub(slope.qmul(q_ss.saturating_sub(q_m))),
+        P_MIN,
+        P_MAX,
+    )
+}
+
+/// One step of a first-order filter x += a·(target − x), the product rounded to the nearest
+/// LSB (unbiased on a noisy input, where flooring it would offset x by half an LSB per step
+/// over the filter's 1/a steps; the filters follow noisy readings, so no bits below the LSB
+/// are kept). Both values lie in a physical range well inside ±2^15, a ∈ [0, 1].
+#[inline(always)]
+fn filter(x: Fx, a: Fx, target: Fx) -> Fx {
+    let d = (i64::from(a.to_bits()) * i64::from((target - x).to_bits()) + (1 << 15)) >> 16;
+    x + Fx::from_bits(d as i32)
 }
 
 /// Pressures of the new (compressing) and old (relaxing) chambers after `u` mm of rod travel
@@ -874,6 +1023,74 @@ mod tests {
             aperture_cmd: Aperture::from_num(10.0),
             on_duty,
             config,
+        }
+    }
+
+    /// Runs `steps` steps without the HP reading: shaft still, no cylinder on duty, the valve
+    /// held at `aperture` %, the motor sensor reading `rpm` (or missing), from P2 = `p2` bar.
+    fn run_without_hp(
+        k: &Coefficients,
+        p2: f32,
+        aperture: f32,
+        rpm: Option<f32>,
+        steps: usize,
+    ) -> Fx {
+        let mut s = State::new(
+            Pressure::from_num(p2),
+            Pressure::from_num(8.0),
+            Pressure::from_num(0.0),
+        );
+        let inp = Inputs {
+            encoder: Some(0),
+            hp: None,
+            lp: Some(Pressure::from_num(8.0)),
+            motor: rpm.map(Rpm::from_num),
+            aperture_cmd: Aperture::from_num(aperture),
+            on_duty: 0,
+            config: 0,
+        };
+        for _ in 0..steps {
+            step(k, &mut s, &inp);
+        }
+        s.p2
+    }
+
+    /// Without the HP reading, the motor speed of a rotor held steady by P2 = 40 bar (LP 8, the
+    /// valve fully open) pulls a P2 estimate started 5 bar low to 40 bar less the reading's
+    /// band (2 % of ΔP) within a quarter of a second; the model alone stays 5 bar off. Near the
+    /// closed valve, and with the motor below its minimum speed, the reading is not used: P2
+    /// is bit for bit the model's own.
+    #[test]
+    fn motor_speed_reads_p2_without_the_hp_transducer() {
+        let cfg = crate::ModelConfig::reference();
+        let k = cfg.coefficients().unwrap();
+        let (p_true, lp) = (40.0f32, 8.0f32);
+        let q = k
+            .valve_flow
+            .at(Fx::from_num(100.0), Fx::from_num(p_true - lp))
+            .to_num::<f32>();
+        let rpm = q * cfg.rpm_per_lpm();
+        let steps = 256; // 0.25 s: ten time constants of 25 ms
+        let with = run_without_hp(&k, p_true - 5.0, 100.0, Some(rpm), steps).to_num::<f32>();
+        let alone = run_without_hp(&k, p_true - 5.0, 100.0, None, steps).to_num::<f32>();
+        let band = 0.02 * (p_true - lp);
+        let expect = p_true - band;
+        std::println!(
+            "steady rotor at {rpm:.1} rpm ({q:.3} L/min) for P2 = {p_true} bar: from {} bar, P2 \
+             {with:.3} bar with the motor reading (expected {expect:.2} within 0.05), {alone:.3} \
+             bar from the model alone",
+            p_true - 5.0
+        );
+        assert!((with - expect).abs() < 0.05, "{with} vs {expect}");
+        assert!(p_true - alone > 4.5, "{alone}");
+        // Started at the right pressure, the reading keeps it there (inside its band).
+        let held = run_without_hp(&k, p_true, 100.0, Some(rpm), steps).to_num::<f32>();
+        assert!((held - p_true).abs() <= band + 0.1, "{held}");
+        // Guards: valve near closed (dF/dQ above the limit), motor below its minimum speed.
+        for (aperture, rpm) in [(1.0, rpm), (100.0, 0.5 * cfg.motor_reading_min_rpm)] {
+            let a = run_without_hp(&k, p_true - 5.0, aperture, Some(rpm), steps);
+            let b = run_without_hp(&k, p_true - 5.0, aperture, None, steps);
+            assert_eq!(a, b, "aperture {aperture} %, {rpm} rpm");
         }
     }
 

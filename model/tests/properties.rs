@@ -61,6 +61,30 @@ proptest! {
         }
     }
 
+    /// Without the HP reading, with the spool held (so the motor-speed reading runs every step),
+    /// any motor speed in the sensor's range and any lever motion never panic and keep P2
+    /// inside its physical limits.
+    #[test]
+    fn motor_reading_never_panics(motor in prop::collection::vec(0.0f32..3000.0, 1..400),
+                                  enc_step in -200i32..200, ap in 0.0f32..100.0,
+                                  p0 in 0.0f32..140.0, lp in 0.0f32..30.0, on_duty in 0u8..16) {
+        let k = coeffs();
+        let mut s = State::new(Pressure::from_num(p0), Pressure::from_num(lp), Pressure::from_num(1.0));
+        for (i, m) in motor.iter().enumerate() {
+            let inp = Inputs {
+                encoder: Some(enc_step.saturating_mul(i as i32)),
+                hp: None,
+                lp: Some(Pressure::from_num(lp)),
+                motor: Some(Rpm::from_num(*m)),
+                aperture_cmd: Aperture::from_num(ap),
+                on_duty,
+                config: 0,
+            };
+            let e = estimator::step(k, &mut s, &inp);
+            prop_assert!(e.p2.to_f32() >= -1.0 && e.p2.to_f32() <= 400.0);
+        }
+    }
+
     /// Valve flow grows with aperture and with pressure difference.
     #[test]
     fn valve_table_is_monotone(a in 0.0f32..99.0, da in 0.01f32..20.0, dp in 0.0f32..150.0, ddp in 0.01f32..20.0) {
@@ -94,6 +118,23 @@ fn config_errors_name_the_field() {
     let mut c = ModelConfig::reference();
     c.valve_area_mm2[4] = 1.0;
     assert_eq!(c.validate().unwrap_err().field, "valve_area_mm2");
+    // The motor reading: 0 switches it off; a time constant below 1 ms, a band beyond 50 % of
+    // ΔP or a minimum speed above the sensor's full scale is an error naming the field.
+    let mut c = ModelConfig::reference();
+    c.motor_reading_time_constant_ms = 0.0;
+    let k = c.coefficients().unwrap();
+    assert_eq!(k.motor_reading_gain, Fx::ZERO);
+    c.motor_reading_time_constant_ms = 0.5;
+    assert_eq!(
+        c.validate().unwrap_err().field,
+        "motor_reading_time_constant_ms"
+    );
+    let mut c = ModelConfig::reference();
+    c.motor_reading_band_pct = 60.0;
+    assert_eq!(c.validate().unwrap_err().field, "motor_reading_band_pct");
+    let mut c = ModelConfig::reference();
+    c.motor_reading_min_rpm = c.motor_sensor_max_rpm + 1.0;
+    assert_eq!(c.validate().unwrap_err().field, "motor_reading_min_rpm");
 }
 
 #[test]
