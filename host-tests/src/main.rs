@@ -787,7 +787,7 @@ fn fw_cost_cmd(json: bool, trace: Option<&Path>) -> Result<bool> {
         use pto_host::fw_cost::target;
         for s in &r.step {
             println!(
-                "step ({:<20}) {} steps: mean {:.0}, max {} instructions (target ≤ {})",
+                "step ({:<27}) {} steps: mean {:.0}, max {} instructions (target ≤ {})",
                 s.mode,
                 s.steps,
                 s.mean,
