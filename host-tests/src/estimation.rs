@@ -405,8 +405,7 @@ impl Reference {
         m.odd = !m.odd;
         if m.odd {
             if slope > f(k.motor_reading_max_slope)
-                || (cmd - self.aperture).abs()
-                    > f64::from(self.cfg.motor_reading_spool_tolerance_pct)
+                || (cmd - self.aperture).abs() > f(k.motor_reading_spool_tol)
             {
                 self.meas = None;
                 self.meas_wait = u32::from(k.motor_reading_warm_steps);
@@ -638,9 +637,10 @@ impl Reference {
             .clamp(P_MIN_BAR, P_MAX_BAR);
         let r = f64::from(c.pressure_noise_bar).powi(2);
         self.var += Self::t1(&k.q_step, self.p2);
-        if let Some(z) = inp.hp.map(|p| f64::from(p.to_f32())).filter(|p| {
+        let hp = inp.hp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.hp_sensor_range_bar.0) && *p <= f64::from(c.hp_sensor_range_bar.1)
-        }) {
+        });
+        if let Some(z) = hp {
             let innov = z - self.p2;
             if innov * innov <= f64::from(c.gate_sigma).powi(2) * (self.var + r) {
                 let g = if self.var < k.r.to_num::<f64>() {
@@ -666,14 +666,11 @@ impl Reference {
             }
         }
         // Without the HP reading: P2 from the motor speed, as `estimator::motor_reading`.
-        let hp_ok = inp.hp.map(|p| f64::from(p.to_f32())).is_some_and(|p| {
-            p >= f64::from(c.hp_sensor_range_bar.0) && p <= f64::from(c.hp_sensor_range_bar.1)
-        });
         let motor = inp
             .motor
             .map(|m| f64::from(m.to_f32()))
             .filter(|m| *m >= 0.0 && *m <= f64::from(c.motor_sensor_max_rpm));
-        match motor.filter(|_| !hp_ok) {
+        match motor.filter(|_| hp.is_none()) {
             Some(rpm) => self.motor_reading(rpm, cmd, lp_dp, dp, q_ss, g),
             None => {
                 self.meas = None;

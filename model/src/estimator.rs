@@ -1035,19 +1035,13 @@ mod tests {
         rpm: Option<f32>,
         steps: usize,
     ) -> Fx {
-        let mut s = State::new(
-            Pressure::from_num(p2),
-            Pressure::from_num(8.0),
-            Pressure::from_num(0.0),
-        );
+        let lp = Pressure::from_num(8.0);
+        let mut s = State::new(Pressure::from_num(p2), lp, Pressure::from_num(0.0));
         let inp = Inputs {
-            encoder: Some(0),
             hp: None,
-            lp: Some(Pressure::from_num(8.0)),
             motor: rpm.map(Rpm::from_num),
             aperture_cmd: Aperture::from_num(aperture),
-            on_duty: 0,
-            config: 0,
+            ..held_inputs(&crate::ModelConfig::reference(), 0.0, lp, lp, 0, 0)
         };
         for _ in 0..steps {
             step(k, &mut s, &inp);
