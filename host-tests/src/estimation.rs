@@ -7,7 +7,7 @@ use crate::sim::{SimResult, Trace};
 use pto_model::config::{AccumulatorConfig, CylinderConfig, GeometryConfig};
 use pto_model::estimator::{Inputs, P_MAX, P_MIN};
 use pto_model::fx::{Aperture, Fx, Pressure, Rpm};
-use pto_model::table::{Table1, Table2};
+use pto_model::table::{Table2, lerp_f64, locate_f64};
 use pto_model::{Coefficients, ModelConfig};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -353,34 +353,9 @@ impl Reference {
         }
     }
 
-    /// Cell and fraction of `x` on a table axis from `x0` with `inv` nodes per unit and `n`
-    /// nodes (held to the ends), as `pto_model::table` locates it.
-    fn locate(x: f64, x0: Fx, inv: Fx, n: usize) -> (usize, f64) {
-        let u = ((x - x0.to_num::<f64>()) * inv.to_num::<f64>()).clamp(0.0, (n - 1) as f64);
-        let i = (u as usize).min(n - 2);
-        (i, u - i as f64)
-    }
-
-    /// Linear interpolation between nodes `i` and `i + 1` of `ys`.
-    fn lerp(ys: &[Fx], (i, f): (usize, f64)) -> f64 {
-        let (a, b) = (ys[i].to_num::<f64>(), ys[i + 1].to_num::<f64>());
-        a + f * (b - a)
-    }
-
-    fn t1<const N: usize>(t: &Table1<N>, x: f64) -> f64 {
-        Self::lerp(&t.y, Self::locate(x, t.x0, t.inv_dx, N))
-    }
-
-    fn t2<const R: usize, const C: usize>(t: &Table2<R, C>, r: f64, c: f64) -> f64 {
-        let (i, fr) = Self::locate(r, t.r0, t.inv_dr, R);
-        let col = Self::locate(c, t.c0, t.inv_dc, C);
-        let (lo, hi) = (Self::lerp(&t.y[i], col), Self::lerp(&t.y[i + 1], col));
-        lo + fr * (hi - lo)
-    }
-
     /// A per-row column of a 2-D table (`Table2::at_with`) at row coordinate `r`.
     fn row_lerp<const R: usize, const C: usize>(t: &Table2<R, C>, col: &[Fx; R], r: f64) -> f64 {
-        Self::lerp(col, Self::locate(r, t.r0, t.inv_dr, R))
+        lerp_f64(col, locate_f64(r, t.r0, t.inv_dr, R))
     }
 
     /// P2 from the motor speed, mirroring `pto_model::estimator::motor_reading` (its
@@ -480,7 +455,7 @@ impl Reference {
             let cc = &k.cyl[i];
             let f = |x: Fx| x.to_num::<f64>();
             let side = f(cc.side);
-            let d = Self::t1(&k.arm[config], side * self.theta); // mm
+            let d = k.arm[config].at_f64(side * self.theta); // mm
             let v = side * d * self.omega; // mm/s
             if inp.on_duty & (1 << i) != 0 {
                 use pto_model::estimator::{BISECT_ITERATIONS, SETUP_UNITS};
@@ -498,8 +473,8 @@ impl Reference {
                 let (lo, hi) = (self.lp - drop, self.p2 + drop);
                 let pressures = |st: &(f64, f64, f64, f64), u: f64| {
                     let (ms_n0, ms_o0, kn, ko) = *st;
-                    let pn = Self::t1(&k.p_of_ms, ms_n0 + u * kn).max(lo).min(hi);
-                    let po = Self::t1(&k.p_of_ms, ms_o0 - u * ko).max(lo).min(hi);
+                    let pn = k.p_of_ms.at_f64(ms_n0 + u * kn).max(lo).min(hi);
+                    let po = k.p_of_ms.at_f64(ms_o0 - u * ko).max(lo).min(hi);
                     (pn, po)
                 };
                 if dir != cs.dir {
@@ -513,7 +488,7 @@ impl Reference {
                 if (cs.setup_left > 0 || cs.bisect_left > 0) && budget > 0 {
                     budget -= 1;
                     if cs.setup_left == SETUP_UNITS {
-                        let pos = Self::t1(&k.ext[config], side * self.theta);
+                        let pos = k.ext[config].at_f64(side * self.theta);
                         let l_cap = f(cc.dead_cap_mm) + pos;
                         let l_rod = f(cc.dead_rod_mm) + f(cc.stroke_mm) - pos;
                         cs.len = if dir >= 0 {
@@ -534,12 +509,12 @@ impl Reference {
                         } else {
                             (cs.p.0, cs.p.1)
                         };
-                        cs.strain.0 = Self::t1(&k.ms_of_p, p_new0.max(lo).min(hi));
-                        cs.strain.1 = Self::t1(&k.ms_of_p, p_old0.max(lo).min(hi));
+                        cs.strain.0 = k.ms_of_p.at_f64(p_new0.max(lo).min(hi));
+                        cs.strain.1 = k.ms_of_p.at_f64(p_old0.max(lo).min(hi));
                         cs.setup_left -= 1;
                     } else if cs.setup_left > 0 {
-                        let to_hi = (Self::t1(&k.ms_of_p, hi) - cs.strain.0).max(0.0);
-                        let to_lo = (cs.strain.1 - Self::t1(&k.ms_of_p, lo)).max(0.0);
+                        let to_hi = (k.ms_of_p.at_f64(hi) - cs.strain.0).max(0.0);
+                        let to_lo = (cs.strain.1 - k.ms_of_p.at_f64(lo)).max(0.0);
                         cs.u_end = to_hi * cs.len.0 / 1000.0;
                         cs.u_suc = to_lo * cs.len.1 / 1000.0;
                         cs.u_bal = 0.0;
@@ -619,7 +594,7 @@ impl Reference {
             }
         }
         let dp = (self.p2 - self.lp).max(0.0);
-        let q_ss = Self::t2(&k.valve_flow, self.aperture, dp);
+        let q_ss = k.valve_flow.at_f64(self.aperture, dp);
         let q = self.q_motor.unwrap_or(q_ss);
         let gain_valve = Self::row_lerp(&k.valve_flow, &k.motor_gain_valve, self.aperture);
         let g = (k.motor_gain0.to_num::<f64>() + (q_ss + q) * gain_valve).min(1.0);
@@ -630,13 +605,13 @@ impl Reference {
         let q_valve = if dp > 0.0 { q } else { 0.0 };
         let q_relief =
             (self.p2 - k.relief_setting.to_num::<f64>()).max(0.0) * k.relief_gain.to_num::<f64>();
-        let inv_c_hp = Self::t1(&k.inv_c_hp, self.p2);
+        let inv_c_hp = k.inv_c_hp.at_f64(self.p2);
         self.p2 =
             (self.p2 + (q_pump - q_valve - q_relief) * inv_c_hp * dt).clamp(P_MIN_BAR, P_MAX_BAR);
-        self.lp = (self.lp + (q_valve + q_relief - q_lp) * Self::t1(&k.inv_c_lp, self.lp) * dt)
+        self.lp = (self.lp + (q_valve + q_relief - q_lp) * k.inv_c_lp.at_f64(self.lp) * dt)
             .clamp(P_MIN_BAR, P_MAX_BAR);
         let r = f64::from(c.pressure_noise_bar).powi(2);
-        self.var += Self::t1(&k.q_step, self.p2);
+        self.var += k.q_step.at_f64(self.p2);
         let hp = inp.hp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.hp_sensor_range_bar.0) && *p <= f64::from(c.hp_sensor_range_bar.1)
         });
@@ -644,9 +619,9 @@ impl Reference {
             let innov = z - self.p2;
             if innov * innov <= f64::from(c.gate_sigma).powi(2) * (self.var + r) {
                 let g = if self.var < k.r.to_num::<f64>() {
-                    Self::t1(&k.gain_fine, self.var)
+                    k.gain_fine.at_f64(self.var)
                 } else {
-                    Self::t1(&k.gain_coarse, self.var).clamp(0.0, 1.0)
+                    k.gain_coarse.at_f64(self.var).clamp(0.0, 1.0)
                 };
                 // The reading held to the model's pressure range, as in the fixed-point model.
                 self.p2 += g * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.p2);

@@ -23,6 +23,21 @@ fn locate(x: Fx, x0: Fx, inv_dx: Fx, n: usize) -> (usize, Fx) {
     (i as usize, Fx::from_bits(((p >> 16) as i32) & 0xffff))
 }
 
+/// The cell and the exact fraction of `x` on a grid of `n` nodes from `x0` with `inv_dx` nodes
+/// per unit, held to the ends: the tables' own location of a Q16.16 point, in f64. For f64
+/// models of the same tables (the host's reference model, tests); not used by the step.
+pub fn locate_f64(x: f64, x0: Fx, inv_dx: Fx, n: usize) -> (usize, f64) {
+    let u = ((x - x0.to_num::<f64>()) * inv_dx.to_num::<f64>()).clamp(0.0, (n - 1) as f64);
+    let i = (u as usize).min(n - 2);
+    (i, u - i as f64)
+}
+
+/// Linear interpolation in f64 between nodes `i` and `i + 1` of `ys` (see [`locate_f64`]).
+pub fn lerp_f64(ys: &[Fx], (i, f): (usize, f64)) -> f64 {
+    let (a, b) = (ys[i].to_num::<f64>(), ys[i + 1].to_num::<f64>());
+    a + f * (b - a)
+}
+
 /// a + f·(b − a) for a fraction f ∈ [0, 1] (the product needs no range check, see
 /// [`mul_frac`]).
 #[inline(always)]
@@ -68,6 +83,11 @@ impl<const N: usize> Table1<N> {
         let (i, f) = locate(x, self.x0, self.inv_dx, N);
         lerp(self.y[i], self.y[i + 1], f)
     }
+
+    /// The same table interpolated in f64 (exact fraction and products; see [`locate_f64`]).
+    pub fn at_f64(&self, x: f64) -> f64 {
+        lerp_f64(&self.y, locate_f64(x, self.x0, self.inv_dx, N))
+    }
 }
 
 /// A 2-D table, `R` rows (first coordinate) by `C` columns (second coordinate).
@@ -112,6 +132,14 @@ impl<const R: usize, const C: usize> Table2<R, C> {
     #[inline(never)]
     pub fn at(&self, r: Fx, c: Fx) -> Fx {
         self.bilinear(r, c).2
+    }
+
+    /// The same table interpolated bilinearly in f64 (see [`locate_f64`]).
+    pub fn at_f64(&self, r: f64, c: f64) -> f64 {
+        let (i, fr) = locate_f64(r, self.r0, self.inv_dr, R);
+        let col = locate_f64(c, self.c0, self.inv_dc, C);
+        let (lo, hi) = (lerp_f64(&self.y[i], col), lerp_f64(&self.y[i + 1], col));
+        lo + fr * (hi - lo)
     }
 
     /// [`Self::at`], and at the same row coordinate the linear interpolation of `col`, a
