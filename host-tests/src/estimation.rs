@@ -303,6 +303,8 @@ struct RefMeas {
 struct RefCyl {
     dir: i8,
     from_rest: bool,
+    /// The play this stroke crosses, mm.
+    play: f64,
     setup_left: u8,
     bisect_left: u8,
     /// Eye travel since the reversal, mm.
@@ -467,7 +469,6 @@ impl Reference {
                 } else {
                     cs.dir
                 };
-                let play = f(k.play_mm);
                 let seal = v * f(k.seal_kn_per_mm_s);
                 let drop = f(k.check_drop);
                 let (lo, hi) = (self.lp - drop, self.p2 + drop);
@@ -481,6 +482,7 @@ impl Reference {
                     cs.from_rest = cs.dir == 0;
                     cs.dir = dir;
                     cs.travel = 0.0;
+                    cs.play = f(k.play_mm);
                     cs.setup_left = SETUP_UNITS;
                     cs.bisect_left = 0;
                 }
@@ -500,6 +502,21 @@ impl Reference {
                         cs.setup_left -= 1;
                     } else if cs.setup_left == SETUP_UNITS - 1 {
                         cs.strain.3 = 1000.0 / cs.len.1;
+                        if !cs.from_rest {
+                            let (p_new0, p_old0, ratio) = if dir >= 0 {
+                                (cs.p.1, cs.p.0, f(cc.ratio_ext))
+                            } else {
+                                (cs.p.0, cs.p.1, f(cc.ratio_ret))
+                            };
+                            let net = p_old0.max(lo).min(hi) - ratio * p_new0.max(lo).min(hi);
+                            cs.play = if net.abs() < f(pto_model::estimator::FLOAT_BAND) {
+                                0.25 * f(k.play_mm)
+                            } else if net < 0.0 {
+                                0.0
+                            } else {
+                                f(k.play_mm)
+                            };
+                        }
                         cs.setup_left -= 1;
                     } else if cs.setup_left == SETUP_UNITS - 2 {
                         let (p_new0, p_old0) = if cs.from_rest {
@@ -519,7 +536,9 @@ impl Reference {
                         cs.u_suc = to_lo * cs.len.1 / 1000.0;
                         cs.u_bal = 0.0;
                         cs.u_bal_hi = cs.u_end.max(cs.u_suc);
-                        cs.bisect_left = BISECT_ITERATIONS;
+                        if cs.from_rest || cs.play == f(k.play_mm) {
+                            cs.bisect_left = BISECT_ITERATIONS;
+                        }
                         cs.setup_left = 0;
                     } else {
                         let ratio = if dir >= 0 {
@@ -535,8 +554,12 @@ impl Reference {
                             cs.u_bal_hi = m;
                         }
                         cs.bisect_left -= 1;
-                        if cs.bisect_left == 0 && cs.from_rest {
-                            cs.travel += cs.u_bal + 0.5 * f(k.play_mm);
+                        if cs.bisect_left == 0 {
+                            if cs.from_rest {
+                                cs.travel += cs.u_bal + 0.5 * f(k.play_mm);
+                            } else if cs.u_bal_hi == cs.u_end.max(cs.u_suc) {
+                                cs.play = 0.0;
+                            }
                         }
                     }
                 }
@@ -548,6 +571,7 @@ impl Reference {
                         cs.u_bal
                     };
                     let e = cs.travel;
+                    let play = cs.play;
                     let u = if e <= ub {
                         e
                     } else if e <= ub + play {

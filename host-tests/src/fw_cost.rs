@@ -158,8 +158,8 @@ pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, String> {
                     'S'
                 } else if cs.bisect_left > 0 {
                     'B'
-                } else if cs.travel < cs.u_end.saturating_add(k.play_mm)
-                    || cs.travel.saturating_sub(k.play_mm) < cs.u_suc
+                } else if cs.travel < cs.u_end.saturating_add(cs.play)
+                    || cs.travel.saturating_sub(cs.play) < cs.u_suc
                 {
                     'b'
                 } else {

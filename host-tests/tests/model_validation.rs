@@ -10,9 +10,10 @@
 //! with the motor stopped, on the stiff empty node); and Test I with HC3.1 + HC3.4 in Config 3,
 //! whose P2 crosses the precharge every wave (fixed vs f64 0.145 bar before the Kalman variance
 //! kept its sub-LSB bits, 0.02–0.03 since). The other Test I runs with one or two cylinders
-//! (HP accumulator empty) meet the P2 and motor-speed targets, and with one cylinder the
-//! model-only P2 target (the motor speed reading P2), asserted on one of them below; the other
-//! runs' model-only P2 and torque are left to `pto validate` (see the README).
+//! (HP accumulator empty) meet the P2, torque and motor-speed targets, and with one small
+//! cylinder every target (the motor speed reading P2, the rod floating in its free play),
+//! asserted on one of them below; the model-only P2 of the runs with HC3.4 is left to
+//! `pto validate` (see the README).
 
 use pto_host::bench::Bench;
 use pto_host::validate::{self, target};
@@ -88,20 +89,26 @@ fn model_tracks_the_full_simulation_on_representative_runs() {
 
 /// Test I with one cylinder: the HP accumulator is empty and P2 follows the motor, whose rotor
 /// inertia the model carries (the quasi-static valve/motor law missed the speed by 10–13 %).
-/// Without the HP transducer the motor speed reads P2 (the model alone was 4.4 bar off).
+/// Without the HP transducer the motor speed reads P2 (the model alone was 4.4 bar off). At
+/// P2 ≈ 10 bar the small rod runs ahead of its eye on the annulus stroke and is pushed at once
+/// when the lever turns back (the torque was 6.8 % of peak off while the model had the eye cross
+/// its play first).
 #[test]
 fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
     let rows = validate_named(&["test1-cfg1-c1"]);
     let r = &rows[0];
     let motor = r.motor_rms_rel.expect("Test I runs the motor");
+    let torque = r.torque_rms_of_peak.expect("Test I moves the lever");
     println!(
-        "{}: P2 RMS {:.3} bar (target {}), no-HP max {:.3} bar (target {}), motor {:.2} % \
-         (target {} %), fx-f64 {:.4} bar (target {})",
+        "{}: P2 RMS {:.3} bar (target {}), no-HP max {:.3} bar (target {}), torque {:.2} % \
+         (target {} %), motor {:.2} % (target {} %), fx-f64 {:.4} bar (target {})",
         r.scenario,
         r.p2_rms_bar,
         target::P2_RMS_BAR,
         r.p2_model_only_max_bar,
         target::P2_MODEL_ONLY_MAX_BAR,
+        100.0 * torque,
+        100.0 * target::TORQUE_RMS_OF_PEAK,
         100.0 * motor,
         100.0 * target::MOTOR_RMS_REL,
         r.fixed_vs_f64_bar,
@@ -109,8 +116,10 @@ fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
     );
     assert!(r.p2_rms_bar <= target::P2_RMS_BAR);
     assert!(r.p2_model_only_max_bar <= target::P2_MODEL_ONLY_MAX_BAR);
+    assert!(torque <= target::TORQUE_RMS_OF_PEAK);
     assert!(motor <= target::MOTOR_RMS_REL);
     assert!(r.fixed_vs_f64_bar <= target::FIXED_VS_F64_BAR);
+    assert!(r.pass);
 }
 
 #[test]

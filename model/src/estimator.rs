@@ -4,7 +4,8 @@
 //! Per step: shaft angle and speed from the encoder (α–β–γ tracker) → per cylinder on duty, rod
 //! speed from the lever-arm table and the stroke-reversal phases (both chambers follow the oil's
 //! strain law from their pressures at the reversal until their forces balance, the eye crosses
-//! the free play, the new chamber compresses to P2 and delivers; a reversal's set-up and
+//! the free play — all of it, none or a quarter, by the rod's net force when the lever turned,
+//! see `play_to_cross` — the new chamber compresses to P2 and delivers; a reversal's set-up and
 //! force-balance bisection run as small work units over the following steps, see
 //! [`REVERSAL_UNITS_PER_STEP`]) → valve/motor flow from the
 //! steady valve table, relief flow → P2 and LP predicted through the nodes' capacitance tables →
@@ -123,6 +124,9 @@ pub struct CylState {
     pub dir: i8,
     /// The last reversal started from rest (both chambers at LP).
     pub from_rest: bool,
+    /// The free play this stroke crosses, mm: the configured play, or 0 when the rod stays on
+    /// one end of it.
+    pub play: Fx,
     /// Reversal set-up units still to run ([`SETUP_UNITS`] after a reversal, then 0).
     pub setup_left: u8,
     /// Force-balance bisection iterations still to run.
@@ -773,13 +777,19 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
             cs.u_bal_hi = m;
         }
         cs.bisect_left -= 1;
-        if cs.bisect_left == 0 && cs.from_rest {
-            // From rest both chambers start at LP and the eye sits in the middle of its free
-            // play: skip the balance and half the play.
-            cs.travel = cs
-                .travel
-                .saturating_add(cs.u_bal)
-                .saturating_add(k.play_mm >> 1u32);
+        if cs.bisect_left == 0 {
+            if cs.from_rest {
+                // From rest both chambers start at LP and the eye sits in the middle of its free
+                // play: skip the balance and half the play.
+                cs.travel = cs
+                    .travel
+                    .saturating_add(cs.u_bal)
+                    .saturating_add(k.play_mm >> 1u32);
+            } else if cs.u_bal_hi == cs.u_end.max(cs.u_suc) {
+                // No balance up to full build-up: the old chamber's force still drives the rod
+                // ahead of the eye once both chambers are at P2 and LP, so it stays there.
+                cs.play = ZERO;
+            }
         }
         return;
     }
@@ -799,8 +809,11 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
         };
         cs.ms_per_mm_n = recip(Fx::from_bits(cs.len_n.to_bits() >> 10)).qmul(KMS);
     } else if cs.setup_left == SETUP_UNITS - 1 {
-        // (2) The old chamber's strain per mm.
+        // (2) The old chamber's strain per mm, and the play the eye has to cross.
         cs.ms_per_mm_o = recip(Fx::from_bits(cs.len_o.to_bits() >> 10)).qmul(KMS);
+        if !cs.from_rest {
+            cs.play = play_to_cross(k, c, cs, lo, hi);
+        }
     } else if cs.setup_left == SETUP_UNITS - 2 {
         // (3) Start from the chambers' pressures at the reversal (held since), not from P2/LP:
         // in an irregular sea the shaft can turn back before a stroke has built up.
@@ -822,10 +835,47 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
         cs.u_suc = ms_times_mm(to_lo, cs.len_o);
         cs.u_bal = ZERO;
         cs.u_bal_hi = cs.u_end.max(cs.u_suc);
-        cs.bisect_left = BISECT_ITERATIONS;
+        if cs.from_rest || cs.play == k.play_mm {
+            cs.bisect_left = BISECT_ITERATIONS;
+        }
     }
     cs.setup_left -= 1;
 }
+
+/// The free play the eye crosses after a reversal, from the chambers' net force on the rod when
+/// the lever turned (held pressures, the old chamber's force less the new one's, as a pressure
+/// on the old chamber: `p_old − (A_new/A_old)·p_new`). The rod lies against whichever end of the
+/// play that force presses it to:
+/// - it assists the new motion (the usual case: the old chamber delivered at P2 and resisted
+///   the old motion): the rod follows the eye until the forces balance, then stands while the
+///   eye crosses the whole play;
+/// - it already resists the new motion: the rod ran ahead of the eye on the old stroke (P2 below
+///   LP·A_suc/A_del, a low P2 on an annulus stroke) and lies against the end that now pushes
+///   it: no play to cross;
+/// - within ±[`FLOAT_BAND`] of zero the rod floated: the pump's delivery and the motor's draw
+///   held P2 at the balance while the rod drifted ahead in its play. The full simulation shows
+///   it most of the way across when the lever turns (0.2–1 mm of a 4 mm play left in the Test I
+///   runs with one cylinder); a quarter of the play is taken.
+fn play_to_cross(k: &Coefficients, c: &CylinderCoeffs, cs: &CylState, lo: Fx, hi: Fx) -> Fx {
+    let (p_new0, p_old0, ratio) = if cs.dir >= 0 {
+        (cs.p_rod, cs.p_cap, c.ratio_ext)
+    } else {
+        (cs.p_cap, cs.p_rod, c.ratio_ret)
+    };
+    let net = clamp(p_old0, lo, hi).saturating_sub(ratio.qmul(clamp(p_new0, lo, hi)));
+    if net.abs() < FLOAT_BAND {
+        k.play_mm >> 2u32
+    } else if net < ZERO {
+        ZERO
+    } else {
+        k.play_mm
+    }
+}
+
+/// Band of the net chamber force at a reversal within which the rod floats in its play (as a
+/// pressure on the old chamber: ±0.25 bar, about the estimate's own noise with the HP
+/// transducer).
+pub const FLOAT_BAND: Fx = Fx::from_bits(16_384);
 
 /// 1000/1024, exact in Q16.16.
 const KMS: Fx = Fx::from_bits(64_000);
@@ -854,7 +904,7 @@ fn cylinder(sh: &mut Shared, c: &CylinderCoeffs, cs: &mut CylState, lever: &Leve
     };
     // After a reversal (eye travel e since it, mm): the rod first follows the lever while the
     // old delivering chamber relaxes and the new one compresses, until their forces balance at
-    // u_bal; the eye then crosses the free play with the rod standing; then the rod moves again
+    // u_bal; the eye then crosses the free play (`cs.play`) with the rod standing; then the rod moves again
     // until the new chamber reaches P2 and delivers. The rod's own travel u sets both chamber
     // pressures through the oil's strain law p = P(strain) (inverse strain table). (A linear
     // pressure–travel law put the new chamber at ~45 bar instead of ~19 bar when the forces
@@ -863,6 +913,7 @@ fn cylinder(sh: &mut Shared, c: &CylinderCoeffs, cs: &mut CylState, lever: &Leve
         cs.from_rest = cs.dir == 0;
         cs.dir = dir;
         cs.travel = ZERO;
+        cs.play = k.play_mm;
         cs.setup_left = SETUP_UNITS;
         cs.bisect_left = 0;
     }
@@ -887,14 +938,10 @@ fn cylinder(sh: &mut Shared, c: &CylinderCoeffs, cs: &mut CylState, lever: &Leve
         } else {
             cs.u_bal
         };
-        let e_end = cs.u_end.saturating_add(k.play_mm);
-        let u = if cs.travel <= ub {
-            cs.travel
-        } else if cs.travel <= ub.saturating_add(k.play_mm) {
-            ub
-        } else {
-            cs.travel.saturating_sub(k.play_mm)
-        };
+        let e_end = cs.u_end.saturating_add(cs.play);
+        // The rod's travel: the eye's up to the balance, held there while the eye crosses the
+        // play, the eye's less the play after (branch-free: min/max of the three).
+        let u = cs.travel.min(ub).max(cs.travel.saturating_sub(cs.play));
         // The travel counts until the new chamber delivers and the old one sucks (then it is
         // not needed: kept bounded). (Counting stopped at delivery alone once left an old
         // chamber that needs more travel than the new one short of LP for the rest of the
@@ -1185,6 +1232,63 @@ mod tests {
         );
         assert_eq!(checked, 96);
         assert!(worst < 0.01, "{worst}");
+    }
+
+    /// The play the eye crosses after a reversal follows the sign of the chambers' net force on
+    /// the rod when the lever turns, computed here in f64 from the bores and rods: every
+    /// cylinder, both directions, chamber pressures over LP − drop … P2 + drop.
+    #[test]
+    fn the_play_to_cross_follows_the_rods_net_force_at_the_reversal() {
+        let cfg = crate::ModelConfig::reference();
+        let k = cfg.coefficients().unwrap();
+        let (lo, hi) = (7.5f64, 30.5f64);
+        let play: f64 = k.play_mm.to_num();
+        let band: f64 = FLOAT_BAND.to_num();
+        let mut count = [0u32; 3]; // none, a quarter, all of it
+        for (c, cc) in k.cyl.iter().zip(cfg.cylinders.iter()) {
+            let a_cap = core::f64::consts::PI / 4.0 * f64::from(cc.bore_mm).powi(2);
+            let a_ann = a_cap - core::f64::consts::PI / 4.0 * f64::from(cc.rod_mm).powi(2);
+            for dir in [1i8, -1] {
+                for i in 0..=62 {
+                    for j in 0..=62 {
+                        let (p_cap, p_rod) = (lo + 0.37 * f64::from(i), lo + 0.37 * f64::from(j));
+                        // The force pushing the rod the new way, per unit area of the old
+                        // chamber (the one that delivered on the last stroke).
+                        let (assist, a_old) = if dir > 0 {
+                            (p_cap * a_cap - p_rod * a_ann, a_cap)
+                        } else {
+                            (p_rod * a_ann - p_cap * a_cap, a_ann)
+                        };
+                        let net = assist / a_old;
+                        if (net.abs() - band).abs() < 0.005 {
+                            continue; // on the band's edge: rounding decides
+                        }
+                        let cs = CylState {
+                            dir,
+                            p_cap: Fx::from_num(p_cap),
+                            p_rod: Fx::from_num(p_rod),
+                            ..CylState::default()
+                        };
+                        let got: f64 =
+                            play_to_cross(&k, c, &cs, Fx::from_num(lo), Fx::from_num(hi)).to_num();
+                        let (expected, class) = if net.abs() < band {
+                            (play / 4.0, 1)
+                        } else if net < 0.0 {
+                            (0.0, 0)
+                        } else {
+                            (play, 2)
+                        };
+                        assert_eq!(got, expected, "p_cap {p_cap}, p_rod {p_rod}, dir {dir}");
+                        count[class] += 1;
+                    }
+                }
+            }
+        }
+        println!(
+            "reversals: {} with no play to cross, {} floating (a quarter), {} the whole play",
+            count[0], count[1], count[2]
+        );
+        assert!(count.iter().all(|&n| n > 100), "{count:?}");
     }
 
     /// Seal friction: every rod on duty adds c·d²·θ̇ to the restraining torque (a force c·v
