@@ -124,8 +124,8 @@ pub struct CylState {
     pub dir: i8,
     /// The last reversal started from rest (both chambers at LP).
     pub from_rest: bool,
-    /// The free play this stroke crosses, mm: the configured play, or 0 when the rod stays on
-    /// one end of it.
+    /// The free play this stroke crosses, mm: the configured play, 0 when the rod stays on one
+    /// end of it, a quarter of it when the rod floated (see `play_to_cross`).
     pub play: Fx,
     /// Reversal set-up units still to run ([`SETUP_UNITS`] after a reversal, then 0).
     pub setup_left: u8,
@@ -835,6 +835,8 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
         cs.u_suc = ms_times_mm(to_lo, cs.len_o);
         cs.u_bal = ZERO;
         cs.u_bal_hi = cs.u_end.max(cs.u_suc);
+        // The balance is sought only where the eye then crosses the whole play: a rod pushed at
+        // once, or one that floated, has none to reach (u_bal = 0).
         if cs.from_rest || cs.play == k.play_mm {
             cs.bisect_left = BISECT_ITERATIONS;
         }
@@ -904,8 +906,8 @@ fn cylinder(sh: &mut Shared, c: &CylinderCoeffs, cs: &mut CylState, lever: &Leve
     };
     // After a reversal (eye travel e since it, mm): the rod first follows the lever while the
     // old delivering chamber relaxes and the new one compresses, until their forces balance at
-    // u_bal; the eye then crosses the free play (`cs.play`) with the rod standing; then the rod moves again
-    // until the new chamber reaches P2 and delivers. The rod's own travel u sets both chamber
+    // u_bal; the eye then crosses the free play (`cs.play`) with the rod standing; then the rod
+    // moves again until the new chamber reaches P2 and delivers. The rod's own travel u sets both chamber
     // pressures through the oil's strain law p = P(strain) (inverse strain table). (A linear
     // pressure–travel law put the new chamber at ~45 bar instead of ~19 bar when the forces
     // balance, so the torque built up too early.)
