@@ -486,6 +486,19 @@ impl Reference {
                     cs.setup_left = SETUP_UNITS;
                     cs.bisect_left = 0;
                 }
+                // A_new/A_old of this stroke, and the chambers' pressures when the lever turned
+                // (new, old; at LP − drop from rest), held to [lo, hi].
+                let ratio = f(if dir >= 0 { cc.ratio_ext } else { cc.ratio_ret });
+                let held = |cs: &RefCyl| {
+                    let (pn, po) = if cs.from_rest {
+                        (lo, lo)
+                    } else if dir >= 0 {
+                        (cs.p.1, cs.p.0)
+                    } else {
+                        (cs.p.0, cs.p.1)
+                    };
+                    (pn.max(lo).min(hi), po.max(lo).min(hi))
+                };
                 // The same work units, in the same order and budget, as the fixed-point model.
                 if (cs.setup_left > 0 || cs.bisect_left > 0) && budget > 0 {
                     budget -= 1;
@@ -503,12 +516,8 @@ impl Reference {
                     } else if cs.setup_left == SETUP_UNITS - 1 {
                         cs.strain.3 = 1000.0 / cs.len.1;
                         if !cs.from_rest {
-                            let (p_new0, p_old0, ratio) = if dir >= 0 {
-                                (cs.p.1, cs.p.0, f(cc.ratio_ext))
-                            } else {
-                                (cs.p.0, cs.p.1, f(cc.ratio_ret))
-                            };
-                            let net = p_old0.max(lo).min(hi) - ratio * p_new0.max(lo).min(hi);
+                            let (p_new0, p_old0) = held(cs);
+                            let net = p_old0 - ratio * p_new0;
                             cs.play = if net.abs() < f(pto_model::estimator::FLOAT_BAND) {
                                 0.25 * f(k.play_mm)
                             } else if net < 0.0 {
@@ -519,15 +528,9 @@ impl Reference {
                         }
                         cs.setup_left -= 1;
                     } else if cs.setup_left == SETUP_UNITS - 2 {
-                        let (p_new0, p_old0) = if cs.from_rest {
-                            (lo, lo)
-                        } else if dir >= 0 {
-                            (cs.p.1, cs.p.0)
-                        } else {
-                            (cs.p.0, cs.p.1)
-                        };
-                        cs.strain.0 = k.ms_of_p.at_f64(p_new0.max(lo).min(hi));
-                        cs.strain.1 = k.ms_of_p.at_f64(p_old0.max(lo).min(hi));
+                        let (p_new0, p_old0) = held(cs);
+                        cs.strain.0 = k.ms_of_p.at_f64(p_new0);
+                        cs.strain.1 = k.ms_of_p.at_f64(p_old0);
                         cs.setup_left -= 1;
                     } else if cs.setup_left > 0 {
                         let to_hi = (k.ms_of_p.at_f64(hi) - cs.strain.0).max(0.0);
@@ -541,11 +544,6 @@ impl Reference {
                         }
                         cs.setup_left = 0;
                     } else {
-                        let ratio = if dir >= 0 {
-                            f(cc.ratio_ext)
-                        } else {
-                            f(cc.ratio_ret)
-                        };
                         let m = 0.5 * (cs.u_bal + cs.u_bal_hi);
                         let (pn, po) = pressures(&cs.strain, m);
                         if po - ratio * pn > 0.0 {

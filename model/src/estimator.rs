@@ -764,11 +764,7 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
     let (k, lo, hi) = (sh.k, sh.lo, sh.hi);
     if cs.setup_left == 0 {
         // Force balance A_o·p_old(u) = A_n·p_new(u) (p_old falls, p_new rises): bisection.
-        let ratio = if cs.dir >= 0 {
-            c.ratio_ext
-        } else {
-            c.ratio_ret
-        };
+        let ratio = area_ratio(c, cs.dir);
         let m = Fx::from_bits((cs.u_bal.to_bits() + cs.u_bal_hi.to_bits()) >> 1);
         let (pn, po) = (p_new_at(k, cs, m, lo, hi), p_old_at(k, cs, m, lo, hi));
         if po.saturating_sub(ratio.qmul(pn)) > ZERO {
@@ -817,15 +813,9 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
     } else if cs.setup_left == SETUP_UNITS - 2 {
         // (3) Start from the chambers' pressures at the reversal (held since), not from P2/LP:
         // in an irregular sea the shaft can turn back before a stroke has built up.
-        let (p_new0, p_old0) = if cs.from_rest {
-            (lo, lo)
-        } else if cs.dir >= 0 {
-            (cs.p_rod, cs.p_cap)
-        } else {
-            (cs.p_cap, cs.p_rod)
-        };
-        cs.ms_new0 = k.ms_of_p.at(clamp(p_new0, lo, hi));
-        cs.ms_old0 = k.ms_of_p.at(clamp(p_old0, lo, hi));
+        let (p_new0, p_old0) = held_pressures(cs, lo, hi);
+        cs.ms_new0 = k.ms_of_p.at(p_new0);
+        cs.ms_old0 = k.ms_of_p.at(p_old0);
     } else {
         // (4) Travel for the new chamber to reach P2 (delivery) and the old one LP (suction):
         // strain to go × L / 1000; the bisection's bracket.
@@ -859,12 +849,8 @@ fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, th: Fx) {
 ///   it most of the way across when the lever turns (0.2–1 mm of a 4 mm play left in the Test I
 ///   runs with one cylinder); a quarter of the play is taken.
 fn play_to_cross(k: &Coefficients, c: &CylinderCoeffs, cs: &CylState, lo: Fx, hi: Fx) -> Fx {
-    let (p_new0, p_old0, ratio) = if cs.dir >= 0 {
-        (cs.p_rod, cs.p_cap, c.ratio_ext)
-    } else {
-        (cs.p_cap, cs.p_rod, c.ratio_ret)
-    };
-    let net = clamp(p_old0, lo, hi).saturating_sub(ratio.qmul(clamp(p_new0, lo, hi)));
+    let (p_new0, p_old0) = held_pressures(cs, lo, hi);
+    let net = p_old0.saturating_sub(area_ratio(c, cs.dir).qmul(p_new0));
     if net.abs() < FLOAT_BAND {
         k.play_mm >> 2u32
     } else if net < ZERO {
@@ -872,6 +858,26 @@ fn play_to_cross(k: &Coefficients, c: &CylinderCoeffs, cs: &CylState, lo: Fx, hi
     } else {
         k.play_mm
     }
+}
+
+/// The new and the old chamber's pressures when the lever turned (held since; both at LP − drop
+/// on a first stroke from rest), held to [LP − drop, P2 + drop], bar.
+#[inline(always)]
+fn held_pressures(cs: &CylState, lo: Fx, hi: Fx) -> (Fx, Fx) {
+    let (p_new0, p_old0) = if cs.from_rest {
+        (lo, lo)
+    } else if cs.dir >= 0 {
+        (cs.p_rod, cs.p_cap)
+    } else {
+        (cs.p_cap, cs.p_rod)
+    };
+    (clamp(p_new0, lo, hi), clamp(p_old0, lo, hi))
+}
+
+/// A_new/A_old of a stroke in direction `dir` (extending: annulus over cap).
+#[inline(always)]
+fn area_ratio(c: &CylinderCoeffs, dir: i8) -> Fx {
+    if dir >= 0 { c.ratio_ext } else { c.ratio_ret }
 }
 
 /// Band of the net chamber force at a reversal within which the rod floats in its play (as a
@@ -907,10 +913,10 @@ fn cylinder(sh: &mut Shared, c: &CylinderCoeffs, cs: &mut CylState, lever: &Leve
     // After a reversal (eye travel e since it, mm): the rod first follows the lever while the
     // old delivering chamber relaxes and the new one compresses, until their forces balance at
     // u_bal; the eye then crosses the free play (`cs.play`) with the rod standing; then the rod
-    // moves again until the new chamber reaches P2 and delivers. The rod's own travel u sets both chamber
-    // pressures through the oil's strain law p = P(strain) (inverse strain table). (A linear
-    // pressure–travel law put the new chamber at ~45 bar instead of ~19 bar when the forces
-    // balance, so the torque built up too early.)
+    // moves again until the new chamber reaches P2 and delivers. The rod's own travel u sets
+    // both chamber pressures through the oil's strain law p = P(strain) (inverse strain table).
+    // (A linear pressure–travel law put the new chamber at ~45 bar instead of ~19 bar when the
+    // forces balance, so the torque built up too early.)
     if dir != cs.dir {
         cs.from_rest = cs.dir == 0;
         cs.dir = dir;
