@@ -285,6 +285,8 @@ pub struct Reference {
     meas: Option<RefMeas>,
     /// Steps the motor reading still waits.
     meas_wait: u32,
+    /// Start-up steps of the shaft tracker run since it started.
+    enc_n: u32,
 }
 
 /// The motor reading's state of the reference (`pto_model::estimator::State`'s `q_meas`,
@@ -352,6 +354,7 @@ impl Reference {
             cyl: [RefCyl::default(); 4],
             meas: None,
             meas_wait: 0,
+            enc_n: 0,
         }
     }
 
@@ -427,6 +430,14 @@ impl Reference {
                     self.omega = 0.0;
                     self.accel = 0.0;
                     self.init = true;
+                    self.enc_n = 0;
+                } else if self.enc_n < u32::from(k.tracker_startup_len) {
+                    // The expanding-memory start-up gains, as the fixed-point model.
+                    self.enc_n += 1;
+                    let n = f64::from(self.enc_n);
+                    let r = meas - pred;
+                    self.theta = pred + 2.0 * (2.0 * n + 1.0) / ((n + 1.0) * (n + 2.0)) * r;
+                    self.omega = pred_w + 6.0 / ((n + 1.0) * (n + 2.0)) / dt * r;
                 } else {
                     let r = meas - pred;
                     self.theta = pred + alpha * r;
@@ -438,6 +449,7 @@ impl Reference {
                 self.theta = pred;
                 self.omega = 0.0;
                 self.accel = 0.0;
+                self.init = false;
             }
         }
         let spool = if c.spool_time_constant_ms <= 0.0 {
@@ -554,7 +566,7 @@ impl Reference {
                         cs.bisect_left -= 1;
                         if cs.bisect_left == 0 {
                             if cs.from_rest {
-                                cs.travel += cs.u_bal + 0.5 * f(k.play_mm);
+                                cs.travel += 0.5 * f(k.play_mm);
                             } else if cs.u_bal_hi == cs.u_end.max(cs.u_suc) {
                                 cs.play = 0.0;
                             }

@@ -28,8 +28,9 @@ pub struct CodeSize {
     pub text_bytes: u64,
     /// `.rodata*` bytes of the rlib.
     pub rodata_bytes: u64,
-    /// Code of the per-step path: `estimator::step` and its per-cylinder part,
-    /// `scheduler::step`, `aperture_for_flow`, `recip` and the table lookups (symbol sizes); the
+    /// Code of the per-step path: `estimator::step`, its per-cylinder part and the shaft
+    /// tracker's start-up (with its constant gain table), `scheduler::step`,
+    /// `aperture_for_flow`, `recip` and the table lookups (symbol sizes); the
     /// rest of `.text` is configuration-time code (coefficient tables in soft or hard float),
     /// validation, formatting and the advisor.
     pub step_code_bytes: u64,
@@ -152,9 +153,11 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
         for sym in file.symbols() {
             let n = sym.name().unwrap_or("");
             // The per-step functions (legacy mangling: length-prefixed path segments).
-            const STEP: [&str; 7] = [
+            const STEP: [&str; 9] = [
                 "9estimator4step",
                 "9estimator8cylinder",
+                "9estimator15tracker_startup",
+                "6coeffs15TRACKER_STARTUP",
                 "9scheduler4step",
                 "17aperture_for_flow",
                 "2fx5recip",

@@ -59,6 +59,46 @@ pub struct CylinderCoeffs {
     pub ratio_ret: Fx,
 }
 
+/// Length of the shaft tracker's start-up gain table (a power of two: the index is masked).
+pub const TRACKER_STARTUP_MAX: usize = 64;
+
+/// The shaft tracker's start-up gains for the n-th residual after its first encoder reading,
+/// n = 1 ..= [`TRACKER_STARTUP_MAX`], as D_n = 1/((n + 1)(n + 2)) in Q0.32 (entry n − 1): the
+/// expanding-memory α–β filter (the least-squares line through every reading so far) has
+/// α_n = 2(2n + 1)·D_n and β_n = 6·D_n (Brookner, *Tracking and Kalman Filtering Made Easy*,
+/// §1.2.10; α_1 = β_1 = 1: the line through the first two readings), so one word per step
+/// holds both. They do not depend on the configuration: a constant in flash (256 B), built at
+/// compile time. Started from ω = 0 with the fading-memory gains instead, a shaft already
+/// turning at 0.26 rad/s (a Test I start) read 0 % of its speed at first, 18 % at 16 ms and
+/// 125 % at 0.1 s, and the model's pump flow and rod travel with it.
+pub static TRACKER_STARTUP: [u32; TRACKER_STARTUP_MAX] = tracker_startup_table();
+
+const fn tracker_startup_table() -> [u32; TRACKER_STARTUP_MAX] {
+    let mut t = [0u32; TRACKER_STARTUP_MAX];
+    let mut i = 0;
+    while i < TRACKER_STARTUP_MAX {
+        let n = i as u64 + 1;
+        let d = (n + 1) * (n + 2);
+        // Rounded to nearest; D_1 = 1/6 < 1.
+        t[i] = (((1u64 << 32) + d / 2) / d) as u32;
+        i += 1;
+    }
+    t
+}
+
+/// α_n and β_n (both Q1.31, ≤ 2^31) of the tracker's n-th start-up update from
+/// [`TRACKER_STARTUP`]'s D_n (Q0.32): 2(2n + 1)·D_n and 6·D_n.
+#[inline]
+pub fn tracker_startup_gains(n: usize, d_q32: u32) -> (u32, u32) {
+    // α_n·2^31 = (2n + 1)·D_n·2^32 and β_n·2^31 = 3·D_n·2^32. n ≤ 2^8 and D_n < 2^32: < 2^42;
+    // held to 2^31 (n = 1, where the rounded D_1 makes them one LSB over).
+    let d = u64::from(d_q32);
+    (
+        ((2 * n as u64 + 1) * d).min(1 << 31) as u32,
+        (3 * d).min(1 << 31) as u32,
+    )
+}
+
 /// Everything the step functions read.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Coefficients {
@@ -75,6 +115,10 @@ pub struct Coefficients {
     pub beta_over_dt_q16: i32,
     /// 2γ/dt² of the α–β–γ shaft tracker, 1/s², Q16.16 (< 2^28 likewise).
     pub gamma_over_dt2_q16: i32,
+    /// Number of steps after the tracker's first encoder reading that take the
+    /// expanding-memory gains [`TRACKER_STARTUP`] (≤ [`TRACKER_STARTUP_MAX`]; 53 at 4 Hz and
+    /// 2^−10 s): while both exceed the fading-memory gains above.
+    pub tracker_startup_len: u8,
     /// The rounding term of the tracker's × dt in Q32.32: 2^(dt_log2 − 1) (a run-time 64-bit
     /// shift to build it costs ≈ 14 Cortex-M4 instructions a step).
     pub round_dt_q32: i64,
@@ -371,6 +415,18 @@ impl ModelConfig {
         let alpha = 1.0 - rr * rr * rr;
         let beta = 1.5 * om * om * (1.0 + rr);
         let gamma = 0.5 * om * om * om;
+        // The expanding-memory start-up gains while both exceed the fading-memory ones (they
+        // fall as 4/n and 6/n²; after TRACKER_STARTUP_MAX steps the fading-memory gains take
+        // over in any case).
+        let tracker_startup_len = TRACKER_STARTUP
+            .iter()
+            .enumerate()
+            .take_while(|(i, d)| {
+                let (a, b) = tracker_startup_gains(i + 1, **d);
+                let q31 = |x: u32| x as f32 / 2_147_483_648.0;
+                q31(a) > alpha && q31(b) > beta
+            })
+            .count() as u8;
         let lp_nom = self.nominal_lp_bar;
         let cyl = core::array::from_fn(|i| {
             let c = &self.cylinders[i];
@@ -455,6 +511,7 @@ impl ModelConfig {
             rad_per_count_q32,
             // (Scaling an f32 by a power of two is exact, and float-to-integer casts saturate:
             // α rounds to at most i32::MAX = 1 − 2^−31.)
+            tracker_startup_len,
             alpha_q31: (alpha * 2_147_483_648.0) as i32,
             beta_over_dt_q16: (beta / dt * 65_536.0) as i32,
             gamma_over_dt2_q16: (2.0 * gamma / (dt * dt) * 65_536.0) as i32,
@@ -549,6 +606,40 @@ impl Coefficients {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The tracker's start-up gains from the constant table are the expanding-memory α–β gains
+    /// to within 2^−25 (D_n's rounding to half an LSB of Q0.32 times 2n + 1 ≤ 129; 4·10^−7 of
+    /// the smallest α), both 1 for the first residual and falling after
+    /// it; the reference configuration takes 53 of them before the fading-memory gains.
+    #[test]
+    fn tracker_startup_gains_are_the_expanding_memory_gains() {
+        let mut worst = 0.0f64;
+        let mut last = (u32::MAX, u32::MAX);
+        for (i, d) in TRACKER_STARTUP.iter().enumerate() {
+            let n = (i + 1) as f64;
+            let (a, b) = tracker_startup_gains(i + 1, *d);
+            let q31 = |x: u32| f64::from(x) / 2_147_483_648.0;
+            let alpha = 2.0 * (2.0 * n + 1.0) / ((n + 1.0) * (n + 2.0));
+            let beta = 6.0 / ((n + 1.0) * (n + 2.0));
+            worst = worst.max((q31(a) - alpha).abs()).max((q31(b) - beta).abs());
+            assert!(
+                a < last.0 || i == 1 && a == last.0,
+                "α not falling at n = {n}"
+            );
+            assert!(b < last.1, "β not falling at n = {n}");
+            last = (a, b);
+        }
+        let first = tracker_startup_gains(1, TRACKER_STARTUP[0]);
+        let k = crate::ModelConfig::reference().coefficients().unwrap();
+        println!(
+            "start-up gains within {:.2e} of the formula over {} entries; {} used at the \
+             reference's 4 Hz and 2^-10 s",
+            worst, TRACKER_STARTUP_MAX, k.tracker_startup_len
+        );
+        assert_eq!(first, (1 << 31, 1 << 31));
+        assert!(worst < 2f64.powi(-25), "{worst}");
+        assert_eq!(k.tracker_startup_len, 53);
+    }
 
     /// Just above an accumulator's precharge the node tables give the accumulator's own dP/dV
     /// (the jump to the empty accumulator's stiffness is smeared below the precharge, not

@@ -37,14 +37,18 @@ prop_compose! {
 proptest! {
     #![proptest_config(ProptestConfig::with_cases(64))]
 
-    /// Any sequence of readings, in range or not, never panics (overflow checks are on) and
-    /// keeps the state inside its physical limits.
+    /// Any sequence of readings, in range or not (the encoder's drop-outs restart the shaft
+    /// tracker's start-up), from any phase of the tracker, never panics (overflow checks are
+    /// on) and keeps the state inside its physical limits.
     #[test]
     fn estimator_and_scheduler_never_panic(seq in prop::collection::vec(inputs(), 1..300),
-                                           p0 in 0.0f32..140.0, mode_sel in 0u8..4, set in 0.0f32..150.0) {
+                                           p0 in 0.0f32..140.0, mode_sel in 0u8..4, set in 0.0f32..150.0,
+                                           enc_phase in any::<u8>()) {
         let k = coeffs();
         let sc = SchedulerConfig::default().coefficients(k).unwrap();
         let mut s = State::new(Pressure::from_num(p0), Pressure::from_num(8.0), Pressure::from_num(1.0));
+        // Any phase of the shaft tracker, even one it never takes (past its start-up length).
+        s.enc_phase = enc_phase;
         let mut st = SchedulerState::default();
         let mode = match mode_sel {
             0 => Mode::Fixed(Aperture::from_num(set.min(100.0))),
