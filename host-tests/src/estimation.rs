@@ -434,10 +434,10 @@ impl Reference {
                 } else if self.enc_n < u32::from(k.tracker_startup_len) {
                     // The expanding-memory start-up gains, as the fixed-point model.
                     self.enc_n += 1;
-                    let n = f64::from(self.enc_n);
+                    let (ga, gb) = pto_model::coeffs::expanding_memory_gains(self.enc_n);
                     let r = meas - pred;
-                    self.theta = pred + 2.0 * (2.0 * n + 1.0) / ((n + 1.0) * (n + 2.0)) * r;
-                    self.omega = pred_w + 6.0 / ((n + 1.0) * (n + 2.0)) / dt * r;
+                    self.theta = pred + ga * r;
+                    self.omega = pred_w + gb / dt * r;
                 } else {
                     let r = meas - pred;
                     self.theta = pred + alpha * r;

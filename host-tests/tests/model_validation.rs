@@ -152,12 +152,14 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
             )
             .unwrap();
         let tr = &res.trace;
-        let p: Vec<f64> = tr.p2.iter().map(|x| x / pto_host::bench::BAR).collect();
-        let w: Vec<f64> = tr
-            .omega
-            .iter()
-            .map(|x| x * 30.0 / std::f64::consts::PI)
-            .collect();
+        // P2 (bar) and the motor speed (rpm) at each sample, as the validation reads the plant.
+        let (p, w): (Vec<f64>, Vec<f64>) =
+            tr.t.iter()
+                .map(|&t| {
+                    let v = pto_host::estimation::truth_at(tr, t);
+                    (v.p2, v.motor_rpm)
+                })
+                .unzip();
         let fit = 40;
         let (mut n, mut fastest, mut d_lo, mut d_hi) = (0, f64::MAX, f64::MAX, 0.0f64);
         let mut off = 0.0f64;

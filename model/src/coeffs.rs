@@ -86,6 +86,15 @@ const fn tracker_startup_table() -> [u32; TRACKER_STARTUP_MAX] {
     t
 }
 
+/// The expanding-memory α–β gains (α_n, β_n) of the n-th update, n ≥ 1, in f64: the formula
+/// [`TRACKER_STARTUP`] tabulates, for f64 models of the tracker (the host's reference model,
+/// tests); not used by the step or by the coefficients (no f64 arithmetic in the firmware).
+pub fn expanding_memory_gains(n: u32) -> (f64, f64) {
+    let n = f64::from(n);
+    let d = 1.0 / ((n + 1.0) * (n + 2.0));
+    (2.0 * (2.0 * n + 1.0) * d, 6.0 * d)
+}
+
 /// α_n and β_n (both Q1.31, ≤ 2^31) of the tracker's n-th start-up update from
 /// [`TRACKER_STARTUP`]'s D_n (Q0.32): 2(2n + 1)·D_n and 6·D_n.
 #[inline]
@@ -616,11 +625,10 @@ mod tests {
         let mut worst = 0.0f64;
         let mut last = (u32::MAX, u32::MAX);
         for (i, d) in TRACKER_STARTUP.iter().enumerate() {
-            let n = (i + 1) as f64;
+            let n = i as u32 + 1;
             let (a, b) = tracker_startup_gains(i + 1, *d);
             let q31 = |x: u32| f64::from(x) / 2_147_483_648.0;
-            let alpha = 2.0 * (2.0 * n + 1.0) / ((n + 1.0) * (n + 2.0));
-            let beta = 6.0 / ((n + 1.0) * (n + 2.0));
+            let (alpha, beta) = expanding_memory_gains(n);
             worst = worst.max((q31(a) - alpha).abs()).max((q31(b) - beta).abs());
             assert!(
                 a < last.0 || i == 1 && a == last.0,
