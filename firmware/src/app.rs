@@ -15,7 +15,7 @@ use pto_firmware::control::{ControlConfig, Controller, SetupError};
 use pto_firmware::link::{self, FrameAssembler};
 use pto_firmware::supervisor::{Heartbeats, Supervisor, Task, Watchdog as _};
 use pto_firmware::{HEARTBEAT_MS, SUPERVISOR_PERIOD_MS, VERSION};
-use pto_model::protocol::{FromFirmware, MAX_FRAME, SensorFrame, ToFirmware};
+use pto_model::protocol::{FromFirmware, MAX_FRAME, Refusal, SensorFrame, ToFirmware};
 use pto_model::scheduler::SchedulerConfig;
 use pto_model::{ModelConfig, fx::Aperture};
 use static_cell::StaticCell;
@@ -277,11 +277,17 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                     defmt::info!("on duty {=u8:#06b}, config {}", on_duty, config + 1);
                     ctl.set_duty(on_duty, config);
                 }
-                ToFirmware::Reset { p2, lp } => {
-                    defmt::info!("reset: P2 {} bar, LP {} bar", p2.to_f32(), lp.to_f32());
-                    ctl.reset(p2, lp);
-                    faults_prev = 0;
-                }
+                ToFirmware::Reset { p2, lp } => match ctl.reset(p2, lp) {
+                    Ok(()) => {
+                        defmt::info!("reset: P2 {} bar, LP {} bar", p2.to_f32(), lp.to_f32());
+                        faults_prev = 0;
+                        send(FromFirmware::ResetDone).await;
+                    }
+                    Err(hold) => {
+                        defmt::warn!("reset refused: the overpressure trip holds ({})", hold);
+                        send(FromFirmware::Refused(Refusal::TripHeld(hold))).await;
+                    }
+                },
                 ToFirmware::GetStatus => {
                     let mut s = ctl.status;
                     s.frames_ok = FRAMES_OK.load(Ordering::Relaxed);

@@ -5,9 +5,10 @@
 //! [`Controller::new`]; the per-step functions cannot fail.
 
 use crate::frontend::{LoopSpec, SpecError, Transducer};
-use pto_model::estimator::{self, Estimate, Inputs, State, fault};
+use crate::trip::TripLatch;
+use pto_model::estimator::{self, Estimate, Inputs, State};
 use pto_model::fx::{Aperture, Fx, Pressure, ZERO, clamp, mul_dt};
-use pto_model::protocol::{SensorFrame, Status};
+use pto_model::protocol::{SensorFrame, Status, TripHold};
 use pto_model::scheduler::{self, Command, Mode, Override, SchedulerCoeffs, SchedulerConfig};
 use pto_model::{Coefficients, ConfigError, ModelConfig, SchedulerState};
 
@@ -40,8 +41,11 @@ pub struct ControlConfig {
     pub hp: LoopSpec,
     /// LP transducer loop.
     pub lp: LoopSpec,
-    /// The trip latch releases when the P2 estimate falls this far below the trip pressure, bar.
+    /// The trip latch releases only when a valid HP reading and the P2 estimate are both this
+    /// far below the trip pressure, bar …
     pub trip_release_margin_bar: f32,
+    /// … for this long without a break, ms.
+    pub trip_release_hold_ms: f32,
     /// Actuator slew limit (a second line behind the scheduler's rate limit), %/s. Safety
     /// overrides are applied at once.
     pub valve_slew_pct_per_s: f32,
@@ -55,6 +59,7 @@ impl Default for ControlConfig {
             hp: LoopSpec::HP,
             lp: LoopSpec::LP,
             trip_release_margin_bar: 15.0,
+            trip_release_hold_ms: 500.0,
             valve_slew_pct_per_s: 100.0,
             boot_sigma_bar: 50.0,
         }
@@ -115,7 +120,10 @@ pub struct Controller {
     hp: Transducer,
     lp: Transducer,
     safe_op: Fx,
-    release: Fx,
+    latch: TripLatch,
+    /// The last step's valid HP reading and P2 estimate (what a host reset is judged on).
+    last_hp: Option<Pressure>,
+    last_p2: Pressure,
     slew_step: Fx,
     applied: Fx,
     last_tick: Option<u32>,
@@ -155,9 +163,18 @@ impl Controller {
             10_000.0,
         )?;
         check("boot_sigma_bar", cc.boot_sigma_bar, 0.1, 200.0)?;
+        check(
+            "trip_release_hold_ms",
+            cc.trip_release_hold_ms,
+            1.0,
+            60_000.0,
+        )?;
         let release = k
             .trip
             .saturating_sub(Fx::saturating_from_num(cc.trip_release_margin_bar));
+        let steps_per_s = f32::from(1u16 << k.dt_log2);
+        let hold_steps = (cc.trip_release_hold_ms * 1e-3 * steps_per_s).clamp(1.0, 65_535.0) as u16;
+        let latch = TripLatch::new(Pressure(k.trip), Pressure(release), hold_steps);
         let slew_step = mul_dt(Fx::saturating_from_num(cc.valve_slew_pct_per_s), k.dt_log2);
         let mut c = Controller {
             sc,
@@ -169,7 +186,9 @@ impl Controller {
             hp,
             lp,
             safe_op: Fx::saturating_from_num(sched.overpressure_aperture_pct),
-            release,
+            latch,
+            last_hp: None,
+            last_p2: Pressure::ZERO,
             slew_step,
             applied: ZERO,
             last_tick: None,
@@ -204,13 +223,21 @@ impl Controller {
         (self.on_duty, self.config)
     }
 
-    /// Restarts the estimator from known pressures; clears the scheduler and the trip latch.
-    pub fn reset(&mut self, p2: Pressure, lp: Pressure) {
+    /// The overpressure trip latch.
+    pub fn latch(&self) -> &TripLatch {
+        &self.latch
+    }
+
+    /// Restarts the estimator from known pressures and clears the scheduler. While the trip
+    /// latch holds, refused unless its release condition held in the last step (a valid HP
+    /// reading and the estimate both below the release pressure), with the reason; even then
+    /// the latch stays set until its hold time has run.
+    pub fn reset(&mut self, p2: Pressure, lp: Pressure) -> Result<(), TripHold> {
+        self.latch.reset_allowed(self.last_hp, self.last_p2)?;
         self.st = State::new(p2, lp, Pressure(Fx::ONE));
         self.sst = SchedulerState::default();
-        self.status.tripped = false;
-        self.status.dump_valve = false;
         self.last_tick = None;
+        Ok(())
     }
 
     /// Whether a sample stamped `tick` is newer than the last one stepped (the loop steps once
@@ -276,18 +303,15 @@ impl Controller {
             config: self.config,
         };
         let (e, c) = self.model_step(&inp, clock);
-        // Trip latch: set by an overpressure, released once both the estimate and the reading
-        // (when there is one) are well below the trip.
-        let below = e.p2.0 < self.release && hp.is_none_or(|p| p.0 < self.release);
+        // Trip latch (`crate::trip`): the reading counts when it is valid — inside the loop's
+        // window and the transducer's range — whether or not the estimator's gate took it.
+        let (lo, hi) = self.k.hp_range;
+        let hp_valid = hp.filter(|p| p.0 >= lo && p.0 <= hi);
+        let tripped = self.latch.step(hp_valid, e.p2);
+        (self.last_hp, self.last_p2) = (hp_valid, e.p2);
         let s = &mut self.status;
-        if e.faults & fault::OVERPRESSURE != 0 {
-            if !s.tripped {
-                s.trips = s.trips.wrapping_add(1);
-            }
-            s.tripped = true;
-        } else if s.tripped && below {
-            s.tripped = false;
-        }
+        s.tripped = tripped;
+        s.trips = self.latch.trips;
         // Actuator stage: safety at once, otherwise slew-limited.
         self.applied = if s.tripped {
             self.safe_op
@@ -314,6 +338,7 @@ impl Controller {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use pto_model::estimator::fault;
 
     fn ctl() -> Controller {
         Controller::new(
@@ -339,7 +364,8 @@ mod tests {
     #[test]
     fn overpressure_latches_the_safe_state_in_the_same_step_and_releases_with_margin() {
         let mut c = ctl();
-        c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0));
+        c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0))
+            .unwrap();
         c.set_mode(Mode::Fixed(Aperture::from_num(5.0)));
         let trip = c.trip().to_f32();
         for i in 0..50 {
@@ -381,7 +407,7 @@ mod tests {
         assert!(!c.fresh(13) && !c.fresh(12));
         assert!(c.fresh(14));
         assert_eq!(c.status.frames_overrun, 2);
-        c.reset(Pressure::ZERO, Pressure::ZERO);
+        c.reset(Pressure::ZERO, Pressure::ZERO).unwrap();
         assert!(c.fresh(0), "a reset restarts the tick count");
         assert!(
             c.fresh(u32::MAX / 2) && c.fresh(u32::MAX - 5) && c.fresh(3),
@@ -392,7 +418,8 @@ mod tests {
     #[test]
     fn a_wire_break_is_counted_and_the_estimate_runs_on_the_model() {
         let mut c = ctl();
-        c.reset(Pressure::from_num(90.0), Pressure::from_num(8.0));
+        c.reset(Pressure::from_num(90.0), Pressure::from_num(8.0))
+            .unwrap();
         let mut f = frame(0, 90.0);
         f.hp_adc = 0;
         let o = c.sample(&f, &mut NoClock);

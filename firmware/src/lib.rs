@@ -9,6 +9,8 @@
 //! - [`control`]: the control step: raw sample → estimator → scheduler → trip latch → actuator
 //!   stage, with the cost of the model step measured by a [`control::StepClock`].
 //! - [`supervisor`]: task heartbeats and the watchdog-feed decision.
+//! - [`trip`]: the overpressure trip latch (a state machine that only a valid reading
+//!   releases).
 #![cfg_attr(not(test), no_std)]
 #![forbid(unsafe_code)]
 
@@ -16,6 +18,7 @@ pub mod control;
 pub mod frontend;
 pub mod link;
 pub mod supervisor;
+pub mod trip;
 
 /// Firmware version, major·256 + minor (reported in `Ready`).
 pub const VERSION: u16 = 0x0100;

@@ -287,6 +287,8 @@ pub struct Reference {
     meas_wait: u32,
     /// Start-up steps of the shaft tracker run since it started.
     enc_n: u32,
+    /// Consecutive steps with the valve closed.
+    closed_steps: u32,
 }
 
 /// The motor reading's state of the reference (`pto_model::estimator::State`'s `q_meas`,
@@ -298,6 +300,8 @@ struct RefMeas {
     odd: bool,
     /// The dead band, bar.
     band: f64,
+    /// The reading's variance (noise and band), bar².
+    var: f64,
 }
 
 /// Per-cylinder stroke state of the reference, as `pto_model::estimator::CylState`.
@@ -355,6 +359,7 @@ impl Reference {
             meas: None,
             meas_wait: 0,
             enc_n: 0,
+            closed_steps: 0,
         }
     }
 
@@ -379,11 +384,20 @@ impl Reference {
                 f: fm,
                 odd: false,
                 band: 0.0,
+                var: 0.0,
             });
             return;
         };
         m.odd = !m.odd;
         if m.odd {
+            let q_cap = k
+                .valve_flow
+                .at_f64(self.aperture, f(k.motor_reading_p2_max) - self.lp);
+            if q_m > q_cap * (1.0 + f(k.motor_reading_band)) + f(k.motor_reading_min_lpm) {
+                self.meas = None;
+                self.meas_wait = u32::from(k.motor_reading_warm_steps);
+                return;
+            }
             if slope > f(k.motor_reading_max_slope)
                 || (cmd - self.aperture).abs() > f(k.motor_reading_spool_tol)
             {
@@ -394,6 +408,7 @@ impl Reference {
             m.f += a * (fm - m.f);
             m.q += a * (q_m - m.q);
             m.band = dp * f(k.motor_reading_band);
+            m.var = m.band * m.band / 3.0 + f(k.motor_reading_r);
             return;
         }
         if self.meas_wait > 0 {
@@ -402,7 +417,14 @@ impl Reference {
             let z = m.f + (q_m - m.q) * f(k.motor_reading_lt);
             let e = z - self.p2;
             let e = e - e.clamp(-m.band, m.band);
-            self.p2 = (self.p2 + f(k.motor_reading_gain) * e).clamp(P_MIN_BAR, P_MAX_BAR);
+            if z - m.band > f(k.motor_reading_p2_max) {
+                return;
+            }
+            let gain = f(k.motor_reading_gain);
+            self.p2 = (self.p2 + gain * e).clamp(P_MIN_BAR, P_MAX_BAR);
+            if self.var > m.var {
+                self.var += gain * (m.var - self.var);
+            }
         }
     }
 
@@ -649,7 +671,14 @@ impl Reference {
         let hp = inp.hp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.hp_sensor_range_bar.0) && *p <= f64::from(c.hp_sensor_range_bar.1)
         });
+        let f = |x: Fx| x.to_num::<f64>();
+        let closed = cmd < f(k.motor_reading_min_aperture)
+            || self.aperture < f(k.motor_reading_min_aperture);
+        self.closed_steps = if closed { self.closed_steps + 1 } else { 0 };
         if let Some(z) = hp {
+            if self.p2 >= f(k.relief_setting) {
+                self.var += f(k.q_relief);
+            }
             let innov = z - self.p2;
             if innov * innov <= f64::from(c.gate_sigma).powi(2) * (self.var + r) {
                 let g = if self.var < k.r.to_num::<f64>() {
@@ -679,8 +708,15 @@ impl Reference {
             .motor
             .map(|m| f64::from(m.to_f32()))
             .filter(|m| *m >= 0.0 && *m <= f64::from(c.motor_sensor_max_rpm));
+        if hp.is_none() && self.p2 <= f(k.precharge_band_top) {
+            self.var = self.var.max(f(k.var_precharge));
+        }
         match motor.filter(|_| hp.is_none()) {
-            Some(rpm) => self.motor_reading(rpm, cmd, lp_dp, dp, q_ss, g),
+            Some(rpm) if !closed => self.motor_reading(rpm, cmd, lp_dp, dp, q_ss, g),
+            Some(_) => {
+                self.meas = None;
+                self.meas_wait = u32::from(k.motor_reading_warm_steps);
+            }
             None => {
                 self.meas = None;
                 self.meas_wait = 0;

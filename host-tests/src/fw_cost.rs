@@ -11,14 +11,16 @@ use pto_model::scheduler::Mode;
 use serde::Serialize;
 use std::path::Path;
 
-/// Targets of the firmware issue.
+/// Budgets of the controller-safety issue (the old 2 000 / 64 KiB / 16 KiB left no room for
+/// safety work).
 pub mod target {
-    /// Instructions per estimator + scheduler step.
-    pub const STEP_INSTRUCTIONS: u32 = 2_000;
-    /// Flash of the bench build, bytes.
-    pub const FLASH: u64 = 64 * 1024;
+    /// Instructions per estimator + scheduler step, worst case (1.3 % of a 168 MHz Cortex-M4 at
+    /// 1 kHz).
+    pub const STEP_INSTRUCTIONS: u32 = 2_200;
+    /// Flash of the bench build, bytes (still fits an STM32F401-class part).
+    pub const FLASH: u64 = 128 * 1024;
     /// Static RAM of the bench build, bytes.
-    pub const RAM: u64 = 16 * 1024;
+    pub const RAM: u64 = 32 * 1024;
 }
 
 /// Start of the four-cylinder window in the torque run, s.

@@ -19,7 +19,7 @@ use std::path::Path;
 pub const FILE: &str = "data/golden-vectors.csv";
 /// Setpoint of the scheduler in the vectors, bar.
 pub const SETPOINT_BAR: f32 = 100.0;
-const HEADER: &str = "step,encoder,hp,lp,motor,aperture_cmd,on_duty,config,p2,p2_var,lp_est,q_pump,q_valve,q_relief,torque,motor_rpm,autonomy,aperture,faults,cmd_aperture,safety";
+const HEADER: &str = "step,encoder,hp,lp,motor,aperture_cmd,on_duty,config,p2,p2_var,lp_est,q_pump,q_valve,q_relief,torque,motor_rpm,autonomy,aperture,faults,hp_empty,cmd_aperture,safety";
 
 /// Which steps of a replay get a fault injected.
 pub type Faults = fn(usize, Option<i32>, f64) -> (Option<i32>, Option<f64>);
@@ -150,7 +150,7 @@ pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) 
     for (i, (inp, (e, c))) in inputs.iter().zip(out).enumerate() {
         let _ = writeln!(
             s,
-            "{i},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{i},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             opt(inp.encoder),
             opt(inp.hp.map(|p| p.to_bits())),
             opt(inp.lp.map(|p| p.to_bits())),
@@ -169,6 +169,7 @@ pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) 
             e.autonomy.to_bits(),
             e.aperture.to_bits(),
             e.faults,
+            u8::from(e.hp_empty),
             c.aperture.to_bits(),
             match c.safety {
                 Override::None => 0,
@@ -196,9 +197,9 @@ pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), String> {
     let mut inputs = Vec::new();
     for (n, l) in lines.enumerate() {
         let c: Vec<&str> = l.split(',').collect();
-        if c.len() != 21 {
+        if c.len() != 22 {
             return Err(format!(
-                "golden file line {}: {} columns, want 21",
+                "golden file line {}: {} columns, want 22",
                 n + 3,
                 c.len()
             ));

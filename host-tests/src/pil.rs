@@ -11,15 +11,28 @@ use crate::sim::{SimResult, ValveController};
 use pto_firmware::frontend::{LoopSpec, Transducer};
 use pto_model::estimator::{Estimate, Inputs};
 use pto_model::fx::{Aperture, Pressure, Rpm};
-use pto_model::protocol::{FromFirmware, SensorFrame, Status, ToFirmware};
+use pto_model::protocol::{FromFirmware, Refusal, SensorFrame, Status, ToFirmware};
 use pto_model::scheduler::{Command, Mode};
+
+/// Asks the firmware to restart its estimator from known pressures: `Ok(Err(refusal))` when
+/// it refused (the overpressure trip holds), with its reason.
+pub fn reset(q: &mut Qemu, p2: f32, lp: f32) -> Result<Result<(), Refusal>, String> {
+    q.link.request(
+        &ToFirmware::Reset {
+            p2: Pressure::from_num(p2),
+            lp: Pressure::from_num(lp),
+        },
+        |r| match r {
+            FromFirmware::ResetDone => Some(Ok(())),
+            FromFirmware::Refused(why) => Some(Err(*why)),
+            _ => None,
+        },
+    )
+}
 
 /// Starts the firmware's estimator from known pressures and sets its mode.
 pub fn prime(q: &mut Qemu, p2: f32, lp: f32, mode: Mode) -> Result<(), String> {
-    q.link.send(&ToFirmware::Reset {
-        p2: Pressure::from_num(p2),
-        lp: Pressure::from_num(lp),
-    })?;
+    reset(q, p2, lp)?.map_err(|why| why.to_string())?;
     q.link.send(&ToFirmware::SetMode(mode))
 }
 
@@ -78,6 +91,24 @@ pub enum Injection {
     Truncate,
     /// This many frames are sent back to back before waiting (a burst faster than the loop).
     Burst(u32),
+    /// HP wire break, and after this step's output the host asks for a `Reset` to this P2,
+    /// bar (its answer in [`PilRow::reset_reply`]).
+    HpWireBreakAndReset(f32),
+    /// The motor speed sensor reads this, rpm (whatever the plant does).
+    MotorReads(f32),
+    /// HP wire break and the motor speed sensor reading this, rpm.
+    HpWireBreakMotorReads(f32),
+}
+
+impl Injection {
+    fn wire_break(self) -> bool {
+        matches!(
+            self,
+            Injection::HpWireBreak
+                | Injection::HpWireBreakAndReset(_)
+                | Injection::HpWireBreakMotorReads(_)
+        )
+    }
 }
 
 /// One closed-loop step as seen by the host.
@@ -99,6 +130,8 @@ pub struct PilRow {
     pub dump: bool,
     /// Injection at this step.
     pub injection: Injection,
+    /// The firmware's answer to a `Reset` asked in this step.
+    pub reset_reply: Option<Result<(), Refusal>>,
 }
 
 /// The firmware as the plant's valve controller.
@@ -145,17 +178,18 @@ impl FirmwareController {
     }
 
     fn frame(&mut self, theta: f64, truth: &Truth, inj: Injection) -> SensorFrame {
-        let (mut enc, mut hp, lp, motor) = self.synth.read_analog(theta, truth);
+        let (mut enc, mut hp, lp, mut motor) = self.synth.read_analog(theta, truth);
         match inj {
             Injection::EncoderStuck => enc = self.last_enc,
             Injection::HpNoise(a) => hp += if self.tick.is_multiple_of(2) { a } else { -a },
+            Injection::MotorReads(r) | Injection::HpWireBreakMotorReads(r) => motor = f64::from(r),
             _ => {}
         }
         self.last_enc = enc;
         SensorFrame {
             tick: self.tick,
             encoder: enc,
-            hp_adc: if inj == Injection::HpWireBreak {
+            hp_adc: if inj.wire_break() {
                 self.hp.counts_at_ma(0.0)
             } else {
                 self.hp.counts_at_bar(hp as f32)
@@ -241,6 +275,7 @@ impl ValveController for FirmwareController {
             applied: self.applied,
             dump: self.dump,
             injection: inj,
+            reset_reply: None,
         };
         if self.error.is_none() {
             match self.exchange(f, inj) {
@@ -260,6 +295,12 @@ impl ValveController for FirmwareController {
                 }
                 Ok(_) => {}
                 Err(e) => self.error = Some(format!("t = {t:.4} s: {e}")),
+            }
+            if let Injection::HpWireBreakAndReset(p2) = inj {
+                match reset(&mut self.q, p2, 8.0) {
+                    Ok(r) => row.reset_reply = Some(r),
+                    Err(e) => self.error = Some(format!("t = {t:.4} s: reset: {e}")),
+                }
             }
         }
         self.tick = self.tick.wrapping_add(1);
@@ -467,6 +508,117 @@ pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
             steps: rows.len(),
             wall_s: t0.elapsed().as_secs_f64(),
             pass: late == 0 && held && near && peak < trip + 0.5,
+        },
+    ))
+}
+
+/// The trip latch under QEMU: from 136 bar with the valve closed (relief at 170 bar) P2 rises
+/// through the trip; 0.5 s after the trip the HP transducer's wire breaks and stays broken, and
+/// the host asks for a `Reset` to 100 bar in the middle of it. The latch must hold to the end
+/// and the reset must be refused with its reason.
+pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+    let t0 = std::time::Instant::now();
+    let mut b = bench.clone();
+    b.relief_setting = 170.0 * BAR;
+    let spec = SensorSpec {
+        hp_noise_bar: 0.0,
+        ..SensorSpec::default()
+    };
+    // P2 crosses 140 bar 1.47 s in (`pil_trips_to_the_safe_state_within_one_period`), then
+    // falls through the open valve.
+    let inject = |t: f64| match t {
+        t if (2.0..2.0 + 1.0 / 1024.0).contains(&t) => Injection::HpWireBreakAndReset(100.0),
+        t if t >= 1.6 => Injection::HpWireBreak,
+        _ => Injection::None,
+    };
+    let (q, _res, rows) = closed_loop(q, &b, fixed(0.0), 136.0, 4.0, spec, Box::new(inject))?;
+    let tripped = rows
+        .iter()
+        .position(|r| r.dump)
+        .ok_or("the firmware never tripped")?;
+    let broken: Vec<&PilRow> = rows.iter().filter(|r| r.injection.wire_break()).collect();
+    let held = broken
+        .iter()
+        .filter(|r| r.dump && r.applied == 100.0)
+        .count();
+    let reply = rows.iter().find_map(|r| r.reset_reply);
+    let low_estimate = broken
+        .iter()
+        .filter_map(|r| r.estimate)
+        .filter(|e| e.p2.to_f32() < 125.0)
+        .count();
+    let refused = matches!(
+        reply,
+        Some(Err(Refusal::TripHeld(
+            pto_model::protocol::TripHold::HpMissing
+        )))
+    );
+    Ok((
+        q,
+        Check {
+            name: "trip holds through a wire break".into(),
+            measured: (broken.len() - held) as f64,
+            target: 0.0,
+            unit: "steps released".into(),
+            detail: format!(
+                "tripped at t = {:.4} s; wire break from 1.6 s: {held} of {} steps held the \
+                 safe state ({low_estimate} with the estimate below the release pressure); \
+                 reset to 100 bar at 2.0 s: {}",
+                rows[tripped].t,
+                broken.len(),
+                match reply {
+                    Some(Ok(())) => "ACCEPTED".to_string(),
+                    Some(Err(why)) => format!("refused: {why}"),
+                    None => "no answer".to_string(),
+                }
+            ),
+            steps: rows.len(),
+            wall_s: t0.elapsed().as_secs_f64(),
+            pass: !broken.is_empty() && held == broken.len() && refused,
+        },
+    ))
+}
+
+/// A motor reading with the valve closed under QEMU: the HP transducer lost from the start, the
+/// valve commanded closed, the motor sensor reading 200 rpm behind it; the lever pumps P2 up
+/// from 60 bar for 4 s. No false trip, the contradiction flagged once a real rotor would have
+/// spun down, and the estimate following the plant (the pump), not the motor reading.
+pub fn check_motor_behind_closed_valve(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+    let t0 = std::time::Instant::now();
+    let inject = |_| Injection::HpWireBreakMotorReads(200.0);
+    let (q, _res, rows) = closed_loop(
+        q,
+        bench,
+        fixed(0.0),
+        60.0,
+        4.0,
+        SensorSpec::default(),
+        Box::new(inject),
+    )?;
+    let trips = rows.iter().filter(|r| r.dump).count();
+    let flagged = rows.iter().position(|r| {
+        r.estimate
+            .is_some_and(|e| e.faults & pto_model::estimator::fault::MOTOR_IMPLAUSIBLE != 0)
+    });
+    let err = max_of(
+        rows.iter()
+            .filter_map(|r| r.estimate.map(|e| (f64::from(e.p2.to_f32()) - r.p2).abs())),
+    );
+    let flagged_s = flagged.map(|k| rows[k].t);
+    Ok((
+        q,
+        Check {
+            name: "motor reading behind a closed valve".into(),
+            measured: err,
+            target: 2.0,
+            unit: "bar (model-only P2 max error)".into(),
+            detail: format!(
+                "{trips} steps tripped; contradiction flagged from t = {}",
+                flagged_s.map_or("never".into(), |t| format!("{t:.3} s"))
+            ),
+            steps: rows.len(),
+            wall_s: t0.elapsed().as_secs_f64(),
+            pass: trips == 0 && flagged_s.is_some_and(|t| t < 1.0) && err <= 2.0,
         },
     ))
 }

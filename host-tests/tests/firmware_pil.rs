@@ -38,7 +38,7 @@ fn window(rows: &[PilRow], from: f64) -> impl Iterator<Item = &PilRow> {
 }
 
 fn run(check: pil::CheckFn) {
-    let (q, c) = check(boot(), &Bench::reference()).unwrap();
+    let (q, c) = check(boot(), &Bench::reference()).unwrap_or_else(|e| panic!("{e}"));
     println!(
         "PIL {}: {:.3} {} (target {} {}); {}; {} steps in {:.1} s wall",
         c.name, c.measured, c.unit, c.target, c.unit, c.detail, c.steps, c.wall_s
@@ -60,6 +60,16 @@ fn pil_holds_motor_speed() {
 #[test]
 fn pil_trips_to_the_safe_state_within_one_period() {
     run(pil::check_trip);
+}
+
+#[test]
+fn pil_trip_holds_through_a_wire_break_and_refuses_a_reset() {
+    run(pil::check_trip_holds);
+}
+
+#[test]
+fn pil_motor_reading_behind_a_closed_valve_is_flagged_without_a_false_trip() {
+    run(pil::check_motor_behind_closed_valve);
 }
 
 #[test]

@@ -167,6 +167,15 @@ pub struct Coefficients {
     pub spool_gain: Fx,
     /// Relief setting, bar.
     pub relief_setting: Fx,
+    /// HP accumulator precharge, bar (below it the accumulator is empty).
+    pub hp_precharge: Fx,
+    /// Below this P2 the estimate reports the HP accumulator empty, bar: the precharge plus
+    /// `ModelConfig::hp_empty_margin_bar`.
+    pub hp_empty_below: Fx,
+    /// Process noise added to the P2 variance per step while P2 is at or above the relief
+    /// setting and the HP transducer corrects it, bar²: the reduced relief law's own error
+    /// (`ModelConfig::relief_process_noise_bar_per_sqrt_s`).
+    pub q_relief: Fx,
     /// Relief gain, L/min per bar.
     pub relief_gain: Fx,
     /// Process noise added to the P2 variance per step vs P2, bar²: the model's flow
@@ -235,6 +244,25 @@ pub struct Coefficients {
     /// Correction steps (every second step) the reading's filters run before P2 takes it:
     /// three filter time constants.
     pub motor_reading_warm_steps: u16,
+    /// The reading is used only while both the commanded and the modelled aperture are at
+    /// least this, %.
+    pub motor_reading_min_aperture: Fx,
+    /// Minimum motor speed for the reading, rpm (also: a motor turning faster than this behind
+    /// a closed valve contradicts the model).
+    pub motor_reading_min_rpm: Fx,
+    /// Variance of the reading's noise, bar².
+    pub motor_reading_r: Fx,
+    /// Highest P2 a plausible reading implies (beyond its band), bar: the relief setting plus
+    /// the gate's worth of the reading's noise.
+    pub motor_reading_p2_max: Fx,
+    /// Top of the band above the HP precharge where model-only P2 may fall at any moment, bar.
+    pub precharge_band_top: Fx,
+    /// Least model-only P2 variance in that band, bar².
+    pub var_precharge: Fx,
+    /// Steps after which a rotor behind a closed valve has spun down (five of its time
+    /// constants J/c): a motor still turning faster than `motor_reading_min_rpm` then contradicts
+    /// the model.
+    pub spin_down_steps: u16,
 }
 
 /// An f32 coefficient in Q16.16, saturated. Out of line: the conversion is ≈ 100 bytes of
@@ -362,6 +390,12 @@ impl ModelConfig {
         let kappa = 60.0 / (2.0 * core::f32::consts::PI) * d_rad * self.motor_mech_efficiency * 1e5
             / self.motor_inertia_kg_m2;
         self.rpm_per_lpm() / kappa
+    }
+
+    /// The rotor's own time constant J/c behind a closed valve, s: c the generator's load,
+    /// N·m per rad/s (0.134 s on the reference bench).
+    pub fn rotor_time_constant_s(&self) -> f32 {
+        self.motor_inertia_kg_m2 / (self.load_nm_per_rpm * 60.0 / (2.0 * core::f32::consts::PI))
     }
 
     /// Steady valve/motor flow, L/min, at aperture `a` % and P2 − LP = `dp` bar: the root of
@@ -549,6 +583,11 @@ impl ModelConfig {
             .y,
             spool_gain: fx(spool_gain),
             relief_setting: fx(self.relief_setting_bar),
+            hp_precharge: fx(self.hp.precharge_bar),
+            hp_empty_below: fx(self.hp.precharge_bar + self.hp_empty_margin_bar),
+            q_relief: fx(self.relief_process_noise_bar_per_sqrt_s
+                * self.relief_process_noise_bar_per_sqrt_s
+                * dt),
             relief_gain: fx(self.relief_gain_lpm_per_bar),
             q_step: Table1::sample(0.0, P_MAX_BAR, |p| {
                 let ic = 1.0 / (60.0 * capacitance_node(self, &self.hp, p, h_hp));
@@ -596,6 +635,15 @@ impl ModelConfig {
             motor_reading_band: fx(self.motor_reading_band_pct * 1e-2),
             motor_reading_warm_steps: (1.5 * self.motor_reading_filter_ms * 1e-3 / dt)
                 .clamp(1.0, 60_000.0) as u16,
+            motor_reading_min_aperture: fx(self.motor_reading_min_aperture_pct),
+            motor_reading_min_rpm: fx(self.motor_reading_min_rpm),
+            motor_reading_r: fx(self.motor_reading_noise_bar * self.motor_reading_noise_bar),
+            motor_reading_p2_max: fx(
+                self.relief_setting_bar + self.gate_sigma * self.motor_reading_noise_bar
+            ),
+            precharge_band_top: fx(self.hp.precharge_bar + self.precharge_band_bar),
+            var_precharge: fx(self.precharge_sigma_bar * self.precharge_sigma_bar),
+            spin_down_steps: (5.0 * self.rotor_time_constant_s() / dt).clamp(1.0, 60_000.0) as u16,
         })
     }
 }

@@ -131,6 +131,28 @@ pub struct ModelConfig {
     /// plant's valve and the model's need not be at the same opening: on the reference bench
     /// 1 % of aperture at 25 % is ≈ 2.5 bar of valve drop at 100 bar).
     pub motor_reading_spool_tolerance_pct: f32,
+    /// … and only while both the commanded and the modelled aperture are at least this, %
+    /// (near the closed valve the branch's flow says nothing of the pressure).
+    pub motor_reading_min_aperture_pct: f32,
+    /// Noise of that reading after its filter (1σ), bar: it sets how far a reading may lie from
+    /// the model's P2 (beyond the band) before it contradicts it, and the variance the reading
+    /// brings P2's toward.
+    pub motor_reading_noise_bar: f32,
+    /// P2 uncertainty added per √s while P2 sits on the relief and the HP transducer corrects
+    /// it, bar/√s: the reduced relief law (linear in P2 from the setting) sits up to 0.25 bar
+    /// below the bench's at its pump flows, a bias the filter must take from the transducer.
+    pub relief_process_noise_bar_per_sqrt_s: f32,
+    /// Without the HP transducer, P2's standard deviation is at least
+    /// [`ModelConfig::precharge_sigma_bar`] while the estimate lies within this of the HP
+    /// precharge (above it), bar.
+    pub precharge_band_bar: f32,
+    /// That least standard deviation, bar.
+    pub precharge_sigma_bar: f32,
+    /// The estimate reports the HP accumulator empty below its precharge plus this, bar: the
+    /// accumulator's last cm³ (0.1 bar ≈ 30 cm³ on the reference bench, ≈ 0.6 s of a
+    /// one-cylinder pump's flow) are within the model's error there, and the bench's P2 can
+    /// leave the precharge slowly (Config 3: 1.1 bar in 50 ms).
+    pub hp_empty_margin_bar: f32,
     /// After this long of consecutive rejected HP readings the estimate is reset to them, ms.
     pub gate_reset_ms: f32,
     /// Overpressure trip, bar.
@@ -283,6 +305,25 @@ impl ModelConfig {
             // 6 σ of the 2 rpm sensor noise.
             motor_reading_min_rpm: 12.0,
             motor_reading_spool_tolerance_pct: 0.05,
+            // Below the valve table's first node (10 %) the area is interpolated from closed;
+            // 2 % is 0.23 mm² on the reference valve, a tenth of the smallest run's.
+            motor_reading_min_aperture_pct: 2.0,
+            // L·σ_Q/τ = 1.03 bar per L/min/s × 0.017 L/min (2 rpm) / 50 ms ≈ 0.36 bar a sample.
+            motor_reading_noise_bar: 0.36,
+            // Measured with `pto validate` on the runs that sit on the relief (Test II, the
+            // torque runs, Test III at 5–10 %): 0.5 left 2σ coverage at 94 % with four
+            // cylinders; 1 and 2 both cover ≥ 95 % (P2 RMS there 0.10–0.17 → 0.07–0.10 bar).
+            relief_process_noise_bar_per_sqrt_s: 1.0,
+            // Test I without the transducer: the model's accumulator hovers within 0.3 bar of
+            // the precharge before it empties, and the reading lets P2 lag the bench's fall by
+            // up to 6–7 bar for 20–60 ms (`pto validate`); 2 bar makes that 3σ.
+            precharge_band_bar: 1.0,
+            precharge_sigma_bar: 2.0,
+            // `pto validate`, Test I without the transducer: at 0 the flag came up to 60 ms
+            // after the bench's accumulator ran empty (Config 3, HC3.1 + HC3.4); 0.05 bar: 46
+            // ms; 0.1 bar: at once in every emptying, and never while the bench was more than
+            // 0.3 bar above the precharge.
+            hp_empty_margin_bar: 0.1,
             gate_reset_ms: 250.0,
             trip_bar: 140.0,
             autonomy_min_rpm: 50.0,
@@ -473,6 +514,27 @@ impl ModelConfig {
             0.0,
             100.0,
         )?;
+        check(
+            "motor_reading_min_aperture_pct",
+            self.motor_reading_min_aperture_pct,
+            0.0,
+            100.0,
+        )?;
+        check(
+            "motor_reading_noise_bar",
+            self.motor_reading_noise_bar,
+            0.001,
+            100.0,
+        )?;
+        check(
+            "relief_process_noise_bar_per_sqrt_s",
+            self.relief_process_noise_bar_per_sqrt_s,
+            0.0,
+            100.0,
+        )?;
+        check("precharge_band_bar", self.precharge_band_bar, 0.0, 50.0)?;
+        check("precharge_sigma_bar", self.precharge_sigma_bar, 0.0, 100.0)?;
+        check("hp_empty_margin_bar", self.hp_empty_margin_bar, 0.0, 10.0)?;
         check("gate_reset_ms", self.gate_reset_ms, 1.0, 60_000.0)?;
         check("trip_bar", self.trip_bar, 1.0, 400.0)?;
         check("autonomy_min_rpm", self.autonomy_min_rpm, 1.0, 5000.0)?;

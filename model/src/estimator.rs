@@ -45,6 +45,10 @@ pub mod fault {
     pub const ENCODER_STUCK: u16 = 1 << 7;
     /// Configuration index out of range (step ignored the duty mask).
     pub const BAD_CONFIG: u16 = 1 << 8;
+    /// The motor speed contradicts the model: it turns behind a valve that has been closed for
+    /// longer than the rotor takes to spin down, or, without the HP transducer, it reads a P2
+    /// further from the model's than the gate allows (P2 is then not moved by it).
+    pub const MOTOR_IMPLAUSIBLE: u16 = 1 << 9;
 }
 
 /// Sensor readings of one step. `None` = missing (the firmware also maps out-of-range raw
@@ -110,6 +114,10 @@ pub struct Estimate {
     /// (every [`AUTONOMY_EVERY`]th step). The step's background slot: the scheduler refreshes
     /// its feed-forward only in a step that spent none, so no two of them add up in one step.
     pub background_units: u8,
+    /// The HP accumulator is empty: the P2 estimate is below its precharge plus
+    /// `ModelConfig::hp_empty_margin_bar` (the node is then the stiff oil of the lines alone,
+    /// or about to be, where a small flow error moves P2 by bars).
+    pub hp_empty: bool,
 }
 
 impl Estimate {
@@ -258,6 +266,13 @@ pub struct State {
     /// closed (the rotor may then be accelerating, which filters started from one sample do not
     /// know yet).
     pub meas_wait: u16,
+    /// Variance of the motor reading as of the last odd step, bar²: its noise and its dead
+    /// band (an error spread evenly over ±band: band²/3). P2's variance relaxes toward it as
+    /// the reading corrects P2.
+    pub meas_var: Fx,
+    /// Consecutive steps with the valve closed (commanded or modelled aperture below
+    /// `Coefficients::motor_reading_min_aperture`).
+    pub closed_steps: u16,
 }
 
 impl State {
@@ -506,8 +521,26 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         .map(|p| p.0)
         .filter(|p| *p >= k.hp_range.0 && *p <= k.hp_range.1);
     let motor = inp.motor.filter(|m| m.0 >= ZERO && m.0 <= k.motor_max);
+    // The valve closed (commanded or modelled): the branch's flow says nothing of P2, and once
+    // the rotor has had the time to spin down a turning motor contradicts the model.
+    let closed = cmd < k.motor_reading_min_aperture || s.aperture < k.motor_reading_min_aperture;
+    if closed {
+        s.closed_steps = s.closed_steps.saturating_add(1);
+        if s.closed_steps >= k.spin_down_steps
+            && motor.is_some_and(|m| m.0 > k.motor_reading_min_rpm)
+        {
+            faults |= fault::MOTOR_IMPLAUSIBLE;
+        }
+    } else {
+        s.closed_steps = 0;
+    }
     match hp {
         Some(z) => {
+            // On the relief P2 is set by the reduced relief law, whose bias the filter must take
+            // from the transducer (`ModelConfig::relief_process_noise_bar_per_sqrt_s`).
+            if s.p2 >= k.relief_setting {
+                s.var = s.var.saturating_add(k.q_relief);
+            }
             // The motor reading restarts when the transducer goes missing again.
             (s.meas_live, s.meas_wait) = (false, 0);
             let innov = z.saturating_sub(s.p2);
@@ -537,9 +570,19 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         }
         None => {
             faults |= fault::HP_SENSOR;
+            // Within the band above the precharge the accumulator's last cm³ decide when it
+            // runs empty, and P2 then falls to the empty node's level (5–15 bar lower) within
+            // tens of ms, faster than any reading of the motor follows; on the empty node P2
+            // follows the pump flow, and rises back as fast when it refills. P2's standard
+            // deviation is at least `ModelConfig::precharge_sigma_bar` in both.
+            if s.p2 <= k.precharge_band_top && s.var < k.var_precharge {
+                (s.var, s.var_lo) = (k.var_precharge, 0);
+            }
             // Without it, correct P2 with the motor speed.
             match motor {
-                Some(m) => motor_reading(k, s, m.0, cmd, lp_dp, dp, q_ss, g),
+                Some(m) if !closed => faults |= motor_reading(k, s, m.0, cmd, lp_dp, dp, q_ss, g),
+                // Closed: no reading; the filters restart once it opens, P2 waiting for them.
+                Some(_) => (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps),
                 None => (s.meas_live, s.meas_wait) = (false, 0),
             }
         }
@@ -585,6 +628,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         aperture: Aperture(s.aperture),
         faults,
         background_units,
+        hp_empty: s.p2 < k.hp_empty_below,
     }
 }
 
@@ -683,7 +727,7 @@ fn motor_reading(
     dp: Fx,
     q_ss: Fx,
     g: Fx,
-) {
+) -> u16 {
     // 0 ≤ rpm ≤ 10 000 (< 2^30 bits; the caller range-checks it) × L/min per rpm (< 2^31
     // bits): < 2^61; held to the flow range like every flow the nodes take.
     let q_m = Fx::from_bits(
@@ -694,7 +738,7 @@ fn motor_reading(
         s.q_meas = q_m;
         s.f_meas = lp_plus_f(lp_dp, q_ss, q_m, mul_bounded(g, k.motor_reading_ldt));
         (s.meas_live, s.meas_odd) = (true, false);
-        return;
+        return 0;
     }
     // The work alternates between two steps, each filter running at half rate, so that a
     // step costs about what the HP transducer's Kalman update it replaces does: the guards, F
@@ -703,6 +747,21 @@ fn motor_reading(
     if s.meas_odd {
         // dF/dQ = g·L/dt: g ≤ 1 and L/dt < 2^15 bar per L/min (a saturated coefficient), so
         // the product fits.
+        // Plausibility: the flow read must be one the valve can pass at the modelled aperture
+        // and LP with P2 at most at the relief (plus the gate's worth of the reading's noise)
+        // — the valve table at that ΔP, plus the reading's band and the sensor's floor. A
+        // faster motor contradicts the model (or the sensor is wrong): flagged, and the
+        // reading restarts, so P2 never takes it.
+        let q_cap = k
+            .valve_flow
+            .at(s.aperture, k.motor_reading_p2_max.saturating_sub(s.lp));
+        let q_cap = q_cap
+            .saturating_add(mul_bounded(q_cap, k.motor_reading_band))
+            .saturating_add(k.motor_reading_min_lpm);
+        if q_m > q_cap {
+            (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps);
+            return fault::MOTOR_IMPLAUSIBLE;
+        }
         let slope = mul_bounded(g, k.motor_reading_ldt);
         if slope > k.motor_reading_max_slope
             || cmd.saturating_sub(s.aperture).abs() > k.motor_reading_spool_tol
@@ -710,7 +769,7 @@ fn motor_reading(
             // The valve near closed, or the spool moving: no reading; the filters restart
             // once both end, and P2 takes the reading after they have run a while.
             (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps);
-            return;
+            return 0;
         }
         let f = lp_plus_f(lp_dp, q_ss, q_m, slope);
         s.f_meas = filter(s.f_meas, k.motor_reading_filter, f);
@@ -718,7 +777,13 @@ fn motor_reading(
         s.q_meas = filter(s.q_meas, k.motor_reading_filter, q_m);
         // ΔP ≤ 400 bar × a band ≤ 0.5: fits.
         s.meas_band = mul_bounded(dp, k.motor_reading_band);
-        return;
+        // band²/3 saturates above a 181 bar band: far beyond any P2 gate.
+        s.meas_var = s
+            .meas_band
+            .qmul(s.meas_band)
+            .qmul(ONE_THIRD)
+            .saturating_add(k.motor_reading_r);
+        return 0;
     }
     if s.meas_wait > 0 {
         s.meas_wait -= 1;
@@ -730,14 +795,32 @@ fn motor_reading(
         // not know P2 better than the model does.
         let e = z.saturating_sub(s.p2);
         let e = e - clamp(e, -s.meas_band, s.meas_band);
+        // Plausibility: the flow read must be one the valve can pass at a P2 the relief allows,
+        // i.e. the P2 it implies, less its band, at most the relief setting plus the gate's
+        // worth of the reading's noise (F is monotone in the flow, so this is the valve's
+        // capacity at the modelled aperture and LP without a table lookup). Beyond it the
+        // speed sensor or the model is wrong: flagged, P2 not moved. (A gate on the distance
+        // to P2 itself would refuse the readings the empty HP node needs most: there the
+        // model can run empty 0.1 s before the bench, 17 bar below it.)
+        if z.saturating_sub(s.meas_band) > k.motor_reading_p2_max {
+            return fault::MOTOR_IMPLAUSIBLE;
+        }
         // P2 += gain·e, rounded (|e| < 2^31 bits × gain ≤ 2^16 bits: < 2^47), held to the
         // pressure range. The node's bits below the LSB are left as they are: a correction of
         // a noisy reading needs none.
         let d =
             (i64::from(k.motor_reading_gain.to_bits()) * i64::from(e.to_bits()) + (1 << 15)) >> 16;
         s.p2 = clamp(s.p2.saturating_add(Fx::from_bits(d as i32)), P_MIN, P_MAX);
+        // The reading brings P2's variance toward its own (never up to it).
+        if s.var > s.meas_var {
+            relax(&mut s.var, &mut s.var_lo, k.motor_reading_gain, s.meas_var);
+        }
     }
+    0
 }
+
+/// 1/3 in Q16.16.
+const ONE_THIRD: Fx = Fx::from_bits(21_845);
 
 /// LP + F(Q_m), bar, from F(Q_ss) = ΔP: F(Q_ss) − F(Q_m) = (Q_ss − Q_m)·dF/dQ.
 #[inline(always)]
@@ -1265,6 +1348,96 @@ mod tests {
             let a = run_without_hp(&k, p_true - 5.0, aperture, Some(rpm), steps);
             let b = run_without_hp(&k, p_true - 5.0, aperture, None, steps);
             assert_eq!(a, b, "aperture {aperture} %, {rpm} rpm");
+        }
+    }
+
+    /// Behind a closed valve (commanded 0 %) a motor sensor reading 50 or 200 rpm moves P2 by
+    /// nothing — bit for bit the model alone — and is flagged as a contradiction once a real
+    /// rotor would have spun down (five of its time constants J/c, 0.67 s), not before. With the
+    /// valve open, a reading that implies a P2 above the relief is refused and flagged.
+    #[test]
+    fn contradicting_motor_readings_are_flagged_not_followed() {
+        let cfg = crate::ModelConfig::reference();
+        let k = cfg.coefficients().unwrap();
+        let lp = Pressure::from_num(8.0);
+        let run = |aperture: f32, rpm: Option<f32>, steps: usize| {
+            let mut s = State::new(Pressure::from_num(50.0), lp, Pressure::from_num(1.0));
+            let inp = Inputs {
+                hp: None,
+                motor: rpm.map(Rpm::from_num),
+                aperture_cmd: Aperture::from_num(aperture),
+                ..held_inputs(&cfg, 0.0, lp, lp, 0, 0)
+            };
+            let mut first = None;
+            for i in 0..steps {
+                if step(&k, &mut s, &inp).faults & fault::MOTOR_IMPLAUSIBLE != 0 {
+                    first = first.or(Some(i));
+                }
+            }
+            (s.p2, first)
+        };
+        let steps = 3 << k.dt_log2;
+        let (alone, none) = run(0.0, None, steps);
+        assert_eq!(none, None);
+        for rpm in [50.0, 200.0] {
+            let (p2, first) = run(0.0, Some(rpm), steps);
+            std::println!(
+                "{rpm} rpm behind a closed valve: P2 {} bar after 3 s (model alone {}), flagged \
+                 from step {first:?} (spin-down {} steps)",
+                p2.to_num::<f32>(),
+                alone.to_num::<f32>(),
+                k.spin_down_steps
+            );
+            assert_eq!(p2, alone, "P2 followed the reading");
+            assert_eq!(first, Some(usize::from(k.spin_down_steps) - 1));
+        }
+        // The valve fully open, the motor reading the flow of ΔP = 160 bar: above the relief.
+        let q = k.valve_flow.at(Fx::from_num(100.0), Fx::from_num(160.0));
+        let rpm = q.to_num::<f32>() * cfg.rpm_per_lpm();
+        let (p2, first) = run(100.0, Some(rpm), steps);
+        let (p2_alone, _) = run(100.0, None, steps);
+        std::println!(
+            "{rpm:.0} rpm at 100 % (ΔP 160 bar): flagged from step {first:?}, P2 {} bar (model \
+             alone {})",
+            p2.to_num::<f32>(),
+            p2_alone.to_num::<f32>()
+        );
+        assert!(first.is_some(), "an impossible reading was taken");
+        assert!(
+            (p2.to_num::<f32>() - p2_alone.to_num::<f32>()).abs() < 0.01,
+            "{p2} vs {p2_alone}"
+        );
+    }
+
+    /// Without the HP transducer, P2's σ is at least `precharge_sigma_bar` once the estimate
+    /// is within `precharge_band_bar` of the precharge or below it (the accumulator may run
+    /// empty at any moment, or has), and grows freely above; the empty flag stands below the
+    /// precharge plus `hp_empty_margin_bar`.
+    #[test]
+    fn model_only_sigma_is_wide_where_the_accumulator_empties() {
+        let cfg = crate::ModelConfig::reference();
+        let k = cfg.coefficients().unwrap();
+        let lp = Pressure::from_num(8.0);
+        for (p2, want_floor, empty) in [
+            (20.0, true, true),
+            (25.05, true, true),
+            (25.5, true, false),
+            (27.0, false, false),
+            (100.0, false, false),
+        ] {
+            let mut s = State::new(Pressure::from_num(p2), lp, Pressure::from_num(0.1));
+            let inp = Inputs {
+                hp: None,
+                ..held_inputs(&cfg, 0.0, lp, lp, 0, 0)
+            };
+            let e = step(&k, &mut s, &inp);
+            let sigma = e.p2_sigma().to_f32();
+            std::println!(
+                "P2 {p2} bar without HP: σ {sigma:.3} bar, empty {}",
+                e.hp_empty
+            );
+            assert_eq!(sigma >= cfg.precharge_sigma_bar - 0.01, want_floor, "{p2}");
+            assert_eq!(e.hp_empty, empty, "{p2}");
         }
     }
 

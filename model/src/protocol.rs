@@ -53,7 +53,9 @@ pub enum ToFirmware {
         /// 0..=3.
         config: u8,
     },
-    /// Restart the estimator from known pressures (and clear the scheduler and the trip latch).
+    /// Restart the estimator from known pressures and clear the scheduler. Answered with
+    /// `ResetDone`, or `Refused(TripHeld)` while the overpressure trip holds and its release
+    /// condition does not (a reset never releases the trip itself).
     Reset {
         /// P2.
         p2: Pressure,
@@ -133,6 +135,63 @@ pub enum FromFirmware {
     },
     /// Reply to `GetStatus`.
     Status(Status),
+    /// Reply to an accepted `Reset`: the estimator and the scheduler restarted (a trip latch
+    /// that was set stays set until it releases by itself; `Status::tripped` says so).
+    ResetDone,
+    /// A command was refused, with the reason; nothing changed.
+    Refused(Refusal),
+}
+
+/// Why the firmware refused a command.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Refusal {
+    /// `Reset` while the overpressure trip holds: the trip's release condition (a valid HP
+    /// reading and the estimate both below the release pressure) does not hold now.
+    TripHeld(TripHold),
+}
+
+/// Why a tripped latch cannot release now.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum TripHold {
+    /// No valid HP reading (wire break, short, or outside the transducer's range): the pressure
+    /// is unknown.
+    HpMissing,
+    /// The HP reading is above the release pressure (the reading).
+    HpHigh(Pressure),
+    /// The P2 estimate is above the release pressure (the estimate).
+    EstimateHigh(Pressure),
+}
+
+impl core::fmt::Display for TripHold {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            TripHold::HpMissing => f.write_str("no valid HP reading (the pressure is unknown)"),
+            TripHold::HpHigh(p) => {
+                write!(
+                    f,
+                    "HP reading {:.2} bar above the release pressure",
+                    p.to_f32()
+                )
+            }
+            TripHold::EstimateHigh(p) => {
+                write!(
+                    f,
+                    "P2 estimate {:.2} bar above the release pressure",
+                    p.to_f32()
+                )
+            }
+        }
+    }
+}
+
+impl core::fmt::Display for Refusal {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            Refusal::TripHeld(h) => write!(f, "reset refused: the overpressure trip holds: {h}"),
+        }
+    }
 }
 
 /// Why a frame could not be built or read.
