@@ -1,7 +1,8 @@
 //! The controller's safety functions driven on the host with made-up sensor sequences: each
 //! combination of HP reading (valid, a jump, a ramp, a wire break after the trip), encoder
 //! (turning, stuck) and motor reading (a high speed behind a closed valve), and host resets
-//! while high → the trip state over time, asserted step by step.
+//! while high → the trip state over time, asserted step by step; and the sensor-fault safe
+//! mode, which a lost transducer reaches once the estimate's σ passes its bound.
 
 use proptest::prelude::*;
 use pto_firmware::control::{ControlConfig, Controller, NoClock, StepOut};
@@ -250,6 +251,53 @@ fn a_high_motor_reading_behind_a_closed_valve_moves_nothing_and_is_flagged() {
         let k = flagged.expect("the contradiction is flagged");
         assert!((600..=800).contains(&k), "flagged at step {k}");
     }
+}
+
+#[test]
+fn a_lost_transducer_drives_the_valve_to_its_safe_aperture_once_sigma_passes_its_bound() {
+    use pto_model::scheduler::Override;
+    let bound = SchedulerConfig::default().sensor_fault_sigma_bar;
+    let safe = SchedulerConfig::default().sensor_fault_aperture_pct;
+    // The HP accumulator empty (15 bar, precharge 25), the valve closed, no motor reading: the
+    // stiff node's variance grows at ≈ 0.08 bar² a step.
+    let mut b = Bench::new(15.0, 0.0);
+    let out = b.run(HZ / 2, |_| Sensors {
+        hp_bar: None,
+        encoder: 0,
+        rpm: 0.0,
+    });
+    let k = out
+        .iter()
+        .position(|o| o.command.safety == Override::SensorFault)
+        .expect("the sensor-fault safe mode engages");
+    let sigma = out[k].estimate.p2_sigma().to_f32();
+    println!(
+        "empty HP node, transducer lost: σ {sigma:.2} bar > {bound} bar at step {k}, valve to \
+         {:.1} %",
+        out[k].applied.to_f32()
+    );
+    assert!(
+        sigma > bound && k < (HZ / 4) as usize,
+        "within 0.25 s: step {k}, σ {sigma}"
+    );
+    assert!(
+        out[k..]
+            .iter()
+            .all(|o| o.command.safety == Override::SensorFault)
+    );
+    assert_eq!(out[k].applied.to_f32(), safe, "the safe aperture at once");
+    // With gas in the accumulator (100 bar) the model alone stays good for minutes: 10 s
+    // without the transducer leave σ near its start and the mode alone.
+    let mut b = Bench::new(100.0, 10.0);
+    let out = b.run(10 * HZ, |_| Sensors {
+        hp_bar: None,
+        encoder: 0,
+        rpm: 0.0,
+    });
+    let sigma = out.last().unwrap().estimate.p2_sigma().to_f32();
+    println!("100 bar, transducer lost for 10 s: σ {sigma:.2} bar");
+    assert!(out.iter().all(|o| o.command.safety == Override::None));
+    assert!(sigma < 1.2);
 }
 
 proptest! {

@@ -5,7 +5,7 @@ use crate::bench::{BAR, Bench, Load};
 use crate::scenario::{Scenario, ValveSpec};
 use crate::sim::{SimResult, Trace};
 use pto_model::config::{AccumulatorConfig, CylinderConfig, GeometryConfig};
-use pto_model::estimator::{Inputs, P_MAX, P_MIN};
+use pto_model::estimator::{Inputs, P_MAX, P_MIN, State};
 use pto_model::fx::{Aperture, Fx, Pressure, Rpm};
 use pto_model::table::{Table2, lerp_f64, locate_f64};
 use pto_model::{Coefficients, ModelConfig};
@@ -336,6 +336,10 @@ pub struct RefOut {
     pub torque: f64,
     /// Motor speed, rpm.
     pub motor_rpm: f64,
+    /// Pump flow into HP, L/min.
+    pub q_pump: f64,
+    /// Valve (motor) flow out of HP, L/min.
+    pub q_valve: f64,
 }
 
 impl Reference {
@@ -361,6 +365,61 @@ impl Reference {
             enc_n: 0,
             closed_steps: 0,
         }
+    }
+
+    /// The fixed-point estimator's state `s` as the reference's: every value the reference
+    /// keeps, exactly (the pressure nodes, the variance and the motor flow with their bits
+    /// below the Q16.16 LSB). One step of both from it measures the arithmetic's one-step
+    /// difference alone (`tests/model_validation.rs`).
+    pub fn from_state(cfg: &ModelConfig, k: &Coefficients, s: &State) -> Self {
+        let q32 = |x: i64| x as f64 / 4_294_967_296.0;
+        let ext =
+            |p: Fx, lo: u16| (f64::from(p.to_bits()) * 65_536.0 + f64::from(lo)) / 4_294_967_296.0;
+        let f = |x: Fx| x.to_num::<f64>();
+        let mut r = Reference::new(cfg, k, ext(s.p2, s.p2_lo), ext(s.lp, s.lp_lo), 0.0);
+        r.theta = q32(s.theta_q32);
+        r.omega = q32(s.omega_q32);
+        r.accel = q32(s.accel_q32);
+        r.init = s.enc_phase != 0;
+        // enc_phase: 1 tracking, n + 1 with n start-up steps left.
+        r.enc_n = u32::from(k.tracker_startup_len)
+            .saturating_sub(u32::from(s.enc_phase.saturating_sub(1)));
+        r.var = ext(s.var, s.var_lo);
+        r.aperture = f(s.aperture);
+        r.q_motor = s.started.then(|| ext(s.q_motor, s.q_motor_lo));
+        r.rejected = u32::from(s.rejected);
+        for (rc, c) in r.cyl.iter_mut().zip(&s.cyl) {
+            *rc = RefCyl {
+                dir: c.dir,
+                from_rest: c.from_rest,
+                play: f(c.play),
+                setup_left: c.setup_left,
+                bisect_left: c.bisect_left,
+                travel: f(c.travel),
+                len: (f(c.len_n), f(c.len_o)),
+                strain: (
+                    f(c.ms_new0),
+                    f(c.ms_old0),
+                    f(c.ms_per_mm_n),
+                    f(c.ms_per_mm_o),
+                ),
+                u_bal: f(c.u_bal),
+                u_bal_hi: f(c.u_bal_hi),
+                u_end: f(c.u_end),
+                u_suc: f(c.u_suc),
+                p: (f(c.p_cap), f(c.p_rod)),
+            };
+        }
+        r.meas = s.meas_live.then(|| RefMeas {
+            q: f(s.q_meas),
+            f: f(s.f_meas),
+            odd: s.meas_odd,
+            band: f(s.meas_band),
+            var: f(s.meas_var),
+        });
+        r.meas_wait = u32::from(s.meas_wait);
+        r.closed_steps = u32::from(s.closed_steps);
+        r
     }
 
     /// A per-row column of a 2-D table (`Table2::at_with`) at row coordinate `r`.
@@ -731,6 +790,8 @@ impl Reference {
             p2: self.p2,
             torque,
             motor_rpm,
+            q_pump,
+            q_valve,
         }
     }
 }

@@ -1,9 +1,9 @@
 //! Full, high-fidelity simulation of the hydraulic PTO test bench of a wave energy converter,
 //! the paper's scenarios with their facts checked automatically, and the `pto` tool behind it.
 //!
-//! Layers: [`bench`] (validated parameter file) → [`physics`] (component laws) → [`plant`]
+//! Layers: [`bench`](mod@bench) (validated parameter file) → [`physics`] (component laws) → [`plant`]
 //! (the ODE) → [`sim`] (diffsol BDF driver, sampling, balances) → [`scenario`] (named runs) →
-//! [`paper`] (the paper's facts) → [`plot`] / [`report`] (figures and tables).
+//! [`paper`] (the paper's facts) → [`plot`] / [`figures`] (figures and tables).
 
 pub mod bench;
 pub mod benchlog;

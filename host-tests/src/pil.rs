@@ -457,22 +457,8 @@ pub fn check_hold_speed(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String>
 /// safe state.
 pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
     let t0 = std::time::Instant::now();
-    let mut b = bench.clone();
-    b.relief_setting = 170.0 * BAR;
-    let spec = SensorSpec {
-        hp_noise_bar: 0.0,
-        ..SensorSpec::default()
-    };
     let trip = 140.0;
-    let (q, _res, rows) = closed_loop(
-        q,
-        &b,
-        fixed(0.0),
-        136.0,
-        4.0,
-        spec,
-        Box::new(|_| Injection::None),
-    )?;
+    let (q, _res, rows) = overpressure_run(q, bench, Box::new(|_| Injection::None))?;
     let tripped = rows
         .iter()
         .position(|r| r.dump)
@@ -512,18 +498,28 @@ pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
     ))
 }
 
-/// The trip latch under QEMU: from 136 bar with the valve closed (relief at 170 bar) P2 rises
-/// through the trip; 0.5 s after the trip the HP transducer's wire breaks and stays broken, and
-/// the host asks for a `Reset` to 100 bar in the middle of it. The latch must hold to the end
-/// and the reset must be refused with its reason.
-pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
-    let t0 = std::time::Instant::now();
+/// The run of [`check_trip`]: the relief set at 170 bar, the valve closed, P2 climbing from 136
+/// bar for 4 s with a noise-free HP transducer, and `inject`'s faults.
+fn overpressure_run(
+    q: Qemu,
+    bench: &Bench,
+    inject: Box<dyn Fn(f64) -> Injection>,
+) -> Result<LoopRun, String> {
     let mut b = bench.clone();
     b.relief_setting = 170.0 * BAR;
     let spec = SensorSpec {
         hp_noise_bar: 0.0,
         ..SensorSpec::default()
     };
+    closed_loop(q, &b, fixed(0.0), 136.0, 4.0, spec, inject)
+}
+
+/// The trip latch under QEMU: the run of [`check_trip`] (P2 crosses the trip 1.47 s in); from
+/// 1.6 s the HP transducer's wire breaks and stays broken, and at 2.0 s the host asks for a
+/// `Reset` to 100 bar. The latch must hold to the end and the reset must be refused with its
+/// reason.
+pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+    let t0 = std::time::Instant::now();
     // P2 crosses 140 bar 1.47 s in (`pil_trips_to_the_safe_state_within_one_period`), then
     // falls through the open valve.
     let inject = |t: f64| match t {
@@ -531,7 +527,7 @@ pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String>
         t if t >= 1.6 => Injection::HpWireBreak,
         _ => Injection::None,
     };
-    let (q, _res, rows) = closed_loop(q, &b, fixed(0.0), 136.0, 4.0, spec, Box::new(inject))?;
+    let (q, _res, rows) = overpressure_run(q, bench, Box::new(inject))?;
     let tripped = rows
         .iter()
         .position(|r| r.dump)

@@ -658,6 +658,22 @@ impl Coefficients {
             self.gain_coarse.at(var).min(ONE).max(ZERO)
         }
     }
+
+    /// Kalman gain for the prior variance `var` with its 16 bits below the LSB (`var_lo`), in
+    /// units of 2^−32, held to [0, 1]. A Q16.16 gain near its steady ≈ 0.008 is good to 0.2 %:
+    /// times a 2 bar innovation that was 2.5 P2 LSBs a step, and the variance's own rounding
+    /// to its LSB another 7 (the gain table's slope there is ≈ 4 per bar²); this one leaves the
+    /// step within 2 LSB of its f64 form (`tests/model_validation.rs`).
+    /// (1 is returned as 1 − 2^−32, so the gain is one 32-bit word.)
+    #[inline]
+    pub fn gain_q32(&self, var: Fx, var_lo: u16) -> u32 {
+        let t = if var < self.r {
+            &self.gain_fine
+        } else {
+            &self.gain_coarse
+        };
+        t.at_q32(var, var_lo).clamp(0, i64::from(u32::MAX)) as u32
+    }
 }
 
 #[cfg(test)]

@@ -21,7 +21,7 @@ use crate::coeffs::{
 };
 use crate::fx::{
     Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, PressureVariance, QMul, Rpm, Seconds,
-    Torque, ZERO, clamp, mul_bounded, mul_dt, mul_frac, recip, shr64, sqrt0,
+    Torque, ZERO, clamp, mul_bounded, mul_dt, mul_frac, mul_q24, recip, shr64, sqrt0,
 };
 use crate::table::Table1;
 
@@ -457,10 +457,16 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     };
     // The lever on each side of the shaft (s = ±1): the arm tables are per geometry, so every
     // cylinder on one side shares s·θ, the signed arm s·d and the rod speed v = s·d·θ̇ (mm/s).
+    // The shaft speed to 2^−24 rad/s for the rod speed: in Q16.16 its LSB is 6·10^−5 of a
+    // 0.26 rad/s swing, and the pump flow on the empty HP node (≈ 0.18 bar per L/min a step)
+    // took that as a P2 LSB a step. |ω| ≤ 100 rad/s (`OMEGA_LIM_Q32`) is < 2^31 in Q8.24, so
+    // it is one word; times an arm (< 2^31 bits) < 2^62; the rod speed is held to the Q16.16
+    // range.
+    let omega24 = ((s.omega_q32 + (1 << 7)) >> 8) as i32;
     let lever = |th: Fx, negative: bool| {
         let d = arm_table.at(th);
         let sd = if negative { d.saturating_neg() } else { d };
-        let v = sd.qmul(omega);
+        let v = mul_q24(sd, omega24);
         Lever {
             th,
             sd,
@@ -511,7 +517,10 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let net_lp = q_valve.saturating_add(q_relief).saturating_sub(q_lp_net);
     let dp_per_flow = k.inv_c_lp.at(s.lp);
     node_step(&mut s.lp, &mut s.lp_lo, net_lp, dp_per_flow, dtl);
-    s.var = s.var.saturating_add(k.q_step.at(s.p2));
+    // The process noise to 2^−32 bar² (`Table1::at_ext`): on the empty node it is ≈ 0.08 bar²
+    // a step, and its Q16.16 rounding moved the Kalman gain by 3·10^−5 — a few P2 LSBs per
+    // bar of innovation. Held below the variance's Q16.16 top.
+    (s.var, s.var_lo) = split((ext(s.var, s.var_lo) + k.q_step.at_ext(s.p2)).min(ext(Fx::MAX, 0)));
     s.q_mean = s
         .q_mean
         .saturating_add(mul_frac(k.mean_gain, q_pump.saturating_sub(s.q_mean)));
@@ -546,10 +555,19 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
             let innov = z.saturating_sub(s.p2);
             let s_innov = s.var.saturating_add(k.r);
             if innov.qmul(innov) <= k.gate_sq.qmul(s_innov) {
-                let g = k.gain(s.var);
-                correct(&mut s.p2, &mut s.p2_lo, g, z);
-                // var ← (1 − g)·var, kept to 2^−32 bar² (see `State::var_lo`).
-                relax(&mut s.var, &mut s.var_lo, g, ZERO);
+                // The gain to 2^−32 (`Coefficients::gain_q32`); P2 += g·(z − P2) and
+                // var ← (1 − g)·var kept to 2^−32 (see `State::var_lo`). Bit budget: g ≤ 2^32
+                // times a Q16.16 value (< 2^31 in magnitude) is < 2^63; P2's bits below the LSB
+                // are left out of the innovation (≤ g·2^−16 bar, 0.01 LSB at the steady gain).
+                let g = i64::from(k.gain_q32(s.var, s.var_lo));
+                let d = clamp(z, P_MIN, P_MAX) - s.p2;
+                (s.p2, s.p2_lo) = split(
+                    (ext(s.p2, s.p2_lo) + ((g * i64::from(d.to_bits())) >> 16))
+                        .clamp(ext(P_MIN, 0), ext(P_MAX, 0)),
+                );
+                let dv = ((g * i64::from(s.var.to_bits())) >> 16)
+                    + ((g * i64::from(i32::from(s.var_lo))) >> 32);
+                (s.var, s.var_lo) = split(ext(s.var, s.var_lo) - dv);
                 s.rejected = 0;
             } else {
                 faults |= fault::INNOVATION;
@@ -805,12 +823,14 @@ fn motor_reading(
         if z.saturating_sub(s.meas_band) > k.motor_reading_p2_max {
             return fault::MOTOR_IMPLAUSIBLE;
         }
-        // P2 += gain·e, rounded (|e| < 2^31 bits × gain ≤ 2^16 bits: < 2^47), held to the
-        // pressure range. The node's bits below the LSB are left as they are: a correction of
-        // a noisy reading needs none.
-        let d =
-            (i64::from(k.motor_reading_gain.to_bits()) * i64::from(e.to_bits()) + (1 << 15)) >> 16;
-        s.p2 = clamp(s.p2.saturating_add(Fx::from_bits(d as i32)), P_MIN, P_MAX);
+        // P2 += gain·e, exact in Q32.32 (|e| < 2^31 bits × gain ≤ 2^16 bits: < 2^47) and kept
+        // to 2^−32 like the node's prediction (rounded to the LSB it was half an LSB a step
+        // from its f64 form), held to the pressure range.
+        (s.p2, s.p2_lo) = split(
+            (ext(s.p2, s.p2_lo)
+                + i64::from(k.motor_reading_gain.to_bits()) * i64::from(e.to_bits()))
+            .clamp(ext(P_MIN, 0), ext(P_MAX, 0)),
+        );
         // The reading brings P2's variance toward its own (never up to it).
         if s.var > s.meas_var {
             relax(&mut s.var, &mut s.var_lo, k.motor_reading_gain, s.meas_var);
@@ -1443,13 +1463,12 @@ mod tests {
 
     /// The Kalman variance follows its f64 recursion var ← (var + q)·(1 − g(var)) (the same
     /// tables, interpolated in f64) over 4 s of HP readings at 100 bar from σ = 1 bar: within
-    /// 0.1 % at the end and within 1 % all the way down (the gain is looked up at the variance's
-    /// Q16.16 value: near the steady ≈ 130 LSBs, one LSB is 0.8 %). Floored to its Q16.16 LSB,
-    /// the shrink lost up to 1 LSB a step on the way down and the variance ran up to 17 % below
-    /// the f64 one (in `pto validate`, after each crossing of the precharge, 20 %: P2 up to
-    /// 0.15 bar away from the f64 model). The process noise q is at its floor of one LSB per
-    /// step here (just above the precharge too, which gives the same figures); where it is
-    /// larger, below the precharge, the gain lookup's quantisation shows (20 bar: 0.3 % apart).
+    /// 10^−4 all the way down, its bits below the LSB counted (the gain is looked up with them,
+    /// `Coefficients::gain_q32`; read at the Q16.16 value, near the steady ≈ 130 LSBs, one LSB
+    /// was 0.8 %). Floored to its Q16.16 LSB, the shrink lost up to 1 LSB a step on the way
+    /// down and the variance ran up to 17 % below the f64 one (in `pto validate`, after each
+    /// crossing of the precharge, 20 %: P2 up to 0.15 bar away from the f64 model). The process
+    /// noise q is at its floor of one LSB per step here.
     #[test]
     fn kalman_variance_keeps_its_sub_lsb_bits() {
         let cfg = crate::ModelConfig::reference();
@@ -1460,27 +1479,29 @@ mod tests {
         let inp = held_inputs(&cfg, 0.0, p2, lp, 0, 0);
         let mut var = 1.0f64;
         let mut worst = 0.0f64;
+        // The variance with its bits below the LSB (the step's gain reads them too).
+        let fixed = |s: &State| s.var.to_num::<f64>() + f64::from(s.var_lo) / 4_294_967_296.0;
         for _ in 0..4 << k.dt_log2 {
             step(&k, &mut s, &inp);
-            var += k.q_step.at(s.p2).to_num::<f64>();
+            var += k.q_step.at_ext(s.p2) as f64 / 4_294_967_296.0;
             let g = if var < r {
                 k.gain_fine.at_f64(var)
             } else {
                 k.gain_coarse.at_f64(var).clamp(0.0, 1.0)
             };
             var *= 1.0 - g;
-            worst = worst.max((s.var.to_num::<f64>() / var - 1.0).abs());
+            worst = worst.max((fixed(&s) / var - 1.0).abs());
         }
-        let last = (s.var.to_num::<f64>() / var - 1.0).abs();
+        let last = (fixed(&s) / var - 1.0).abs();
         std::println!(
             "P2 100 bar: variance after 4 s {:.6} bar² (f64 {var:.6}: {:.4} % apart, allowed \
-             0.1 %), {:.3} % apart at worst on the way (allowed 1 %)",
-            s.var.to_num::<f64>(),
+             0.01 %), {:.4} % apart at worst on the way (allowed 0.01 %)",
+            fixed(&s),
             100.0 * last,
             100.0 * worst
         );
-        assert!(last < 1e-3, "{last}");
-        assert!(worst < 1e-2, "{worst}");
+        assert!(last < 1e-4, "{last}");
+        assert!(worst < 1e-4, "{worst}");
     }
 
     /// Mid-stroke (the shaft at full speed), every cylinder on duty has one chamber at

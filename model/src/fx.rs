@@ -160,6 +160,19 @@ impl QMul for Fx {
     }
 }
 
+/// `a × b` for a Q8.24 `b` (a shaft speed kept to 2^−24 rad/s), floored to Q16.16 and
+/// saturated like [`QMul::qmul`] (the same one-compare range check, on bits 55..24).
+#[inline(always)]
+pub fn mul_q24(a: Fx, b_q24: i32) -> Fx {
+    let p = i64::from(a.to_bits()) * i64::from(b_q24);
+    let r = (p >> 24) as i32;
+    if (p >> 55) as i32 == r >> 31 {
+        Fx::from_bits(r)
+    } else {
+        Fx::from_bits(((p >> 63) as i32) ^ i32::MAX)
+    }
+}
+
 /// `f × x` for a fraction `f` in [0, 1] (a filter or interpolation gain): |f·x| ≤ |x|, so the
 /// product needs no range check (3 instructions where [`QMul::qmul`] takes 7). Same bits as
 /// `f.qmul(x)` (floor of the exact product) for every such `f`; the gains passed are built in
@@ -345,5 +358,21 @@ mod tests {
         }
         println!("recip worst error {worst:.2e} (relative, absolute below 1)");
         assert!(worst < 2e-5);
+    }
+}
+
+#[cfg(test)]
+mod q24_tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        /// `mul_q24` is the floor of the exact product, saturated at the Q16.16 range.
+        #[test]
+        fn mul_q24_is_the_saturated_floor_of_the_exact_product(a in any::<i32>(), b in any::<i32>()) {
+            let exact = (i128::from(a) * i128::from(b)) >> 24;
+            let want = exact.clamp(i128::from(i32::MIN), i128::from(i32::MAX)) as i32;
+            prop_assert_eq!(mul_q24(Fx::from_bits(a), b).to_bits(), want);
+        }
     }
 }

@@ -84,6 +84,44 @@ impl<const N: usize> Table1<N> {
         lerp(self.y[i], self.y[i + 1], f)
     }
 
+    /// Interpolated value at `x` in units of 2^−32 (Q16.32 in an `i64`): [`Table1::at`]
+    /// without its final rounding to Q16.16 (the 16-bit fraction times the node difference is
+    /// exact in Q32.32: < 2^47). Out of line like `at`.
+    #[inline(never)]
+    pub fn at_ext(&self, x: Fx) -> i64 {
+        let (i, f) = locate(x, self.x0, self.inv_dx, N);
+        let (a, b) = (self.y[i], self.y[i + 1]);
+        (i64::from(a.to_bits()) << 16)
+            + i64::from(f.to_bits()) * i64::from(b.saturating_sub(a).to_bits())
+    }
+
+    /// Interpolated value at `x` given to 2^−32 (its Q16.16 value and the 16 bits below, as
+    /// the estimator's nodes keep them), in units of 2^−32 (Q16.32 in an `i64`): the position
+    /// with all 32 bits of its fraction, the product with the node difference exact. For the
+    /// values whose one-step rounding matters (the Kalman gain and the process noise:
+    /// `Coefficients::gain_q32`). Bit budget: the offset's Q16.16 part times the reciprocal
+    /// spacing is < 2^62 as in `locate`, its 16 low bits times it < 2^47; the 32-bit fraction
+    /// times a node difference (a saturated Q16.16 difference, < 2^31 in magnitude) is < 2^63.
+    /// Every product is of two 32-bit words (one `smull`/`umull` each on a Cortex-M4).
+    #[inline(always)]
+    pub fn at_q32(&self, x: Fx, lo: u16) -> i64 {
+        let dx = x.saturating_sub(self.x0);
+        let inv = self.inv_dx.to_bits();
+        let p = if dx < ZERO {
+            0
+        } else {
+            i64::from(dx.to_bits()) * i64::from(inv)
+                + ((i64::from(i32::from(lo)) * i64::from(inv)) >> 16)
+        };
+        if (p >> 32) > (N - 2) as i64 {
+            return i64::from(self.y[N - 1].to_bits()) << 16;
+        }
+        let i = (p >> 32) as usize;
+        let (a, b) = (self.y[i], self.y[i + 1]);
+        (i64::from(a.to_bits()) << 16)
+            + ((i64::from(p as u32) * i64::from(b.saturating_sub(a).to_bits())) >> 16)
+    }
+
     /// The same table interpolated in f64 (exact fraction and products; see [`locate_f64`]).
     pub fn at_f64(&self, x: f64) -> f64 {
         lerp_f64(&self.y, locate_f64(x, self.x0, self.inv_dx, N))
