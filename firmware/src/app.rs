@@ -2,8 +2,10 @@
 //! embedded-io-async traits; the logic lives in the host-tested library.
 
 use crate::board;
+use core::cell::Cell;
 use core::sync::atomic::{AtomicU32, Ordering};
 use embassy_executor::Spawner;
+use embassy_sync::blocking_mutex::Mutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
 use embassy_sync::signal::Signal;
@@ -12,10 +14,13 @@ use embedded_hal::digital::OutputPin;
 use embedded_hal::pwm::SetDutyCycle;
 use embedded_io_async::{Read, Write};
 use pto_firmware::control::{ControlConfig, Controller, SetupError};
-use pto_firmware::link::{self, FrameAssembler};
+use pto_firmware::link::{HostReceiver, Transmitter};
 use pto_firmware::supervisor::{Heartbeats, Supervisor, Task, Watchdog as _};
 use pto_firmware::{HEARTBEAT_MS, SUPERVISOR_PERIOD_MS, VERSION};
-use pto_model::protocol::{FromFirmware, MAX_FRAME, Refusal, SensorFrame, ToFirmware};
+use pto_model::protocol::{
+    FromFirmware, Hello, LinkCounts, MAX_FRAME, PROTOCOL_VERSION, Refusal, SCHEMA_HASH,
+    SensorFrame, ToFirmware,
+};
 use pto_model::scheduler::SchedulerConfig;
 use pto_model::{ModelConfig, fx::Aperture};
 use static_cell::StaticCell;
@@ -70,15 +75,27 @@ pub static TO_CONTROL: Channel<CriticalSectionRawMutex, ToControl, 4> = Channel:
 static TO_TX: Channel<CriticalSectionRawMutex, ToTx, 8> = Channel::new();
 static ACTUATE: Signal<CriticalSectionRawMutex, Outputs> = Signal::new();
 static HEARTBEATS: Heartbeats = Heartbeats::new();
-/// Frames decoded / dropped by the receive task; samples the control task had no room for.
-static FRAMES_OK: AtomicU32 = AtomicU32::new(0);
-static FRAMES_DROPPED: AtomicU32 = AtomicU32::new(0);
+/// What the receive task took and dropped, by cause, for `Status`.
+static LINK_COUNTS: Mutex<CriticalSectionRawMutex, Cell<LinkCounts>> =
+    Mutex::new(Cell::new(LinkCounts::ZERO));
 /// Sensor samples dropped because the control task's queue was full (repeated or stale ticks
 /// are counted by the controller).
 pub static FRAMES_OVERRUN: AtomicU32 = AtomicU32::new(0);
 /// Receive errors (overrun, framing) reported by the UART driver.
 static RX_ERRORS: AtomicU32 = AtomicU32::new(0);
 static CONTROLLER: StaticCell<Controller> = StaticCell::new();
+/// The model step, for `Hello`.
+static DT_LOG2: AtomicU32 = AtomicU32::new(0);
+
+/// What the firmware says of itself at boot and at every host `Hello`.
+fn hello() -> Hello {
+    Hello {
+        protocol: PROTOCOL_VERSION,
+        schema: SCHEMA_HASH,
+        firmware: VERSION,
+        dt_log2: DT_LOG2.load(Ordering::Relaxed) as u8,
+    }
+}
 
 /// Boots the board, checks the configuration, spawns the tasks.
 pub fn start(spawner: Spawner) {
@@ -108,9 +125,10 @@ pub fn start(spawner: Spawner) {
         }
     };
     defmt::info!(
-        "pto-firmware {}.{} board={} dt=2^-{} s trip={} bar on_duty={=u8:#06b} telemetry every {} steps",
+        "pto-firmware {}.{} protocol v{} board={} dt=2^-{} s trip={} bar on_duty={=u8:#06b} telemetry every {} steps",
         VERSION >> 8,
         VERSION & 0xff,
+        PROTOCOL_VERSION,
         board::NAME,
         ctl.dt_log2(),
         ctl.trip().to_f32(),
@@ -124,11 +142,11 @@ pub fn start(spawner: Spawner) {
         sched.sensor_fault_aperture_pct,
         pto_firmware::WATCHDOG_TIMEOUT_MS
     );
-    let ready = FromFirmware::Ready {
-        version: VERSION,
-        dt_log2: ctl.dt_log2(),
-    };
-    if TO_TX.try_send(ToTx::Send(ready)).is_err() {
+    DT_LOG2.store(u32::from(ctl.dt_log2()), Ordering::Relaxed);
+    if TO_TX
+        .try_send(ToTx::Send(FromFirmware::Hello(hello())))
+        .is_err()
+    {
         defmt::error!("transmit queue full at boot");
     }
     spawner.spawn(rx_task(b.rx).expect("one rx task"));
@@ -140,7 +158,7 @@ pub fn start(spawner: Spawner) {
 
 #[embassy_executor::task]
 async fn rx_task(mut rx: board::Rx) {
-    let mut asm = FrameAssembler::new();
+    let mut asm = HostReceiver::new();
     let mut buf = [0u8; 64];
     loop {
         HEARTBEATS.beat(Task::Rx);
@@ -170,19 +188,19 @@ async fn rx_task(mut rx: board::Rx) {
                 }
             }
         }
-        FRAMES_OK.store(asm.ok, Ordering::Relaxed);
-        FRAMES_DROPPED.store(asm.dropped, Ordering::Relaxed);
+        LINK_COUNTS.lock(|c| c.set(asm.counts));
     }
 }
 
 #[embassy_executor::task]
 async fn tx_task(mut tx: board::Tx) {
     let mut buf = [0u8; MAX_FRAME];
+    let mut link = Transmitter::new();
     loop {
         HEARTBEATS.beat(Task::Tx);
         match with_timeout(Duration::from_millis(HEARTBEAT_MS), TO_TX.receive()).await {
             Err(_) => {}
-            Ok(ToTx::Send(msg)) => match link::encode(&msg, &mut buf) {
+            Ok(ToTx::Send(msg)) => match link.encode(&msg, &mut buf) {
                 Some(n) => {
                     if tx.write_all(&buf[..n]).await.is_err() {
                         defmt::warn!("link write failed");
@@ -269,6 +287,7 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                 // The receive task turns sensor frames into samples: never a command.
                 ToFirmware::Sensors(_) => {}
                 ToFirmware::Ping(n) => send(FromFirmware::Pong(n)).await,
+                ToFirmware::Hello => send(FromFirmware::Hello(hello())).await,
                 ToFirmware::SetMode(m) => {
                     defmt::info!("mode {}", m);
                     ctl.set_mode(m);
@@ -290,8 +309,7 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                 },
                 ToFirmware::GetStatus => {
                     let mut s = ctl.status;
-                    s.frames_ok = FRAMES_OK.load(Ordering::Relaxed);
-                    s.frames_dropped = FRAMES_DROPPED.load(Ordering::Relaxed);
+                    s.link = LINK_COUNTS.lock(Cell::get);
                     s.frames_overrun = s
                         .frames_overrun
                         .wrapping_add(FRAMES_OVERRUN.load(Ordering::Relaxed));

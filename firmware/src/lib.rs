@@ -21,7 +21,7 @@ pub mod supervisor;
 pub mod trip;
 
 /// Firmware version, major·256 + minor (reported in `Ready`).
-pub const VERSION: u16 = 0x0100;
+pub const VERSION: u16 = 0x0200;
 
 /// QEMU exit code when the watchdog expires (the bench MCU resets instead).
 pub const EXIT_WATCHDOG: u8 = 3;

@@ -1,65 +1,32 @@
-//! The serial link: COBS frames (`0`-terminated; a leading `0` is allowed and resynchronises
-//! after a truncated frame) carrying [`pto_model::protocol`] messages.
+//! The serial link: protocol v2 frames (`pto_model::protocol`: sequence number, postcard,
+//! CRC-32C, COBS, `0`-terminated; a leading `0` is allowed and resynchronises after a truncated
+//! frame). The receiver counts every frame it cannot take by cause and every gap in the host's
+//! sequence numbers; the transmitter numbers its own frames.
 
-use heapless::Vec;
-use pto_model::protocol::{self, FrameError, FromFirmware, MAX_FRAME, ToFirmware};
+use pto_model::protocol::{self, FromFirmware, MAX_FRAME, Receiver, ToFirmware};
 
-/// Collects received bytes into frames; counts what it has to drop.
+/// The firmware's receiver of host frames.
+pub type HostReceiver = Receiver<ToFirmware>;
+
+/// Numbers and encodes the firmware's frames.
 #[derive(Debug, Default)]
-pub struct FrameAssembler {
-    buf: Vec<u8, MAX_FRAME>,
-    overflow: bool,
-    /// Frames decoded.
-    pub ok: u32,
-    /// Frames dropped (bad COBS, CRC, payload, or too long).
-    pub dropped: u32,
+pub struct Transmitter {
+    seq: u16,
 }
 
-impl FrameAssembler {
-    /// An empty assembler.
+impl Transmitter {
+    /// A transmitter whose first frame is numbered 0 (the boot `Hello`).
     pub const fn new() -> Self {
-        FrameAssembler {
-            buf: Vec::new(),
-            overflow: false,
-            ok: 0,
-            dropped: 0,
-        }
+        Transmitter { seq: 0 }
     }
 
-    /// Feeds one byte; returns a message when it completes a valid frame.
-    pub fn push(&mut self, byte: u8) -> Option<ToFirmware> {
-        if byte != 0 {
-            if self.buf.push(byte).is_err() {
-                self.overflow = true;
-            }
-            return None;
-        }
-        let result = if self.overflow {
-            Err(FrameError::BufferTooSmall)
-        } else if self.buf.is_empty() {
-            // Delimiter only (leading 0 or back-to-back terminators): nothing to count.
-            return None;
-        } else {
-            protocol::decode::<ToFirmware>(&self.buf)
-        };
-        self.buf.clear();
-        self.overflow = false;
-        match result {
-            Ok(m) => {
-                self.ok = self.ok.wrapping_add(1);
-                Some(m)
-            }
-            Err(_) => {
-                self.dropped = self.dropped.wrapping_add(1);
-                None
-            }
-        }
+    /// Encodes `msg` as the next frame; `None` only if it cannot fit a frame (a bug caught by
+    /// the tests), and then no number is used up.
+    pub fn encode(&mut self, msg: &FromFirmware, out: &mut [u8; MAX_FRAME]) -> Option<usize> {
+        let n = protocol::encode(self.seq, msg, out).ok()?;
+        self.seq = self.seq.wrapping_add(1);
+        Some(n)
     }
-}
-
-/// Encodes a reply; `None` only if the message cannot fit a frame (a bug caught by the tests).
-pub fn encode(msg: &FromFirmware, out: &mut [u8; MAX_FRAME]) -> Option<usize> {
-    protocol::encode(msg, out).ok()
 }
 
 #[cfg(test)]
@@ -67,42 +34,63 @@ mod tests {
     use super::*;
     use pto_model::estimator::fault;
     use pto_model::fx::{Aperture, Fx, Pressure};
-    use pto_model::protocol::Status;
+    use pto_model::protocol::{LinkCounts, Status};
     use pto_model::{Command, Estimate};
 
-    fn frame(m: &ToFirmware) -> std::vec::Vec<u8> {
+    fn frame(seq: u16, m: &ToFirmware) -> std::vec::Vec<u8> {
         let mut b = [0u8; MAX_FRAME];
-        let n = protocol::encode(m, &mut b).unwrap();
+        let n = protocol::encode(seq, m, &mut b).unwrap();
         b[..n].to_vec()
     }
 
     #[test]
-    fn good_bad_truncated_and_oversized_frames_are_counted() {
-        let mut a = FrameAssembler::new();
-        let ping = frame(&ToFirmware::Ping(7));
+    fn good_bad_truncated_oversized_and_missing_frames_are_counted() {
+        let mut a = HostReceiver::new();
         let mut got = std::vec::Vec::new();
-        let mut feed = |a: &mut FrameAssembler, bytes: &[u8]| {
+        let mut feed = |a: &mut HostReceiver, bytes: &[u8]| {
             for b in bytes {
                 if let Some(m) = a.push(*b) {
                     got.push(m);
                 }
             }
         };
-        feed(&mut a, &ping);
+        feed(&mut a, &frame(0, &ToFirmware::Ping(7)));
         // Corrupted.
-        let mut bad = ping.clone();
+        let mut bad = frame(1, &ToFirmware::Ping(7));
         bad[1] ^= 0x10;
         feed(&mut a, &bad);
         // Truncated, then resynchronised by a leading 0.
-        feed(&mut a, &ping[..ping.len() / 2]);
+        let f2 = frame(2, &ToFirmware::Ping(7));
+        feed(&mut a, &f2[..f2.len() / 2]);
         feed(&mut a, &[0]);
-        feed(&mut a, &ping);
+        feed(&mut a, &frame(3, &ToFirmware::Ping(7)));
         // Oversized garbage.
         feed(&mut a, &[0x55; 3 * MAX_FRAME]);
         feed(&mut a, &[0]);
-        feed(&mut a, &ping);
+        // Frame 4 never sent.
+        feed(&mut a, &frame(5, &ToFirmware::Ping(7)));
         assert_eq!(got, vec![ToFirmware::Ping(7); 3]);
-        assert_eq!((a.ok, a.dropped), (3, 3));
+        let c = a.counts;
+        assert_eq!(c.ok, 3);
+        assert_eq!(c.dropped(), 3, "{c:?}");
+        assert_eq!(c.too_long, 1);
+        // Frames 1, 2 (dropped) and 4 (missing).
+        assert_eq!(c.lost, 3);
+    }
+
+    #[test]
+    fn the_transmitter_numbers_its_frames() {
+        let mut t = Transmitter::new();
+        let mut r = Receiver::<FromFirmware>::new();
+        let mut b = [0u8; MAX_FRAME];
+        for i in 0..3u32 {
+            let n = t.encode(&FromFirmware::Pong(i), &mut b).unwrap();
+            for x in &b[..n] {
+                let _ = r.push(*x);
+            }
+            assert_eq!(r.last_seq(), Some(i as u16));
+        }
+        assert_eq!(r.counts.lost, 0);
     }
 
     #[test]
@@ -112,6 +100,7 @@ mod tests {
             p2: Pressure(big),
             p2_var: pto_model::fx::PressureVariance(big),
             faults: u16::MAX,
+            hp_empty: true,
             ..Default::default()
         };
         let mut e2 = e;
@@ -138,25 +127,34 @@ mod tests {
             applied: Aperture(big),
             dump: true,
         };
+        let mut t = Transmitter::new();
         let mut b = [0u8; MAX_FRAME];
-        let n = encode(&out, &mut b).expect("Output fits");
+        let n = t.encode(&out, &mut b).expect("Output fits");
+        let all = u32::MAX;
         let st = FromFirmware::Status(Status {
-            frames_ok: u32::MAX,
-            frames_dropped: u32::MAX,
-            frames_overrun: u32::MAX,
-            bytes_lost: u32::MAX,
-            steps: u32::MAX,
+            link: LinkCounts {
+                ok: all,
+                cobs: all,
+                crc: all,
+                payload: all,
+                too_long: all,
+                lost: all,
+                out_of_order: all,
+            },
+            frames_overrun: all,
+            bytes_lost: all,
+            steps: all,
             faults_seen: fault::HP_SENSOR | fault::OVERPRESSURE,
-            hp_loop_faults: u32::MAX,
-            trips: u32::MAX,
+            hp_loop_faults: all,
+            trips: all,
             tripped: true,
             dump_valve: true,
             aperture: Aperture(big),
-            step_cost_last: u32::MAX,
-            step_cost_max: u32::MAX,
+            step_cost_last: all,
+            step_cost_max: all,
             step_cost_sum: u64::MAX,
         });
-        let m = encode(&st, &mut b).expect("Status fits");
+        let m = t.encode(&st, &mut b).expect("Status fits");
         println!("largest Output frame {n} B, Status {m} B (limit {MAX_FRAME})");
     }
 }

@@ -151,6 +151,10 @@ enum Cmd {
         /// Also print the log lines as they arrive.
         #[arg(long)]
         follow: bool,
+        /// Machine-readable output (the firmware's Hello, its status and the host's link
+        /// counts; the log goes to stderr).
+        #[arg(long)]
+        json: bool,
     },
     /// Processor-in-the-loop: the full simulation as the plant, the QEMU firmware as the
     /// controller in lockstep (hold P2, hold motor speed, overpressure trip).
@@ -217,7 +221,7 @@ fn main() -> ExitCode {
             json,
         } => validate_cmd(bench.as_ref(), &filter, !no_loop, json),
         Cmd::ModelCost { json } => model_cost_cmd(json),
-        Cmd::Qemu { follow } => qemu_cmd(follow),
+        Cmd::Qemu { follow, json } => qemu_cmd(follow, json),
         Cmd::SynthLogs {
             bench,
             set,
@@ -738,7 +742,7 @@ fn model_cost_cmd(json: bool) -> Result<bool> {
     Ok(cost.pass)
 }
 
-fn qemu_cmd(follow: bool) -> Result<bool> {
+fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
     use pto_host::qemu::{self, Build, Qemu};
     use pto_model::protocol::{FromFirmware, ToFirmware};
     eprintln!("building the QEMU firmware…");
@@ -752,6 +756,7 @@ fn qemu_cmd(follow: bool) -> Result<bool> {
         .map_err(anyhow::Error::msg)?;
     let ping = t0.elapsed();
     let st = pto_host::pil::status(&mut q).map_err(anyhow::Error::msg)?;
+    let host = q.link.counts();
     q.link
         .send(&ToFirmware::Exit(0))
         .map_err(anyhow::Error::msg)?;
@@ -760,13 +765,28 @@ fn qemu_cmd(follow: bool) -> Result<bool> {
         .map_err(anyhow::Error::msg)?;
     if !follow {
         for l in q.log() {
-            println!("{l}");
+            if json {
+                eprintln!("{l}");
+            } else {
+                println!("{l}");
+            }
         }
     }
-    println!(
-        "ping answered in {:.2} ms; status: {st:?}; QEMU exit code {code}",
-        ping.as_secs_f64() * 1e3
-    );
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "ping_ms": ping.as_secs_f64() * 1e3,
+                "status": st,
+                "host_link": host,
+                "exit_code": code,
+            }))?
+        );
+    } else {
+        println!("ping answered in {:.2} ms", ping.as_secs_f64() * 1e3);
+        print!("{}", pto_host::qemu::status_table(&st, &host));
+        println!("QEMU exit code {code}");
+    }
     Ok(code == 0)
 }
 
@@ -775,10 +795,15 @@ fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
     let bench = load_bench(bench)?;
     eprintln!("building the QEMU firmware…");
     let elf = qemu::build(Build::Qemu).map_err(anyhow::Error::msg)?;
-    let checks: [(&str, pto_host::pil::CheckFn); 3] = [
+    let checks: [(&str, pto_host::pil::CheckFn); 5] = [
         ("hold P2", pto_host::pil::check_hold_p2),
         ("hold speed", pto_host::pil::check_hold_speed),
         ("trip", pto_host::pil::check_trip),
+        ("trip holds", pto_host::pil::check_trip_holds),
+        (
+            "motor behind a closed valve",
+            pto_host::pil::check_motor_behind_closed_valve,
+        ),
     ];
     let mut out = Vec::new();
     for (name, f) in checks {

@@ -201,7 +201,7 @@ impl FirmwareController {
 
     fn exchange(&mut self, f: SensorFrame, inj: Injection) -> Result<Option<FromFirmware>, String> {
         let link = &mut self.q.link;
-        let bytes = crate::qemu::Link::frame(&ToFirmware::Sensors(f));
+        let bytes = link.frame(&ToFirmware::Sensors(f));
         match inj {
             Injection::Corrupt | Injection::Truncate => {
                 let mut b = bytes.clone();
@@ -226,9 +226,9 @@ impl FirmwareController {
             Injection::Burst(n) => {
                 // n copies of the period's frame back to back, then a ping: the loop steps once
                 // (one output); the other copies are overruns, dropped and counted.
-                let mut all = Vec::new();
-                for _ in 0..n {
-                    all.extend_from_slice(&bytes);
+                let mut all = bytes;
+                for _ in 1..n {
+                    all.extend(link.frame(&ToFirmware::Sensors(f)));
                 }
                 link.send_raw(&all)?;
                 link.send(&ToFirmware::Ping(f.tick))?;

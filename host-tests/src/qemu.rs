@@ -4,7 +4,9 @@
 //! Every QEMU child is owned by a [`Qemu`], whose `Drop` kills and reaps it, pass or fail.
 
 use defmt_decoder::Table;
-use pto_model::protocol::{self, FromFirmware, MAX_FRAME, ToFirmware};
+use pto_model::protocol::{
+    self, FromFirmware, Hello, LinkCounts, MAX_FRAME, Receiver, Status, ToFirmware,
+};
 use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
@@ -253,10 +255,11 @@ impl Qemu {
             reader: Some(reader),
             link: Link::new(stream)?,
         };
-        match q.link.recv()? {
-            FromFirmware::Ready { .. } => {}
-            other => return Err(format!("expected Ready first, got {other:?}")),
-        }
+        // The firmware's boot `Hello`, then a session of our own (its count of our sequence
+        // numbers starts from our `Hello`).
+        q.link.hello()?;
+        q.link.send(&ToFirmware::Hello)?;
+        q.link.hello()?;
         Ok(q)
     }
 
@@ -299,10 +302,13 @@ impl Drop for Qemu {
     }
 }
 
-/// The host end of the firmware's USART.
+/// The host end of the firmware's USART: numbers the frames it sends, takes the firmware's
+/// through a [`Receiver`] that counts what it drops by cause and the gaps in their numbers.
 pub struct Link {
     stream: UnixStream,
-    pending: Vec<u8>,
+    rx: Receiver<FromFirmware>,
+    queue: std::collections::VecDeque<FromFirmware>,
+    seq: u16,
     /// Wall-clock limit on one reply.
     pub timeout: Duration,
 }
@@ -311,16 +317,26 @@ impl Link {
     fn new(stream: UnixStream) -> Result<Self, String> {
         Ok(Link {
             stream,
-            pending: Vec::new(),
+            rx: Receiver::new(),
+            queue: std::collections::VecDeque::new(),
+            seq: 0,
             timeout: Duration::from_secs(30),
         })
     }
 
-    /// The bytes of a frame as the host sends it: a leading 0 (resynchronises after a
-    /// truncated frame), the COBS frame, its 0 terminator.
-    pub fn frame(msg: &ToFirmware) -> Vec<u8> {
+    /// What the host's receiver took from the firmware and dropped, by cause.
+    pub fn counts(&self) -> LinkCounts {
+        self.rx.counts
+    }
+
+    /// The bytes of the next frame as the host sends it: a leading 0 (resynchronises after a
+    /// truncated frame), the COBS frame numbered with the host's next sequence number, its 0
+    /// terminator. Each call uses up a number (a frame the tests then damage counts as lost at
+    /// the firmware).
+    pub fn frame(&mut self, msg: &ToFirmware) -> Vec<u8> {
         let mut b = [0u8; MAX_FRAME];
-        let n = protocol::encode(msg, &mut b).expect("host messages fit a frame");
+        let n = protocol::encode(self.seq, msg, &mut b).expect("host messages fit a frame");
+        self.seq = self.seq.wrapping_add(1);
         let mut v = Vec::with_capacity(n + 1);
         v.push(0);
         v.extend_from_slice(&b[..n]);
@@ -329,7 +345,12 @@ impl Link {
 
     /// Sends a message.
     pub fn send(&mut self, msg: &ToFirmware) -> Result<(), String> {
-        self.send_raw(&Self::frame(msg))
+        if matches!(msg, ToFirmware::Hello) {
+            // A new session: numbered from 0 again.
+            self.seq = 0;
+        }
+        let f = self.frame(msg);
+        self.send_raw(&f)
     }
 
     /// Sends raw bytes (corrupted or truncated frames in the fault tests).
@@ -339,19 +360,14 @@ impl Link {
             .map_err(|e| format!("link write: {e}"))
     }
 
-    /// Receives the next message (frames that fail to decode are an error: the firmware's
-    /// replies must always be valid).
+    /// Receives the next message. A frame from the firmware that fails to decode is an error
+    /// (its replies must always be valid), named with its cause.
     pub fn recv(&mut self) -> Result<FromFirmware, String> {
         let t0 = Instant::now();
         let mut buf = [0u8; 4096];
         loop {
-            if let Some(end) = self.pending.iter().position(|b| *b == 0) {
-                let frame: Vec<u8> = self.pending.drain(..=end).collect();
-                if frame.len() == 1 {
-                    continue;
-                }
-                return protocol::decode::<FromFirmware>(&frame)
-                    .map_err(|e| format!("bad frame from the firmware: {e}"));
+            if let Some(m) = self.queue.pop_front() {
+                return Ok(m);
             }
             let left = self.timeout.saturating_sub(t0.elapsed());
             if left.is_zero() {
@@ -360,9 +376,9 @@ impl Link {
             self.stream
                 .set_read_timeout(Some(left))
                 .map_err(|e| format!("link: {e}"))?;
-            match self.stream.read(&mut buf) {
+            let n = match self.stream.read(&mut buf) {
                 Ok(0) => return Err("the firmware closed the link (QEMU exited?)".into()),
-                Ok(n) => self.pending.extend_from_slice(&buf[..n]),
+                Ok(n) => n,
                 Err(e)
                     if matches!(
                         e.kind(),
@@ -372,7 +388,31 @@ impl Link {
                     return Err(format!("no reply from the firmware in {:?}", self.timeout));
                 }
                 Err(e) => return Err(format!("link read: {e}")),
+            };
+            let before = self.rx.counts;
+            for b in &buf[..n] {
+                if let Some(m) = self.rx.push(*b) {
+                    self.queue.push_back(m);
+                }
             }
+            let after = self.rx.counts;
+            if after.dropped() != before.dropped() || after.lost != before.lost {
+                return Err(format!(
+                    "bad frame from the firmware (link counts now {after:?}); a firmware built \
+                     from another revision speaks another protocol: rebuild both"
+                ));
+            }
+        }
+    }
+
+    /// Receives the firmware's `Hello` and checks its protocol version and schema hash.
+    pub fn hello(&mut self) -> Result<Hello, String> {
+        match self.recv()? {
+            FromFirmware::Hello(h) => {
+                h.check().map_err(|e| e.to_string())?;
+                Ok(h)
+            }
+            other => Err(format!("expected the firmware's Hello, got {other:?}")),
         }
     }
 
@@ -387,4 +427,59 @@ impl Link {
         let r = self.recv()?;
         pick(&r).ok_or_else(|| format!("unexpected reply to {msg:?}: {r:?}"))
     }
+}
+
+/// The firmware's status and the host's link counts as a labelled table, one quantity a line.
+pub fn status_table(st: &Status, host: &LinkCounts) -> String {
+    let mean = if st.steps == 0 {
+        0.0
+    } else {
+        st.step_cost_sum as f64 / f64::from(st.steps)
+    };
+    let link = |who: &str, c: &LinkCounts| {
+        format!(
+            "{who:<28} {:>10} taken, {} dropped (COBS {}, CRC {}, payload {}, too long {}), \
+             {} lost, {} out of order\n",
+            c.ok,
+            c.dropped(),
+            c.cobs,
+            c.crc,
+            c.payload,
+            c.too_long,
+            c.lost,
+            c.out_of_order
+        )
+    };
+    let mut s = String::new();
+    s += &link("frames host → firmware", &st.link);
+    s += &link("frames firmware → host", host);
+    s += &format!(
+        "{:<28} {:>10} (the control loop had not taken the previous ones)\n",
+        "sensor frames overrun", st.frames_overrun
+    );
+    s += &format!("{:<28} {:>10}\n", "received bytes lost", st.bytes_lost);
+    s += &format!("{:<28} {:>10}\n", "estimator steps", st.steps);
+    s += &format!(
+        "{:<28} {:>10} (steps with the HP loop outside 4–20 mA)\n",
+        "HP loop faults", st.hp_loop_faults
+    );
+    s += &format!("{:<28} {:>#10x}\n", "fault flags seen", st.faults_seen);
+    s += &format!(
+        "{:<28} {:>10} (now {}; dump valve {})\n",
+        "overpressure trips",
+        st.trips,
+        if st.tripped { "TRIPPED" } else { "armed" },
+        if st.dump_valve { "open" } else { "closed" }
+    );
+    s += &format!(
+        "{:<28} {:>10.2} %\n",
+        "valve aperture applied",
+        st.aperture.to_f32()
+    );
+    s += &format!(
+        "{:<28} {:>10} last, {} max, {mean:.0} mean (instructions under QEMU, cycles on the \
+         bench)\n",
+        "model step cost", st.step_cost_last, st.step_cost_max
+    );
+    s
 }

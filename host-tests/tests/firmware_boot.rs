@@ -27,7 +27,7 @@ fn boots_logs_answers_a_ping_and_exits_zero() {
     assert_eq!(code, 0);
     let boot = log
         .iter()
-        .find(|l| l.text.starts_with("pto-firmware 1.0"))
+        .find(|l| l.text.starts_with("pto-firmware 2.0"))
         .expect("version line");
     assert!(boot.text.contains("board=qemu-netduinoplus2"), "{boot}");
     assert!(boot.text.contains("dt=2^-10 s"), "{boot}");

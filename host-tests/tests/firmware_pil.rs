@@ -145,10 +145,11 @@ fn pil_survives_injected_faults() {
     let outputs = rows.iter().filter(|r| r.estimate.is_some()).count();
     println!(
         "PIL faults: wire break 3 s — model-only P2 within {wb_err:.2} bar; noise bursts ±30 bar — \
-         estimate within {noise_err:.2} bar; {damaged} damaged frames → {} dropped; {bursts} \
+         estimate within {noise_err:.2} bar; {damaged} damaged frames → {} dropped, {} lost; {bursts} \
          bursts of 40 frames → {} overruns, {} bytes lost; estimate within {est_err:.2} bar of the \
          plant outside the stuck-encoder window, {stuck_err:.2} bar inside it; {} steps run, {outputs} outputs for {} steps",
-        st.frames_dropped,
+        st.link.dropped(),
+        st.link.lost,
         st.frames_overrun,
         st.bytes_lost,
         st.steps,
@@ -166,7 +167,18 @@ fn pil_survives_injected_faults() {
         "noise burst flagged"
     );
     assert!(noise_err <= 1.5, "noise rejected by the innovation gate");
-    assert_eq!(st.frames_dropped, damaged, "every damaged frame counted");
+    assert_eq!(st.link.dropped(), damaged, "every damaged frame counted");
+    assert_eq!(
+        st.link.lost, damaged,
+        "every damaged frame's sequence number missed"
+    );
+    assert_eq!(st.link.out_of_order, 0);
+    let host = q.link.counts();
+    assert_eq!(
+        (host.dropped(), host.lost),
+        (0, 0),
+        "the firmware's frames all arrived: {host:?}"
+    );
     assert_eq!(
         st.frames_overrun,
         39 * bursts,

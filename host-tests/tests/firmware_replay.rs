@@ -100,10 +100,15 @@ fn firmware_matches_the_host_model_bit_for_bit() {
     assert!(p2_span > 1.0, "the trace exercises the motor reading");
     let st = pil::status(&mut q).unwrap();
     println!(
-        "status: {} frames ok, {} dropped, {} steps, step cost {} (max {}) instructions",
-        st.frames_ok, st.frames_dropped, st.steps, st.step_cost_last, st.step_cost_max
+        "status: {} frames ok, {} dropped, {} lost, {} steps, step cost {} (max {}) instructions",
+        st.link.ok,
+        st.link.dropped(),
+        st.link.lost,
+        st.steps,
+        st.step_cost_last,
+        st.step_cost_max
     );
-    assert_eq!(st.frames_dropped, 0);
+    assert_eq!((st.link.dropped(), st.link.lost), (0, 0));
     q.link
         .send(&pto_model::protocol::ToFirmware::Exit(0))
         .unwrap();

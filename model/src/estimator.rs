@@ -54,6 +54,7 @@ pub mod fault {
 /// Sensor readings of one step. `None` = missing (the firmware also maps out-of-range raw
 /// readings to `None`; the estimator range-checks what it gets as well).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "protocol", derive(postcard_schema::Schema))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Inputs {
@@ -75,6 +76,7 @@ pub struct Inputs {
 
 /// What the estimator reports each step.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "protocol", derive(postcard_schema::Schema))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Estimate {

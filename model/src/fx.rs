@@ -56,6 +56,15 @@ macro_rules! quantity {
             }
         }
 
+        #[cfg(feature = "protocol")]
+        impl postcard_schema::Schema for $name {
+            const SCHEMA: &'static postcard_schema::schema::NamedType =
+                &postcard_schema::schema::NamedType {
+                    name: stringify!($name),
+                    ty: <i32 as postcard_schema::Schema>::SCHEMA.ty,
+                };
+        }
+
         #[cfg(feature = "defmt")]
         impl defmt::Format for $name {
             fn format(&self, f: defmt::Formatter) {

@@ -1,19 +1,71 @@
-//! Messages between host tools and the firmware, defined once: postcard payload, CRC-16
-//! (CRC-16/KERMIT, little-endian) appended, COBS-encoded, terminated by a 0 byte.
+//! Messages between host tools and the firmware, defined once, and their framing (protocol v2).
+//!
+//! A frame on the wire is `COBS(seq ‖ payload ‖ crc) 0`:
+//! - `seq`: a `u16` (little-endian) counting the sender's frames, so the receiver counts the
+//!   frames lost between two it got ([`LinkCounts::lost`]); a `Hello` restarts the count (a new
+//!   session);
+//! - `payload`: the message, postcard, which must fill the frame exactly (trailing bytes are a
+//!   [`FrameError::Trailing`] drop, never ignored);
+//! - `crc`: CRC-32C (Castagnoli; start and final XOR `0xFFFF_FFFF`, so leading and trailing
+//!   zeros, inserted and deleted bytes all change it) over `seq ‖ payload`, little-endian;
+//! - COBS, then a `0` delimiter; a receiver resynchronises at every `0`.
+//!
+//! Every frame a [`Receiver`] cannot take is counted by cause ([`LinkCounts`]). At connect the
+//! host sends [`ToFirmware::Hello`] and the firmware answers [`FromFirmware::Hello`] with
+//! [`PROTOCOL_VERSION`] and [`SCHEMA_HASH`], a hash of both message types' postcard schemas
+//! (`postcard-schema`): a firmware and a host built from different message definitions refuse
+//! each other with a clear error instead of misreading frames. The firmware also sends its
+//! `Hello` once at boot.
+//!
+//! A typed RPC layer (`postcard-rpc`: endpoints keyed by a hash of path and schema, sequence
+//! numbers, a standard error type) was considered and left for later: its embassy server wraps
+//! `embassy-executor` 0.9's spawner (this firmware runs 0.10, so it would need its own
+//! `WireTx`/`WireRx`/`WireSpawn` implementations), its serial transport carries no CRC, and
+//! the link is a lockstep of a few message kinds. The frame keeps postcard-rpc's ingredients —
+//! a sequence number and a schema key — so that a switch stays cheap.
 
 use crate::estimator::{Estimate, Inputs};
 use crate::fx::{Aperture, Pressure, Rpm};
 use crate::scheduler::{Command, Mode};
+use core::marker::PhantomData;
+use postcard_schema::Schema;
+use postcard_schema::key::Key;
+use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
-/// Largest encoded frame, bytes (payload ≤ 240).
+/// Protocol version (in `Hello`).
+pub const PROTOCOL_VERSION: u16 = 2;
+
+/// Hash of the postcard schemas of [`ToFirmware`] and [`FromFirmware`] (each hashed with its
+/// path by `postcard-schema`, FNV-1a 64, the two combined): it changes with any field, variant
+/// or type of either message.
+pub const SCHEMA_HASH: [u8; 8] = {
+    let a = Key::for_path::<ToFirmware>("pto/to-firmware").to_bytes();
+    let b = Key::for_path::<FromFirmware>("pto/from-firmware").to_bytes();
+    let mut h = [0u8; 8];
+    let mut i = 0;
+    while i < 8 {
+        h[i] = a[i] ^ b[i].rotate_left(3);
+        i += 1;
+    }
+    h
+};
+
+/// Largest encoded frame, bytes, delimiter included.
 pub const MAX_FRAME: usize = 256;
+/// Largest payload, bytes: 2 (seq) + 240 + 4 (CRC) = 246 raw bytes, ≤ 248 after COBS, + 0.
 const MAX_PAYLOAD: usize = 240;
-const CRC: crc::Crc<u16> = crc::Crc::<u16>::new(&crc::CRC_16_KERMIT);
+const SEQ_LEN: usize = 2;
+const CRC_LEN: usize = 4;
+const CRC: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISCSI);
+/// A frame numbered up to this many before the newest is a duplicate or a late frame (counted
+/// [`LinkCounts::out_of_order`], the count going on from the newest); further back, the sender
+/// restarted (the count starts again from it).
+const REPLAY_WINDOW: u16 = 256;
 
 /// One raw sensor sample, stamped with virtual time in model steps. The firmware converts it
 /// exactly as it converts its own ADC and timer readings on the bench.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Schema)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct SensorFrame {
     /// Step counter (virtual time = tick · dt).
@@ -29,9 +81,12 @@ pub struct SensorFrame {
 }
 
 /// Host → firmware.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Schema)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum ToFirmware {
+    /// Start a session: the firmware answers with its [`Hello`] and restarts its count of the
+    /// host's sequence numbers.
+    Hello,
     /// Answer with `Pong` carrying the same number.
     Ping(u32),
     /// Full estimator inputs for a bit-exact replay (the firmware uses the given aperture and
@@ -71,14 +126,56 @@ pub enum ToFirmware {
     Exit(u8),
 }
 
+/// Frames a [`Receiver`] took and the ones it could not, by cause.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct LinkCounts {
+    /// Frames decoded.
+    pub ok: u32,
+    /// Dropped: not valid COBS.
+    pub cobs: u32,
+    /// Dropped: CRC mismatch.
+    pub crc: u32,
+    /// Dropped: shorter than a sequence number and a CRC, not a message, or a message with
+    /// bytes after it.
+    pub payload: u32,
+    /// Dropped: longer than [`MAX_FRAME`].
+    pub too_long: u32,
+    /// Frames the sender numbered but that never arrived (gaps in the sequence numbers: lost
+    /// whole, or inside a dropped frame).
+    pub lost: u32,
+    /// Frames that arrived with an older sequence number than the last one (duplicated or
+    /// reordered; taken all the same).
+    pub out_of_order: u32,
+}
+
+impl LinkCounts {
+    /// Nothing counted yet (usable in `const` contexts, where `Default` is not).
+    pub const ZERO: LinkCounts = LinkCounts {
+        ok: 0,
+        cobs: 0,
+        crc: 0,
+        payload: 0,
+        too_long: 0,
+        lost: 0,
+        out_of_order: 0,
+    };
+
+    /// Frames dropped, every cause.
+    pub fn dropped(&self) -> u32 {
+        self.cobs
+            .wrapping_add(self.crc)
+            .wrapping_add(self.payload)
+            .wrapping_add(self.too_long)
+    }
+}
+
 /// Link and health counters.
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize, Schema)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Status {
-    /// Frames decoded.
-    pub frames_ok: u32,
-    /// Frames dropped: bad COBS, CRC or payload, or longer than a frame.
-    pub frames_dropped: u32,
+    /// The firmware's receiver: frames from the host taken, dropped by cause, lost.
+    pub link: LinkCounts,
     /// Sensor frames dropped because the control loop had not taken the previous ones.
     pub frames_overrun: u32,
     /// Received bytes lost because the receive buffer was full.
@@ -107,16 +204,11 @@ pub struct Status {
 }
 
 /// Firmware → host.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Schema)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum FromFirmware {
-    /// Sent once the link is up.
-    Ready {
-        /// Firmware version, major·256 + minor.
-        version: u16,
-        /// Model step, dt = 2^−dt_log2 s.
-        dt_log2: u8,
-    },
+    /// At boot, and in answer to [`ToFirmware::Hello`].
+    Hello(Hello),
     /// Reply to `Ping`.
     Pong(u32),
     /// One step's result.
@@ -142,8 +234,59 @@ pub enum FromFirmware {
     Refused(Refusal),
 }
 
+/// What the firmware says of itself at connect.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Hello {
+    /// [`PROTOCOL_VERSION`] it was built with.
+    pub protocol: u16,
+    /// [`SCHEMA_HASH`] it was built with.
+    pub schema: [u8; 8],
+    /// Firmware version, major·256 + minor.
+    pub firmware: u16,
+    /// Model step, dt = 2^−dt_log2 s.
+    pub dt_log2: u8,
+}
+
+impl Hello {
+    /// Checks that the other end speaks this build's protocol: its version and schema hash.
+    pub fn check(&self) -> Result<(), HelloMismatch> {
+        if self.protocol != PROTOCOL_VERSION || self.schema != SCHEMA_HASH {
+            Err(HelloMismatch {
+                theirs: (self.protocol, self.schema),
+            })
+        } else {
+            Ok(())
+        }
+    }
+}
+
+/// The other end speaks another protocol version or message schema.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct HelloMismatch {
+    /// Its protocol version and schema hash.
+    pub theirs: (u16, [u8; 8]),
+}
+
+impl core::fmt::Display for HelloMismatch {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        let hex = |f: &mut core::fmt::Formatter<'_>, h: &[u8; 8]| {
+            h.iter().try_for_each(|b| write!(f, "{b:02x}"))
+        };
+        write!(
+            f,
+            "protocol mismatch: the other end speaks v{} (schema ",
+            self.theirs.0
+        )?;
+        hex(f, &self.theirs.1)?;
+        write!(f, "), this build v{PROTOCOL_VERSION} (schema ")?;
+        hex(f, &SCHEMA_HASH)?;
+        f.write_str("): build the firmware and the host tools from the same revision")
+    }
+}
+
 /// Why the firmware refused a command.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Schema)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Refusal {
     /// `Reset` while the overpressure trip holds: the trip's release condition (a valid HP
@@ -152,7 +295,7 @@ pub enum Refusal {
 }
 
 /// Why a tripped latch cannot release now.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Schema)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum TripHold {
     /// No valid HP reading (wire break, short, or outside the transducer's range): the pressure
@@ -198,14 +341,18 @@ impl core::fmt::Display for Refusal {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum FrameError {
-    /// The output buffer is too small.
+    /// The output buffer is too small, or the message longer than a payload may be.
     BufferTooSmall,
     /// Not valid COBS.
     Cobs,
     /// CRC mismatch.
     Crc,
-    /// CRC fine but the payload is not a message.
+    /// Shorter than a sequence number and a CRC, or CRC fine but not a message.
     Payload,
+    /// A message followed by bytes it does not use.
+    Trailing,
+    /// Longer than [`MAX_FRAME`].
+    TooLong,
 }
 
 impl core::fmt::Display for FrameError {
@@ -215,53 +362,195 @@ impl core::fmt::Display for FrameError {
             FrameError::Cobs => "bad COBS encoding",
             FrameError::Crc => "CRC mismatch",
             FrameError::Payload => "bad payload",
+            FrameError::Trailing => "bytes after the message",
+            FrameError::TooLong => "frame too long",
         })
     }
 }
 
 impl core::error::Error for FrameError {}
 
-/// Encodes `msg` into `out` (COBS frame + 0 terminator); returns the frame length.
-pub fn encode<T: Serialize>(msg: &T, out: &mut [u8]) -> Result<usize, FrameError> {
-    let mut raw = [0u8; MAX_PAYLOAD + 2];
-    let n = postcard::to_slice(msg, &mut raw[..MAX_PAYLOAD])
+/// Encodes `msg` numbered `seq` into `out` (COBS frame + 0 terminator); returns its length.
+pub fn encode<T: Serialize>(seq: u16, msg: &T, out: &mut [u8]) -> Result<usize, FrameError> {
+    let mut raw = [0u8; SEQ_LEN + MAX_PAYLOAD + CRC_LEN];
+    raw[..SEQ_LEN].copy_from_slice(&seq.to_le_bytes());
+    let n = postcard::to_slice(msg, &mut raw[SEQ_LEN..SEQ_LEN + MAX_PAYLOAD])
         .map_err(|_| FrameError::BufferTooSmall)?
         .len();
-    let crc = CRC.checksum(&raw[..n]).to_le_bytes();
-    raw[n] = crc[0];
-    raw[n + 1] = crc[1];
-    let m = cobs::try_encode(&raw[..n + 2], out).map_err(|_| FrameError::BufferTooSmall)?;
+    let body = SEQ_LEN + n;
+    let crc = CRC.checksum(&raw[..body]).to_le_bytes();
+    raw[body..body + CRC_LEN].copy_from_slice(&crc);
+    let m =
+        cobs::try_encode(&raw[..body + CRC_LEN], out).map_err(|_| FrameError::BufferTooSmall)?;
     let end = out.get_mut(m).ok_or(FrameError::BufferTooSmall)?;
     *end = 0;
     Ok(m + 1)
 }
 
-/// Decodes one frame (with or without its 0 terminator).
-pub fn decode<T: for<'de> Deserialize<'de>>(frame: &[u8]) -> Result<T, FrameError> {
+/// Decodes one frame (with or without its 0 terminator): its sequence number and message.
+pub fn decode<T: DeserializeOwned>(frame: &[u8]) -> Result<(u16, T), FrameError> {
     let frame = match frame.split_last() {
         Some((0, body)) => body,
         _ => frame,
     };
+    if frame.len() >= MAX_FRAME {
+        return Err(FrameError::TooLong);
+    }
     let mut raw = [0u8; MAX_FRAME];
-    let report = cobs::decode(frame, &mut raw).map_err(|_| FrameError::Cobs)?;
-    let n = report.frame_size();
-    if n < 2 {
+    let n = cobs::decode(frame, &mut raw)
+        .map_err(|_| FrameError::Cobs)?
+        .frame_size();
+    if n < SEQ_LEN + CRC_LEN {
+        return Err(FrameError::Payload);
+    }
+    let (body, crc) = raw[..n].split_at(n - CRC_LEN);
+    if CRC.checksum(body).to_le_bytes() != [crc[0], crc[1], crc[2], crc[3]] {
         return Err(FrameError::Crc);
     }
-    let (payload, crc) = raw[..n].split_at(n - 2);
-    if CRC.checksum(payload).to_le_bytes() != [crc[0], crc[1]] {
-        return Err(FrameError::Crc);
+    let seq = u16::from_le_bytes([body[0], body[1]]);
+    let (msg, rest) =
+        postcard::take_from_bytes(&body[SEQ_LEN..]).map_err(|_| FrameError::Payload)?;
+    if !rest.is_empty() {
+        return Err(FrameError::Trailing);
     }
-    postcard::from_bytes(payload).map_err(|_| FrameError::Payload)
+    Ok((seq, msg))
+}
+
+/// A message that can start a session (its sequence numbers restart).
+pub trait Session {
+    /// This message is a `Hello`.
+    fn is_hello(&self) -> bool;
+}
+
+impl Session for ToFirmware {
+    fn is_hello(&self) -> bool {
+        matches!(self, ToFirmware::Hello)
+    }
+}
+
+impl Session for FromFirmware {
+    fn is_hello(&self) -> bool {
+        matches!(self, FromFirmware::Hello(_))
+    }
+}
+
+/// Turns received bytes into messages of type `T`, counting every frame it cannot take by cause
+/// and every gap in the sender's sequence numbers ([`LinkCounts`]). Heap-free: one frame
+/// buffer. The firmware's receive task and the host's link both use it.
+#[derive(Debug)]
+pub struct Receiver<T> {
+    buf: [u8; MAX_FRAME],
+    len: usize,
+    overflow: bool,
+    /// The sequence number the next frame should carry (`None` before the first one).
+    expected: Option<u16>,
+    /// The sequence number of the last frame taken.
+    taken: Option<u16>,
+    /// What it took and dropped.
+    pub counts: LinkCounts,
+    _msg: PhantomData<fn() -> T>,
+}
+
+impl<T> Default for Receiver<T> {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl<T> Receiver<T> {
+    /// An empty receiver.
+    pub const fn new() -> Self {
+        Receiver {
+            buf: [0; MAX_FRAME],
+            len: 0,
+            overflow: false,
+            expected: None,
+            taken: None,
+            counts: LinkCounts::ZERO,
+            _msg: PhantomData,
+        }
+    }
+}
+
+impl<T> Receiver<T> {
+    /// Sequence number of the last frame taken (`None` before the first).
+    pub fn last_seq(&self) -> Option<u16> {
+        self.taken
+    }
+}
+
+impl<T: DeserializeOwned + Session> Receiver<T> {
+    /// Feeds one byte; returns a message when it completes a valid frame.
+    pub fn push(&mut self, byte: u8) -> Option<T> {
+        if byte != 0 {
+            match self.buf.get_mut(self.len) {
+                Some(b) => {
+                    *b = byte;
+                    self.len += 1;
+                }
+                None => self.overflow = true,
+            }
+            return None;
+        }
+        let result = if self.overflow {
+            Err(FrameError::TooLong)
+        } else if self.len == 0 {
+            // A delimiter alone (a leading 0, back-to-back terminators): nothing to count.
+            return None;
+        } else {
+            decode::<T>(&self.buf[..self.len])
+        };
+        self.len = 0;
+        self.overflow = false;
+        let c = &mut self.counts;
+        match result {
+            Ok((seq, msg)) => {
+                c.ok = c.ok.wrapping_add(1);
+                self.taken = Some(seq);
+                if msg.is_hello() {
+                    self.expected = None;
+                }
+                match self.expected {
+                    // A frame from up to REPLAY_WINDOW back: a duplicate or a late one, taken and
+                    // counted; the count of what comes next goes on from the newest.
+                    Some(e) if e.wrapping_sub(seq).wrapping_sub(1) < REPLAY_WINDOW => {
+                        c.out_of_order = c.out_of_order.wrapping_add(1);
+                        return Some(msg);
+                    }
+                    Some(e) => {
+                        let gap = seq.wrapping_sub(e);
+                        if gap < 0x8000 {
+                            c.lost = c.lost.wrapping_add(u32::from(gap));
+                        } else {
+                            // Far back: the sender restarted without a `Hello` reaching us.
+                            c.out_of_order = c.out_of_order.wrapping_add(1);
+                        }
+                    }
+                    None => {}
+                }
+                self.expected = Some(seq.wrapping_add(1));
+                Some(msg)
+            }
+            Err(e) => {
+                let n = match e {
+                    FrameError::Cobs => &mut c.cobs,
+                    FrameError::Crc => &mut c.crc,
+                    FrameError::TooLong | FrameError::BufferTooSmall => &mut c.too_long,
+                    FrameError::Payload | FrameError::Trailing => &mut c.payload,
+                };
+                *n = n.wrapping_add(1);
+                None
+            }
+        }
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    #[test]
-    fn frames_round_trip_and_corruption_is_caught() {
-        let msg = ToFirmware::Replay {
+    fn replay() -> ToFirmware {
+        ToFirmware::Replay {
             tick: 123_456,
             inputs: Inputs {
                 encoder: Some(-1234),
@@ -272,23 +561,112 @@ mod tests {
                 on_duty: 0b1001,
                 config: 0,
             },
-        };
+        }
+    }
+
+    fn frame(seq: u16, m: &ToFirmware) -> ([u8; MAX_FRAME], usize) {
         let mut buf = [0u8; MAX_FRAME];
-        let n = encode(&msg, &mut buf).unwrap();
+        let n = encode(seq, m, &mut buf).unwrap();
+        (buf, n)
+    }
+
+    #[test]
+    fn frames_round_trip_and_every_single_byte_flip_is_caught() {
+        let msg = replay();
+        let (buf, n) = frame(7, &msg);
         assert_eq!(buf[n - 1], 0);
         assert!(buf[..n - 1].iter().all(|b| *b != 0));
-        assert_eq!(decode::<ToFirmware>(&buf[..n]).unwrap(), msg);
+        assert_eq!(decode::<ToFirmware>(&buf[..n]).unwrap(), (7, msg));
         for i in 0..n - 1 {
-            let mut bad = buf;
-            bad[i] ^= 0x5a;
-            if bad[i] == 0 {
-                continue;
+            for bit in 0..8 {
+                let mut bad = buf;
+                bad[i] ^= 1 << bit;
+                if bad[i] == 0 {
+                    continue;
+                }
+                assert!(
+                    decode::<ToFirmware>(&bad[..n]).is_err(),
+                    "flip at {i}.{bit} accepted"
+                );
             }
-            assert!(
-                decode::<ToFirmware>(&bad[..n]).is_err(),
-                "flip at {i} accepted"
-            );
         }
         assert!(decode::<ToFirmware>(&buf[..n / 2]).is_err());
+    }
+
+    /// CRC-16/KERMIT (protocol v1) started from 0: a zero byte before the payload left it
+    /// unchanged. CRC-32C starts from all ones and sees it.
+    #[test]
+    fn leading_and_trailing_zeros_change_the_crc() {
+        let body = [0x11u8, 0x22, 0x33];
+        let lead = [0u8, 0x11, 0x22, 0x33];
+        let trail = [0x11u8, 0x22, 0x33, 0];
+        assert_ne!(CRC.checksum(&body), CRC.checksum(&lead));
+        assert_ne!(CRC.checksum(&body), CRC.checksum(&trail));
+        let kermit = crc::Crc::<u16>::new(&crc::CRC_16_KERMIT);
+        assert_eq!(
+            kermit.checksum(&body),
+            kermit.checksum(&lead),
+            "v1's blind spot"
+        );
+    }
+
+    /// A message followed by bytes it does not use is dropped (v1 ignored them).
+    #[test]
+    fn trailing_bytes_after_a_message_are_a_dropped_frame() {
+        let mut raw = [0u8; 16];
+        let n = postcard::to_slice(&ToFirmware::Ping(6), &mut raw[SEQ_LEN..])
+            .unwrap()
+            .len();
+        raw[SEQ_LEN + n] = 0x2a; // one byte too many, inside the CRC
+        let body = SEQ_LEN + n + 1;
+        let crc = CRC.checksum(&raw[..body]).to_le_bytes();
+        raw[body..body + CRC_LEN].copy_from_slice(&crc);
+        let mut out = [0u8; 32];
+        let m = cobs::try_encode(&raw[..body + CRC_LEN], &mut out).unwrap();
+        assert_eq!(decode::<ToFirmware>(&out[..m]), Err(FrameError::Trailing));
+    }
+
+    /// One lost delimiter merges two frames into one dropped frame; the next frame's sequence
+    /// number shows both lost (v1: the second frame vanished and nothing moved).
+    #[test]
+    fn a_lost_delimiter_is_counted() {
+        let mut rx = Receiver::<ToFirmware>::new();
+        let mut got = 0;
+        let mut feed = |rx: &mut Receiver<ToFirmware>, b: &[u8]| {
+            for x in b {
+                got += usize::from(rx.push(*x).is_some());
+            }
+        };
+        let (f0, n0) = frame(0, &ToFirmware::Hello);
+        let (f1, n1) = frame(1, &ToFirmware::GetStatus);
+        let (f2, n2) = frame(2, &ToFirmware::Ping(6));
+        let (f3, n3) = frame(3, &ToFirmware::Ping(7));
+        feed(&mut rx, &f0[..n0]);
+        feed(&mut rx, &f1[..n1 - 1]); // its delimiter lost
+        feed(&mut rx, &f2[..n2]);
+        feed(&mut rx, &f3[..n3]);
+        assert_eq!(got, 2);
+        let c = rx.counts;
+        assert_eq!((c.ok, c.dropped(), c.lost), (2, 1, 2), "{c:?}");
+    }
+
+    #[test]
+    fn the_schema_hash_is_stable_within_a_build_and_checked() {
+        let h = Hello {
+            protocol: PROTOCOL_VERSION,
+            schema: SCHEMA_HASH,
+            firmware: 0x0100,
+            dt_log2: 10,
+        };
+        assert!(h.check().is_ok());
+        let old = Hello { protocol: 1, ..h };
+        let e = old.check().unwrap_err().to_string();
+        assert!(e.contains("v1") && e.contains("v2"), "{e}");
+        let other = Hello {
+            schema: [0; 8],
+            ..h
+        };
+        assert!(other.check().is_err());
+        assert_ne!(SCHEMA_HASH, [0; 8]);
     }
 }

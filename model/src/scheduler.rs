@@ -8,6 +8,7 @@ use crate::fx::{Aperture, Fx, Pressure, QMul, Rpm, ZERO, clamp, mul_dt};
 
 /// What the scheduler aims for.
 #[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(feature = "protocol", derive(postcard_schema::Schema))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Mode {
@@ -24,6 +25,7 @@ pub enum Mode {
 
 /// Why the safety layer overrode the mode.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[cfg_attr(feature = "protocol", derive(postcard_schema::Schema))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub enum Override {
@@ -38,6 +40,7 @@ pub enum Override {
 
 /// The scheduler's output.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "protocol", derive(postcard_schema::Schema))]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 #[cfg_attr(feature = "defmt", derive(defmt::Format))]
 pub struct Command {
