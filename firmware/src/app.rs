@@ -104,7 +104,12 @@ pub fn start(spawner: Spawner) {
     let sched = SchedulerConfig::default();
     let cc = ControlConfig::default();
     let ctl = match Controller::new(&model, &sched, &cc) {
-        Ok(c) => CONTROLLER.init(c),
+        Ok(mut c) => {
+            if crate::trip_memory::remembered() {
+                c.boot_tripped();
+            }
+            CONTROLLER.init(c)
+        }
         Err(e) => {
             match e {
                 SetupError::Model(m) => defmt::error!(
@@ -224,7 +229,12 @@ async fn send(msg: FromFirmware) {
 #[embassy_executor::task]
 async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
     let mut faults_prev = 0u16;
-    let mut tripped_prev = false;
+    let mut tripped_prev = ctl.status.tripped;
+    if tripped_prev {
+        defmt::error!(
+            "booted tripped: the trip held when the controller reset; valve and dump open"
+        );
+    }
     loop {
         HEARTBEATS.beat(Task::Control);
         let Ok(msg) = with_timeout(Duration::from_millis(HEARTBEAT_MS), TO_CONTROL.receive()).await
@@ -254,6 +264,7 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                 }
                 faults_prev = o.estimate.faults;
                 if o.dump != tripped_prev {
+                    crate::trip_memory::remember(o.dump);
                     if o.dump {
                         defmt::error!("tick {}: overpressure trip, valve and dump open", f.tick);
                     } else {
@@ -315,6 +326,10 @@ async fn control_task(ctl: &'static mut Controller, mut clock: board::Clock) {
                         .wrapping_add(FRAMES_OVERRUN.load(Ordering::Relaxed));
                     s.bytes_lost = board::bytes_lost() + RX_ERRORS.load(Ordering::Relaxed);
                     send(FromFirmware::Status(s)).await;
+                }
+                ToFirmware::Stall if ctl.status.tripped => {
+                    defmt::warn!("watchdog test refused: the overpressure trip holds");
+                    send(FromFirmware::Refused(Refusal::StallWhileTripped)).await;
                 }
                 ToFirmware::Stall => {
                     defmt::warn!("watchdog test: the control task stops");

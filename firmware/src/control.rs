@@ -5,8 +5,8 @@
 //! [`Controller::new`]; the per-step functions cannot fail.
 
 use crate::frontend::{LoopSpec, SpecError, Transducer};
-use crate::trip::TripLatch;
-use pto_model::estimator::{self, Estimate, Inputs, State};
+use crate::trip::{TripLatch, TripSample};
+use pto_model::estimator::{self, Estimate, Inputs, State, fault};
 use pto_model::fx::{Aperture, Fx, Pressure, ZERO, clamp, mul_dt};
 use pto_model::protocol::{SensorFrame, Status, TripHold};
 use pto_model::scheduler::{self, Command, Mode, Override, SchedulerCoeffs, SchedulerConfig};
@@ -121,9 +121,14 @@ pub struct Controller {
     lp: Transducer,
     safe_op: Fx,
     latch: TripLatch,
-    /// The last step's valid HP reading and P2 estimate (what a host reset is judged on).
-    last_hp: Option<Pressure>,
-    last_p2: Pressure,
+    /// What the latch saw of the last step (what a host reset is judged on; `None` before the
+    /// first step).
+    last: Option<TripSample>,
+    /// The estimate has been confirmed by a valid HP reading the gate took since boot or the
+    /// host's last reset.
+    confirmed: bool,
+    /// P2's variance at boot (P2 unknown), bar².
+    boot_var: Fx,
     slew_step: Fx,
     applied: Fx,
     last_tick: Option<u32>,
@@ -173,7 +178,14 @@ impl Controller {
             .trip
             .saturating_sub(Fx::saturating_from_num(cc.trip_release_margin_bar));
         let steps_per_s = f32::from(1u16 << k.dt_log2);
-        let hold_steps = (cc.trip_release_hold_ms * 1e-3 * steps_per_s).clamp(1.0, 65_535.0) as u16;
+        // The hold counts steps in a u16: at most 65 535 steps of the configured dt.
+        check(
+            "trip_release_hold_ms",
+            cc.trip_release_hold_ms,
+            1e3 / steps_per_s,
+            65_535e3 / steps_per_s,
+        )?;
+        let hold_steps = (cc.trip_release_hold_ms * 1e-3 * steps_per_s + 0.5) as u16;
         let latch = TripLatch::new(Pressure(k.trip), Pressure(release), hold_steps);
         let slew_step = mul_dt(Fx::saturating_from_num(cc.valve_slew_pct_per_s), k.dt_log2);
         let mut c = Controller {
@@ -187,8 +199,9 @@ impl Controller {
             lp,
             safe_op: Fx::saturating_from_num(sched.overpressure_aperture_pct),
             latch,
-            last_hp: None,
-            last_p2: Pressure::ZERO,
+            last: None,
+            confirmed: false,
+            boot_var: Fx::saturating_from_num(cc.boot_sigma_bar * cc.boot_sigma_bar),
             slew_step,
             applied: ZERO,
             last_tick: None,
@@ -228,15 +241,29 @@ impl Controller {
         &self.latch
     }
 
+    /// Starts with the trip latch tripped: a trip held when the controller reset (the firmware
+    /// remembers it across a reset). It releases like any other.
+    pub fn boot_tripped(&mut self) {
+        self.latch.boot_tripped();
+        self.status.tripped = true;
+        self.status.dump_valve = true;
+        self.applied = self.safe_op;
+        self.status.aperture = Aperture(self.applied);
+    }
+
     /// Restarts the estimator from known pressures and clears the scheduler. While the trip
     /// latch holds, refused unless its release condition held in the last step (a valid HP
-    /// reading and the estimate both below the release pressure), with the reason; even then
-    /// the latch stays set until its hold time has run.
+    /// reading the estimator's gate took and the estimate both below the release pressure),
+    /// with the reason; an allowed reset acknowledges a contradiction between reading and model
+    /// but never releases the trip: its hold time runs again. Until a valid HP reading confirms
+    /// the new estimate, a missing reading keeps P2's uncertainty at its boot value, so the
+    /// host's pressures cannot stand in for a lost transducer.
     pub fn reset(&mut self, p2: Pressure, lp: Pressure) -> Result<(), TripHold> {
-        self.latch.reset_allowed(self.last_hp, self.last_p2)?;
+        self.latch.reset_allowed(self.last.as_ref())?;
         self.st = State::new(p2, lp, Pressure(Fx::ONE));
         self.sst = SchedulerState::default();
         self.last_tick = None;
+        self.confirmed = false;
         Ok(())
     }
 
@@ -289,13 +316,20 @@ impl Controller {
 
     /// One closed-loop step from a raw sample.
     pub fn sample<C: StepClock>(&mut self, f: &SensorFrame, clock: &mut C) -> StepOut {
-        let hp = self.hp.pressure(f.hp_adc);
-        if hp.is_none() {
+        let reading = self.hp.pressure(f.hp_adc);
+        if reading.is_none() {
             self.status.hp_loop_faults = self.status.hp_loop_faults.wrapping_add(1);
+        }
+        let (lo, hi) = self.k.hp_range;
+        let in_range = reading.is_some_and(|p| p.0 >= lo && p.0 <= hi);
+        if !self.confirmed && !in_range && self.st.var < self.boot_var {
+            // Not yet confirmed by a reading (since boot or the host's reset): as unknown as
+            // at boot while there is none.
+            (self.st.var, self.st.var_lo) = (self.boot_var, 0);
         }
         let inp = Inputs {
             encoder: Some(f.encoder),
-            hp,
+            hp: reading,
             lp: self.lp.pressure(f.lp_adc),
             motor: f.motor,
             aperture_cmd: Aperture(self.applied),
@@ -303,12 +337,20 @@ impl Controller {
             config: self.config,
         };
         let (e, c) = self.model_step(&inp, clock);
-        // Trip latch (`crate::trip`): the reading counts when it is valid — inside the loop's
-        // window and the transducer's range — whether or not the estimator's gate took it.
-        let (lo, hi) = self.k.hp_range;
-        let hp_valid = hp.filter(|p| p.0 >= lo && p.0 <= hi);
-        let tripped = self.latch.step(hp_valid, e.p2);
-        (self.last_hp, self.last_p2) = (hp_valid, e.p2);
+        // Trip latch (`crate::trip`): any reading in the loop window counts toward a trip,
+        // whether or not the estimator took it; only a valid one the gate took counts toward a
+        // release.
+        let accepted = in_range && e.faults & (fault::INNOVATION | fault::INNOVATION_RESET) == 0;
+        self.confirmed |= accepted;
+        let sample = TripSample {
+            reading,
+            in_range,
+            accepted,
+            innovation_reset: e.faults & fault::INNOVATION_RESET != 0,
+            estimate: e.p2,
+        };
+        let tripped = self.latch.step(&sample);
+        self.last = Some(sample);
         let s = &mut self.status;
         s.tripped = tripped;
         s.trips = self.latch.trips;
@@ -338,7 +380,6 @@ impl Controller {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use pto_model::estimator::fault;
 
     fn ctl() -> Controller {
         Controller::new(

@@ -15,6 +15,8 @@ mod app;
 mod board;
 #[cfg(target_os = "none")]
 mod executor;
+#[cfg(target_os = "none")]
+mod trip_memory;
 
 #[cfg(all(target_os = "none", feature = "qemu", feature = "bench"))]
 compile_error!("choose one board: the default `qemu` or `--no-default-features --features bench`");

@@ -7,7 +7,7 @@
 use proptest::prelude::*;
 use pto_firmware::control::{ControlConfig, Controller, NoClock, StepOut};
 use pto_firmware::frontend::{LoopSpec, Transducer};
-use pto_firmware::trip::TripLatch;
+use pto_firmware::trip::{TripLatch, TripSample};
 use pto_model::ModelConfig;
 use pto_model::estimator::fault;
 use pto_model::fx::{Aperture, Pressure, Rpm};
@@ -114,27 +114,37 @@ fn a_jump_trips_at_once_and_a_wire_break_after_it_holds_the_trip() {
         b.c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0)),
         Err(TripHold::HpMissing)
     );
-    // Valid readings return at 100 bar: release only after the estimate too has been below the
-    // release pressure for the hold time.
-    let out = b.run(3 * HZ, |_| still(Some(100.0)));
+    // Valid readings return at 100 bar. The model, its valve wide open (the safe state) and
+    // no transducer, has drained its P2 meanwhile: the reading disagrees, the gate rejects it,
+    // and the estimator resets P2 to it — a contradiction, which holds the trip until the host
+    // acknowledges it (a reset, taken once the reading and the estimate are both low).
+    let p2_after = out.last().unwrap().estimate.p2.to_f32();
+    let out = b.run(HZ, |_| still(Some(100.0)));
+    assert!(
+        out.iter().all(|o| o.dump),
+        "released while reading and model disagreed"
+    );
+    let snapped = out
+        .iter()
+        .position(|o| o.estimate.faults & fault::INNOVATION_RESET != 0);
+    println!(
+        "readings back at 100 bar (the estimate at {p2_after:.1} bar after the wire break): P2 \
+         reset to the reading after {snapped:?} steps; still tripped 1 s later"
+    );
+    assert!(b.c.latch().contradicted());
+    b.c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0))
+        .expect("acknowledged once both read low");
+    let out = b.run(2 * HZ, |_| still(Some(100.0)));
     let first_free = out
         .iter()
         .position(|o| !o.dump)
-        .expect("released once valid and low");
+        .expect("released after the hold");
     let hold = usize::from(b.c.latch().hold_steps());
-    let low_since = out
-        .iter()
-        .position(|o| o.estimate.p2.to_f32() < release_bar(&b.c))
-        .unwrap();
     println!(
-        "readings back at 100 bar: estimate below the release after {low_since} steps, \
-         released after {first_free} (hold {hold})"
+        "acknowledged: released after {} steps (hold {hold})",
+        first_free + 1
     );
-    assert_eq!(
-        first_free,
-        low_since + hold - 1,
-        "released exactly after the hold"
-    );
+    assert_eq!(first_free + 1, hold, "released exactly after the hold");
     assert!(out[first_free..].iter().all(|o| !o.dump));
     assert_eq!(b.c.status.trips, 1);
 }
@@ -177,7 +187,7 @@ fn a_stuck_encoder_neither_hides_nor_releases_a_trip() {
 }
 
 #[test]
-fn an_estimate_above_the_trip_trips_and_holds_until_it_falls() {
+fn an_estimate_above_the_trip_trips_and_holds_until_the_host_acknowledges() {
     let mut b = Bench::new(100.0, 10.0);
     b.run(10, |_| still(Some(100.0)));
     b.c.reset(Pressure::from_num(150.0), Pressure::from_num(8.0))
@@ -185,15 +195,24 @@ fn an_estimate_above_the_trip_trips_and_holds_until_it_falls() {
     let out = b.run(3 * HZ, |_| still(Some(100.0)));
     assert!(out[0].dump, "the estimate alone trips");
     let rel = release_bar(&b.c);
-    let free = out.iter().position(|o| !o.dump).expect("released");
     let low = out
         .iter()
         .position(|o| o.estimate.p2.to_f32() < rel)
         .unwrap();
     println!(
-        "estimate 150 bar, reading 100: estimate below the release after {low} steps, released after {free}"
+        "estimate 150 bar, reading 100: the estimate reset to the reading after {low} steps; \
+         tripped 3 s later: {}",
+        out.last().unwrap().dump
     );
-    assert!(free >= low + usize::from(b.c.latch().hold_steps()) - 1);
+    assert!(
+        out.iter().all(|o| o.dump),
+        "a contradiction released the trip"
+    );
+    b.c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0))
+        .unwrap();
+    let out = b.run(HZ, |_| still(Some(100.0)));
+    let free = out.iter().position(|o| !o.dump).expect("released");
+    assert_eq!(free + 1, usize::from(b.c.latch().hold_steps()));
 }
 
 #[test]
@@ -209,9 +228,24 @@ fn a_reset_while_high_is_refused_with_its_reason() {
         "{e:?}"
     );
     println!("reset while high: refused ({e})");
-    // Still tripped, the estimator untouched.
-    let out = b.run(HZ, |_| still(Some(145.0)));
-    assert!(out.iter().all(|o| o.dump));
+    // Still tripped, the estimator untouched: it steps on exactly as a twin never asked.
+    let mut twin = Bench {
+        c: b.c.clone(),
+        hp: b.hp,
+        lp: b.lp,
+        tick: b.tick,
+    };
+    assert!(
+        twin.c
+            .reset(Pressure::from_num(100.0), Pressure::from_num(8.0))
+            .is_err()
+    );
+    let (x, y) = (
+        b.run(HZ, |_| still(Some(145.0))),
+        twin.run(HZ, |_| still(Some(145.0))),
+    );
+    assert!(x.iter().all(|o| o.dump));
+    assert_eq!(x, y, "a refused reset changed the controller");
     // Back below the release: the reset is taken, the trip still runs its hold.
     // (The estimate, rejecting the 45 bar innovation, takes the reading after 250 ms.)
     b.run(300, |_| still(Some(100.0)));
@@ -226,8 +260,14 @@ fn a_reset_while_high_is_refused_with_its_reason() {
 fn a_high_motor_reading_behind_a_closed_valve_moves_nothing_and_is_flagged() {
     for rpm in [50.0, 200.0] {
         let mut b = Bench::new(50.0, 0.0);
-        // The HP transducer lost, the valve commanded closed, the lever still, the motor
-        // sensor reading `rpm`.
+        // The valve commanded closed, the lever still; the HP transducer confirms 50 bar for
+        // 0.2 s, then its wire breaks and the motor sensor reads `rpm`.
+        let confirm = HZ / 5;
+        b.run(confirm, |_| Sensors {
+            hp_bar: Some(50.0),
+            encoder: 0,
+            rpm: 0.0,
+        });
         let out = b.run(3 * HZ, |_| Sensors {
             hp_bar: None,
             encoder: 0,
@@ -240,16 +280,18 @@ fn a_high_motor_reading_behind_a_closed_valve_moves_nothing_and_is_flagged() {
         let sigma_end = out.last().unwrap().estimate.p2_sigma().to_f32();
         let flagged = out
             .iter()
-            .position(|o| o.estimate.faults & fault::MOTOR_IMPLAUSIBLE != 0);
+            .position(|o| o.estimate.faults & fault::MOTOR_IMPLAUSIBLE != 0)
+            .map(|k| k + confirm as usize);
         println!(
             "{rpm} rpm behind a closed valve, no HP: P2 max {p2_max:.3} bar over 3 s, σ {sigma_end:.3} \
-             bar, contradiction flagged from step {flagged:?}"
+             bar, contradiction flagged from step {flagged:?} of the closure"
         );
         assert!(p2_max < 50.5, "P2 followed the motor reading: {p2_max}");
         assert!(out.iter().all(|o| !o.dump), "false trip");
-        // Flagged once a real rotor would have spun down (5 time constants, 0.67 s).
+        // Flagged once a real rotor would have spun down (5 time constants J/c, 683 steps:
+        // from the 683rd step, index 682), counted from the valve's closing.
         let k = flagged.expect("the contradiction is flagged");
-        assert!((600..=800).contains(&k), "flagged at step {k}");
+        assert!((682..=700).contains(&k), "flagged at step {k}");
     }
 }
 
@@ -259,8 +301,10 @@ fn a_lost_transducer_drives_the_valve_to_its_safe_aperture_once_sigma_passes_its
     let bound = SchedulerConfig::default().sensor_fault_sigma_bar;
     let safe = SchedulerConfig::default().sensor_fault_aperture_pct;
     // The HP accumulator empty (15 bar, precharge 25), the valve closed, no motor reading: the
-    // stiff node's variance grows at ≈ 0.08 bar² a step.
+    // transducer confirms 15 bar for 0.1 s, then its wire breaks; the stiff node's variance
+    // grows at ≈ 0.08 bar² a step.
     let mut b = Bench::new(15.0, 0.0);
+    b.run(HZ / 10, |_| still(Some(15.0)));
     let out = b.run(HZ / 2, |_| Sensors {
         hp_bar: None,
         encoder: 0,
@@ -289,6 +333,7 @@ fn a_lost_transducer_drives_the_valve_to_its_safe_aperture_once_sigma_passes_its
     // With gas in the accumulator (100 bar) the model alone stays good for minutes: 10 s
     // without the transducer leave σ near its start and the mode alone.
     let mut b = Bench::new(100.0, 10.0);
+    b.run(HZ / 10, |_| still(Some(100.0)));
     let out = b.run(10 * HZ, |_| Sensors {
         hp_bar: None,
         encoder: 0,
@@ -300,33 +345,131 @@ fn a_lost_transducer_drives_the_valve_to_its_safe_aperture_once_sigma_passes_its
     assert!(sigma < 1.2);
 }
 
-proptest! {
-    #![proptest_config(ProptestConfig::with_cases(2000))]
+/// A host reset while the HP transducer is lost cannot stand in for it: until a valid reading
+/// confirms the host's pressures, P2 stays as uncertain as at boot and the valve goes to its
+/// sensor-fault aperture.
+#[test]
+fn a_reset_without_the_transducer_does_not_replace_it() {
+    use pto_model::scheduler::Override;
+    let mut b = Bench::new(100.0, 10.0);
+    b.run(HZ / 10, |_| still(Some(100.0)));
+    b.run(HZ / 10, |_| still(None));
+    b.c.reset(Pressure::from_num(60.0), Pressure::from_num(8.0))
+        .unwrap();
+    let out = b.run(HZ / 10, |_| still(None));
+    let sigma = out[0].estimate.p2_sigma().to_f32();
+    println!("reset to 60 bar with the transducer lost: σ {sigma:.1} bar");
+    assert!(sigma > 10.0);
+    assert!(
+        out.iter()
+            .all(|o| o.command.safety == Override::SensorFault)
+    );
+    // A reading confirms it: the estimate converges and σ falls.
+    let out = b.run(HZ, |_| still(Some(100.0)));
+    let last = out.last().unwrap();
+    assert!(last.command.safety == Override::None);
+    assert!((last.estimate.p2.to_f32() - 100.0).abs() < 1.0);
+}
 
-    /// For any sequence of readings and estimates the latch never releases while any valid
-    /// HP reading within the last hold time was at or above the release pressure.
+/// The HP transducer fails to a valid low current (4 mA, 0 bar) while tripped at 150 bar: the
+/// gate rejects it, then the estimator resets P2 to it and the two agree, low. The latch holds
+/// (a contradiction) until the host acknowledges it.
+#[test]
+fn a_transducer_failing_low_while_tripped_holds_the_trip() {
+    let mut b = Bench::new(100.0, 10.0);
+    b.run(HZ, |_| still(Some(100.0)));
+    b.run(HZ / 2, |i| {
+        still(Some(100.0 + 50.0 * i as f32 / (HZ / 2) as f32))
+    });
+    b.run(HZ / 10, |_| still(Some(150.0)));
+    assert!(b.c.status.tripped);
+    let out = b.run(10 * HZ, |_| still(Some(0.0)));
+    let snapped = out
+        .iter()
+        .position(|o| o.estimate.faults & fault::INNOVATION_RESET != 0)
+        .expect("the estimator resets P2 to the reading");
+    println!(
+        "transducer fails to 0 bar while tripped: P2 reset to it after {snapped} steps; 10 s \
+         later still tripped: {}",
+        out.last().unwrap().dump
+    );
+    assert!(
+        out.iter().all(|o| o.dump),
+        "released on a failed transducer"
+    );
+    let e = b.c.reset(Pressure::from_num(0.0), Pressure::from_num(8.0));
+    assert_eq!(
+        e,
+        Ok(()),
+        "the acknowledgement is taken while both read low"
+    );
+    let out = b.run(HZ, |_| still(Some(0.0)));
+    let free = out
+        .iter()
+        .position(|o| !o.dump)
+        .expect("released after the hold");
+    assert!(free + 1 >= usize::from(b.c.latch().hold_steps()));
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig {
+        cases: 2000,
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    })]
+
+    /// For any sequence of steps the latch trips on every sign of overpressure, and never
+    /// releases unless each of the last `hold` steps had a valid reading the gate took, it and
+    /// the estimate below the release pressure and no trip sign — so never while any valid HP
+    /// reading within the last hold time was at or above the release pressure.
     #[test]
-    fn the_latch_never_releases_while_a_recent_valid_reading_was_high(
+    fn the_latch_trips_on_every_sign_and_releases_only_after_a_clean_hold(
         seq in prop::collection::vec(
-            (prop::option::weighted(0.8, 0.0f32..200.0), 0.0f32..200.0),
+            (
+                prop::option::weighted(0.8, 0.0f32..270.0),
+                any::<bool>(),
+                prop::bool::weighted(0.9),
+                prop::bool::weighted(0.02),
+                0.0f32..200.0,
+            ),
             1..600,
         ),
         hold in 1u16..50,
     ) {
-        let mut l = TripLatch::new(Pressure::from_num(140.0), Pressure::from_num(125.0), hold);
-        let mut last_high: Option<usize> = None;
+        let (trip, release) = (140.0f32, 125.0f32);
+        let mut l = TripLatch::new(Pressure::from_num(trip), Pressure::from_num(release), hold);
+        let mut clean_run = 0usize;
+        let mut contradicted = false;
         let mut was = false;
-        for (i, (hp, est)) in seq.iter().enumerate() {
-            let hp = hp.map(Pressure::from_num);
-            if hp.is_some_and(|p| p.to_f32() >= 125.0) {
-                last_high = Some(i);
+        for (i, (hp, in_range, accepted, reset, est)) in seq.iter().enumerate() {
+            let s = TripSample {
+                reading: hp.map(Pressure::from_num),
+                in_range: *in_range,
+                accepted: *accepted,
+                innovation_reset: *reset,
+                estimate: Pressure::from_num(*est),
+            };
+            let sign = hp.is_some_and(|p| p > trip) || *est > trip;
+            contradicted |= was && *reset;
+            let clean = !sign
+                && *in_range
+                && *accepted
+                && hp.is_some_and(|p| p < release)
+                && *est < release
+                && !contradicted;
+            clean_run = if clean { clean_run + 1 } else { 0 };
+            let now = l.step(&s);
+            if sign {
+                prop_assert!(now, "step {}: a trip sign left the latch armed", i);
             }
-            let now = l.step(hp, Pressure::from_num(*est));
             if was && !now {
                 prop_assert!(
-                    last_high.is_none_or(|k| i - k >= usize::from(hold)),
-                    "released at step {i}, a valid reading was high at step {last_high:?}"
+                    clean_run >= usize::from(hold),
+                    "released at step {} after {} clean steps (hold {})", i, clean_run, hold
                 );
+            }
+            if !now {
+                contradicted = false;
             }
             was = now;
         }

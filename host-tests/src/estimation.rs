@@ -767,9 +767,6 @@ impl Reference {
             .motor
             .map(|m| f64::from(m.to_f32()))
             .filter(|m| *m >= 0.0 && *m <= f64::from(c.motor_sensor_max_rpm));
-        if hp.is_none() && self.p2 <= f(k.precharge_band_top) {
-            self.var = self.var.max(f(k.var_precharge));
-        }
         match motor.filter(|_| hp.is_none()) {
             Some(rpm) if !closed => self.motor_reading(rpm, cmd, lp_dp, dp, q_ss, g),
             Some(_) => {
@@ -780,6 +777,9 @@ impl Reference {
                 self.meas = None;
                 self.meas_wait = 0;
             }
+        }
+        if hp.is_none() && self.p2 <= f(k.precharge_band_top) {
+            self.var = self.var.max(f(k.var_precharge));
         }
         if let Some(z) = inp.lp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.lp_sensor_range_bar.0) && *p <= f64::from(c.lp_sensor_range_bar.1)

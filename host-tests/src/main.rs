@@ -608,7 +608,7 @@ fn validate_cmd(
         return Ok(rep.pass);
     }
     println!(
-        "{:<20} {:>7} {:>6} {:>7} {:>7} {:>7} {:>6} {:>7} {:>7} {:>7} {:>8} {:>7}",
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>8} {:>7}",
         "scenario",
         "P2 RMS",
         "P2 max",
@@ -623,7 +623,7 @@ fn validate_cmd(
         ""
     );
     println!(
-        "{:<20} {:>7} {:>6} {:>7} {:>7} {:>7} {:>6} {:>7} {:>7} {:>7} {:>8}",
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>8}",
         "(target)",
         format!("≤{}", target::P2_RMS_BAR),
         "-",
@@ -634,7 +634,7 @@ fn validate_cmd(
         format!("≤{}%", target::TORQUE_RMS_OF_PEAK * 100.0),
         format!("≤{}%", target::MOTOR_RMS_REL * 100.0),
         format!("≤{}*", target::FIXED_VS_F64_BAR),
-        format!("≤{}", target::FIXED_VS_F64_NM)
+        format!("≤{}*", target::FIXED_VS_F64_NM)
     );
     let pct = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{:.2}%", v * 100.0));
     let pre = f64::from(
@@ -646,18 +646,18 @@ fn validate_cmd(
     for r in &rep.rows {
         let misses = r.misses(pre);
         println!(
-            "{:<20} {:>7.3} {:>6.2} {:>7.3} {:>7} {:>7} {:>6} {:>7} {:>7} {:>7.4} {:>8.3}  {}",
+            "{:<20} {:>7.3} {:>6.2} {:>7.3} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7.4} {:>8.3}  {}",
             r.scenario,
             r.p2_rms_bar,
             r.p2_max_bar,
             r.p2_model_only_max_bar,
             format!(
-                "{:.1}/{:.1}",
+                "{:.2}/{:.2}",
                 r.cover_2s * 100.0,
                 r.cover_2s_model_only * 100.0
             ),
             format!(
-                "{:.1}/{:.1}",
+                "{:.2}/{:.2}",
                 r.cover_3s * 100.0,
                 r.cover_3s_model_only * 100.0
             ),
@@ -675,12 +675,14 @@ fn validate_cmd(
         );
     }
     println!(
-        "σ coverage: with the transducer / without it. * no-HP ≤ {} bar where the estimate stays \
-         above the precharge + {} bar (else σ coverage and the empty flag judge it); fixed vs f64 \
-         ≤ {} bar where P2 stays out of the precharge cell, else ≤ {}",
+        "σ coverage: with the transducer / without it (%). * no-HP ≤ {} bar in runs whose \
+         estimate stays above the precharge + {} bar (else σ coverage and the empty flag, ms \
+         after the bench's accumulator ran empty, judge it); fixed vs f64 ≤ {} bar and ≤ {} N·m \
+         where P2 stays out of the cells at the precharge, else ≤ {} bar (torque not judged)",
         target::P2_MODEL_ONLY_MAX_BAR,
         target::PRECHARGE_MARGIN_BAR,
         target::FIXED_VS_F64_BAR,
+        target::FIXED_VS_F64_NM,
         target::FIXED_VS_F64_CELL_BAR
     );
     for l in &rep.closed_loop {

@@ -94,6 +94,8 @@ pub enum Injection {
     /// HP wire break, and after this step's output the host asks for a `Reset` to this P2,
     /// bar (its answer in [`PilRow::reset_reply`]).
     HpWireBreakAndReset(f32),
+    /// After this step's output the host asks for a `Reset` to this P2, bar.
+    HostReset(f32),
     /// The motor speed sensor reads this, rpm (whatever the plant does).
     MotorReads(f32),
     /// HP wire break and the motor speed sensor reading this, rpm.
@@ -296,7 +298,7 @@ impl ValveController for FirmwareController {
                 Ok(_) => {}
                 Err(e) => self.error = Some(format!("t = {t:.4} s: {e}")),
             }
-            if let Injection::HpWireBreakAndReset(p2) = inj {
+            if let Injection::HpWireBreakAndReset(p2) | Injection::HostReset(p2) = inj {
                 match reset(&mut self.q, p2, 8.0) {
                     Ok(r) => row.reset_reply = Some(r),
                     Err(e) => self.error = Some(format!("t = {t:.4} s: reset: {e}")),
@@ -514,16 +516,18 @@ fn overpressure_run(
     closed_loop(q, &b, fixed(0.0), 136.0, 4.0, spec, inject)
 }
 
-/// The trip latch under QEMU: the run of [`check_trip`] (P2 crosses the trip 1.47 s in); from
-/// 1.6 s the HP transducer's wire breaks and stays broken, and at 2.0 s the host asks for a
-/// `Reset` to 100 bar. The latch must hold to the end and the reset must be refused with its
-/// reason.
+/// The trip latch under QEMU: the run of [`check_trip`] (P2 crosses the trip 1.47 s in); at
+/// 1.5 s, P2 still high, the host asks for a `Reset` to 100 bar; from 1.6 s the HP
+/// transducer's wire breaks and stays broken, and at 2.0 s the host asks again. The latch must
+/// hold to the end and both resets must be refused with their reasons.
 pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
     let t0 = std::time::Instant::now();
     // P2 crosses 140 bar 1.47 s in (`pil_trips_to_the_safe_state_within_one_period`), then
     // falls through the open valve.
-    let inject = |t: f64| match t {
-        t if (2.0..2.0 + 1.0 / 1024.0).contains(&t) => Injection::HpWireBreakAndReset(100.0),
+    let step = 1.0 / 1024.0;
+    let inject = move |t: f64| match t {
+        t if (1.5..1.5 + step).contains(&t) => Injection::HostReset(100.0),
+        t if (2.0..2.0 + step).contains(&t) => Injection::HpWireBreakAndReset(100.0),
         t if t >= 1.6 => Injection::HpWireBreak,
         _ => Injection::None,
     };
@@ -537,7 +541,14 @@ pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String>
         .iter()
         .filter(|r| r.dump && r.applied == 100.0)
         .count();
-    let reply = rows.iter().find_map(|r| r.reset_reply);
+    let replies: Vec<_> = rows.iter().filter_map(|r| r.reset_reply).collect();
+    let (high, reply) = (replies.first().copied(), replies.get(1).copied());
+    let refused_high = matches!(
+        high,
+        Some(Err(Refusal::TripHeld(
+            pto_model::protocol::TripHold::HpHigh(_)
+        )))
+    );
     let low_estimate = broken
         .iter()
         .filter_map(|r| r.estimate)
@@ -557,10 +568,15 @@ pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String>
             target: 0.0,
             unit: "steps released".into(),
             detail: format!(
-                "tripped at t = {:.4} s; wire break from 1.6 s: {held} of {} steps held the \
-                 safe state ({low_estimate} with the estimate below the release pressure); \
-                 reset to 100 bar at 2.0 s: {}",
+                "tripped at t = {:.4} s; reset to 100 bar at 1.5 s (P2 high): {}; wire break \
+                 from 1.6 s: {held} of {} steps held the safe state ({low_estimate} with the \
+                 estimate below the release pressure); reset to 100 bar at 2.0 s: {}",
                 rows[tripped].t,
+                match high {
+                    Some(Ok(())) => "ACCEPTED".to_string(),
+                    Some(Err(why)) => format!("refused: {why}"),
+                    None => "no answer".to_string(),
+                },
                 broken.len(),
                 match reply {
                     Some(Ok(())) => "ACCEPTED".to_string(),
@@ -570,18 +586,25 @@ pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String>
             ),
             steps: rows.len(),
             wall_s: t0.elapsed().as_secs_f64(),
-            pass: !broken.is_empty() && held == broken.len() && refused,
+            pass: !broken.is_empty() && held == broken.len() && refused && refused_high,
         },
     ))
 }
 
-/// A motor reading with the valve closed under QEMU: the HP transducer lost from the start, the
-/// valve commanded closed, the motor sensor reading 200 rpm behind it; the lever pumps P2 up
-/// from 60 bar for 4 s. No false trip, the contradiction flagged once a real rotor would have
+/// A motor reading with the valve closed under QEMU: the valve commanded closed from the start,
+/// the HP transducer lost after 0.5 s and the motor sensor then reading 200 rpm behind the
+/// valve; the lever pumps P2 up from 60 bar for 4 s. No false trip, the contradiction flagged once a real rotor would have
 /// spun down, and the estimate following the plant (the pump), not the motor reading.
 pub fn check_motor_behind_closed_valve(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
     let t0 = std::time::Instant::now();
-    let inject = |_| Injection::HpWireBreakMotorReads(200.0);
+    // The transducer confirms the start for 0.5 s, then breaks.
+    let inject = |t: f64| {
+        if t < 0.5 {
+            Injection::None
+        } else {
+            Injection::HpWireBreakMotorReads(200.0)
+        }
+    };
     let (q, _res, rows) = closed_loop(
         q,
         bench,
@@ -614,7 +637,9 @@ pub fn check_motor_behind_closed_valve(q: Qemu, bench: &Bench) -> Result<(Qemu, 
             ),
             steps: rows.len(),
             wall_s: t0.elapsed().as_secs_f64(),
-            pass: trips == 0 && flagged_s.is_some_and(|t| t < 1.0) && err <= 2.0,
+            // Not before a real rotor would have spun down behind the valve closed since t = 0
+            // (683 steps, 0.667 s), and soon after.
+            pass: trips == 0 && flagged_s.is_some_and(|t| (0.66..1.0).contains(&t)) && err <= 2.0,
         },
     ))
 }

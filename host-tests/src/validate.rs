@@ -94,6 +94,9 @@ pub struct Row {
     /// Longest delay from the plant's accumulator running empty to the model-only estimate's
     /// empty flag, ms (the window's rest when it never came; None without an emptying).
     pub empty_flag_delay_ms: Option<f64>,
+    /// Share of the model-only samples with the empty flag up while the plant's P2 was more
+    /// than 0.3 bar above the precharge (information: the flag's margin makes it early).
+    pub empty_flag_early: f64,
     /// The f64 reference's P2 entered the capacitance table's cell at the HP precharge (there
     /// the node's dynamics are locally unstable and trajectories separate).
     pub crosses_precharge_cell: bool,
@@ -171,10 +174,9 @@ fn validate_scenario(
         coeffs::P_MAX_BAR,
     ));
     let pre_model = f64::from(mcfg.hp.precharge_bar);
-    let cell = (
-        (pre_model / h).floor() * h - h,
-        (pre_model / h).floor() * h + 2.0 * h,
-    );
+    // The cells on either side of the precharge (its dP/dV jump is interpolated over the one
+    // below it, and P2 settles in the one above).
+    let cell = (pre_model - h, pre_model + h);
     let in_cell = |p: f64| p >= cell.0 && p <= cell.1;
     let mut crosses_cell = false;
     for i in 0..n {
@@ -236,7 +238,7 @@ fn validate_scenario(
         crosses_cell |= in_cell(r.p2);
         d_p2_mo = d_p2_mo.max((p2 - r.p2).abs());
     }
-    let (emptyings, empty_flag_delay_ms) = empty.finish(m as f64 * dt);
+    let (emptyings, empty_flag_delay_ms, empty_flag_early) = empty.finish(m as f64 * dt);
     let rms = |se: f64| (se / count.max(1.0)).sqrt();
     let motor_rms_rel = (ss_w / count.max(1.0) > 1.0).then(|| (se_w / ss_w).sqrt());
     let row = Row {
@@ -257,6 +259,7 @@ fn validate_scenario(
         model_only_min_p2_bar: min_p2_mo,
         emptyings,
         empty_flag_delay_ms: empty_flag_delay_ms.map(|d| d * 1e3),
+        empty_flag_early,
         crosses_precharge_cell: crosses_cell,
         pass: false,
     };
@@ -393,7 +396,15 @@ struct EmptyWatch {
     below_since: Option<(f64, Option<f64>)>,
     events: usize,
     worst_s: Option<f64>,
+    /// Samples, and those with the flag up while the plant's accumulator still held oil
+    /// (P2 more than [`EARLY_MARGIN_BAR`] above the precharge).
+    samples: u64,
+    early: u64,
 }
+
+/// The plant's P2 this far above the precharge still has oil in its accumulator, bar (an
+/// empty flag then is early).
+const EARLY_MARGIN_BAR: f64 = 0.3;
 
 impl EmptyWatch {
     fn new(precharge_bar: f64, allowed_s: f64) -> Self {
@@ -403,10 +414,16 @@ impl EmptyWatch {
             below_since: None,
             events: 0,
             worst_s: None,
+            samples: 0,
+            early: 0,
         }
     }
 
     fn step(&mut self, t: f64, plant_p2_bar: f64, flag: bool) {
+        self.samples += 1;
+        if flag && plant_p2_bar > self.precharge_bar + EARLY_MARGIN_BAR {
+            self.early += 1;
+        }
         if plant_p2_bar >= self.precharge_bar {
             // Back above (a dip shorter than the allowed delay is not an emptying).
             self.close(t);
@@ -430,11 +447,21 @@ impl EmptyWatch {
         }
     }
 
-    /// (emptyings, worst delay in s) at the end of the window `t_end`.
-    fn finish(mut self, t_end: f64) -> (usize, Option<f64>) {
+    /// (emptyings, worst delay in s, share of samples flagged early) at the end of the window
+    /// `t_end`.
+    fn finish(mut self, t_end: f64) -> (usize, Option<f64>, f64) {
         self.close(t_end);
-        (self.events, self.worst_s)
+        let early = self.early as f64 / self.samples.max(1) as f64;
+        (self.events, self.worst_s, early)
     }
+}
+
+/// The sensor-noise seed of a scenario: from its name (FNV-1a), so a row does not depend on
+/// which other scenarios `--filter` selected.
+fn seed_of(name: &str) -> u64 {
+    name.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
+    })
 }
 
 /// The model crate's estimator + scheduler as the plant's valve controller.
@@ -669,9 +696,8 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
     };
     let results: Vec<Result<Row, String>> = scenarios
         .par_iter()
-        .enumerate()
         // Errors from `Scenario::simulate` already name the scenario.
-        .map(|(i, s)| validate_scenario(bench, &mcfg, &k, s, 1000 + i as u64))
+        .map(|s| validate_scenario(bench, &mcfg, &k, s, seed_of(&s.name)))
         .collect();
     let loops = if with_loop {
         closed_loop_rows(bench)

@@ -46,8 +46,9 @@ pub mod fault {
     /// Configuration index out of range (step ignored the duty mask).
     pub const BAD_CONFIG: u16 = 1 << 8;
     /// The motor speed contradicts the model: it turns behind a valve that has been closed for
-    /// longer than the rotor takes to spin down, or, without the HP transducer, it reads a P2
-    /// further from the model's than the gate allows (P2 is then not moved by it).
+    /// longer than the rotor takes to spin down, or, without the HP transducer, it reads a flow
+    /// the valve could not pass at the modelled aperture with P2 at the relief (P2 is then not
+    /// moved by it).
     pub const MOTOR_IMPLAUSIBLE: u16 = 1 << 9;
 }
 
@@ -590,20 +591,21 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         }
         None => {
             faults |= fault::HP_SENSOR;
-            // Within the band above the precharge the accumulator's last cm³ decide when it
-            // runs empty, and P2 then falls to the empty node's level (5–15 bar lower) within
-            // tens of ms, faster than any reading of the motor follows; on the empty node P2
-            // follows the pump flow, and rises back as fast when it refills. P2's standard
-            // deviation is at least `ModelConfig::precharge_sigma_bar` in both.
-            if s.p2 <= k.precharge_band_top && s.var < k.var_precharge {
-                (s.var, s.var_lo) = (k.var_precharge, 0);
-            }
             // Without it, correct P2 with the motor speed.
             match motor {
                 Some(m) if !closed => faults |= motor_reading(k, s, m.0, cmd, lp_dp, dp, q_ss, g),
                 // Closed: no reading; the filters restart once it opens, P2 waiting for them.
                 Some(_) => (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps),
                 None => (s.meas_live, s.meas_wait) = (false, 0),
+            }
+            // Within the band above the precharge the accumulator's last cm³ decide when it
+            // runs empty, and P2 then falls to the empty node's level (5–15 bar lower) within
+            // tens of ms, faster than any reading of the motor follows; on the empty node P2
+            // follows the pump flow, and rises back as fast when it refills. P2's standard
+            // deviation is at least `ModelConfig::precharge_sigma_bar` in both, after the
+            // motor reading has had its say.
+            if s.p2 <= k.precharge_band_top && s.var < k.var_precharge {
+                (s.var, s.var_lo) = (k.var_precharge, 0);
             }
         }
     }

@@ -292,6 +292,9 @@ pub enum Refusal {
     /// `Reset` while the overpressure trip holds: the trip's release condition (a valid HP
     /// reading and the estimate both below the release pressure) does not hold now.
     TripHeld(TripHold),
+    /// `Stall` (the watchdog self-test) while the overpressure trip holds: the reset it ends in
+    /// must not interrupt the safe state.
+    StallWhileTripped,
 }
 
 /// Why a tripped latch cannot release now.
@@ -301,16 +304,32 @@ pub enum TripHold {
     /// No valid HP reading (wire break, short, or outside the transducer's range): the pressure
     /// is unknown.
     HpMissing,
+    /// The HP reading (this value) disagrees with the model beyond the estimator's gate.
+    HpRejected(Pressure),
     /// The HP reading is above the release pressure (the reading).
     HpHigh(Pressure),
     /// The P2 estimate is above the release pressure (the estimate).
     EstimateHigh(Pressure),
+    /// While tripped the estimator had to reset P2 to the HP reading (they disagreed for the
+    /// whole reset window): a contradictory sensor, as a transducer failing to a valid low
+    /// current would be. Held until the host acknowledges it with a `Reset` while the reading
+    /// and the estimate are both below the release pressure; the hold time then runs again.
+    Contradicted,
 }
 
 impl core::fmt::Display for TripHold {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match self {
             TripHold::HpMissing => f.write_str("no valid HP reading (the pressure is unknown)"),
+            TripHold::HpRejected(p) => write!(
+                f,
+                "the HP reading {:.2} bar disagrees with the model beyond the gate",
+                p.to_f32()
+            ),
+            TripHold::Contradicted => f.write_str(
+                "the HP reading and the model contradicted each other while tripped: \
+                 acknowledge with a reset once both are below the release pressure",
+            ),
             TripHold::HpHigh(p) => {
                 write!(
                     f,
@@ -333,6 +352,9 @@ impl core::fmt::Display for Refusal {
     fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
         match self {
             Refusal::TripHeld(h) => write!(f, "reset refused: the overpressure trip holds: {h}"),
+            Refusal::StallWhileTripped => {
+                f.write_str("watchdog test refused: the overpressure trip holds")
+            }
         }
     }
 }
