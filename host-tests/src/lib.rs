@@ -14,6 +14,7 @@ pub mod fw_cost;
 pub mod golden;
 pub mod model_cost;
 pub mod motion;
+pub mod output;
 pub mod paper;
 pub mod perf;
 pub mod physics;

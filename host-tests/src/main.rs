@@ -148,7 +148,8 @@ enum Cmd {
     /// Boot the QEMU firmware, ping it, print its decoded defmt log and its counters, stop it.
     /// Needs qemu-system-arm and the thumbv7em-none-eabihf target (it builds the firmware).
     Qemu {
-        /// Also print the log lines as they arrive.
+        /// Print the log lines as they arrive and keep the firmware running until Ctrl-C (which
+        /// stops QEMU and removes its socket; exit status 130).
         #[arg(long)]
         follow: bool,
         /// Machine-readable output (the firmware's Hello, its status and the host's link
@@ -194,6 +195,10 @@ enum Cmd {
 
 fn main() -> ExitCode {
     let cli = Cli::parse();
+    // Ctrl-C or SIGTERM: QEMU children ended, their sockets removed, exit 130.
+    if let Err(e) = pto_host::output::install_interrupt_handler() {
+        eprintln!("warning: {e}");
+    }
     let result = match cli.cmd {
         Cmd::Scenarios { json } => scenarios(json),
         Cmd::Simulate {
@@ -427,17 +432,17 @@ fn paper_cmd(bench_path: Option<&PathBuf>, out: &Path, json: bool, plots: bool) 
     let wall = start.elapsed().as_secs_f64();
     let facts = paper::check(&bench, &outcomes);
     let pass = facts.iter().all(|f| f.pass);
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    // Every file of the run goes into a staging folder swapped in whole at the end: an
+    // interrupted run leaves the previous figures, report and facts together.
+    let stage = pto_host::output::StagedDir::new(out).map_err(anyhow::Error::msg)?;
+    let dir = stage.path().to_path_buf();
     let mut fig_paths = Vec::new();
     if plots {
         let r = Results::new(&outcomes);
         for f in figures::all(&r) {
-            fig_paths.push(
-                f.write(out)
-                    .map_err(anyhow::Error::msg)?
-                    .display()
-                    .to_string(),
-            );
+            let p = f.write(&dir).map_err(anyhow::Error::msg)?;
+            let name = p.file_name().map(PathBuf::from).unwrap_or_default();
+            fig_paths.push(out.join(name).display().to_string());
         }
     }
     let failed_runs: Vec<String> = outcomes
@@ -454,11 +459,12 @@ fn paper_cmd(bench_path: Option<&PathBuf>, out: &Path, json: bool, plots: bool) 
         figures: fig_paths,
     };
     let md = markdown_report(&report, &outcomes);
-    write_atomic(&out.join("report.md"), md.as_bytes())?;
+    write_atomic(&dir.join("report.md"), md.as_bytes())?;
     write_atomic(
-        &out.join("facts.json"),
+        &dir.join("facts.json"),
         serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;
+    stage.commit().map_err(anyhow::Error::msg)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
@@ -759,6 +765,17 @@ fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
     let ping = t0.elapsed();
     let st = pto_host::pil::status(&mut q).map_err(anyhow::Error::msg)?;
     let host = q.link.counts();
+    if follow {
+        eprintln!(
+            "ping answered in {:.2} ms; following the firmware's log — Ctrl-C stops it",
+            ping.as_secs_f64() * 1e3
+        );
+        eprint!("{}", pto_host::qemu::status_table(&st, &host));
+        while q.running() {
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        anyhow::bail!("QEMU ended by itself");
+    }
     q.link
         .send(&ToFirmware::Exit(0))
         .map_err(anyhow::Error::msg)?;
@@ -913,7 +930,10 @@ fn synth_logs_cmd(
     } else {
         runs.to_vec()
     };
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    // Written into a staging folder swapped in when every log is written (an interrupted run
+    // leaves the previous logs whole).
+    let stage = pto_host::output::StagedDir::new(out).map_err(anyhow::Error::msg)?;
+    let staged = stage.path().to_path_buf();
     let pb = count_bar(names.len() as u64, "logs");
     let logs: Vec<Result<pto_host::benchlog::BenchLog, String>> = {
         use rayon::prelude::*;
@@ -921,7 +941,7 @@ fn synth_logs_cmd(
             .par_iter()
             .enumerate()
             .map(|(i, n)| {
-                let r = fit::synth_log(&b, n, rate, seed + i as u64, out);
+                let r = fit::synth_log(&b, n, rate, seed + i as u64, &staged);
                 pb.inc(1);
                 r
             })
@@ -932,8 +952,10 @@ fn synth_logs_cmd(
     for l in logs {
         let l = l.map_err(anyhow::Error::msg)?;
         l.write().map_err(anyhow::Error::msg)?;
-        written.push((l.path.clone(), l.t.len()));
+        let name = l.path.file_name().map(PathBuf::from).unwrap_or_default();
+        written.push((out.join(name), l.t.len()));
     }
+    stage.commit().map_err(anyhow::Error::msg)?;
     if json {
         let v: Vec<_> = written
             .iter()

@@ -9,6 +9,7 @@ use pto_model::protocol::{
 };
 use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -128,6 +129,26 @@ pub struct Qemu {
 
 static SEQ: AtomicU32 = AtomicU32::new(0);
 
+/// Every running QEMU child (its process id, which is also its process group's, and its
+/// socket), for the interrupt handler.
+static RUNNING: Mutex<Vec<(u32, PathBuf)>> = Mutex::new(Vec::new());
+
+/// Ends every QEMU child this process started (SIGKILL to its process group, then reaps it) and
+/// removes its socket. Children are also ended by [`Qemu`]'s `Drop`; this is for the paths that
+/// skip it: SIGINT and SIGTERM (`output::install_interrupt_handler`).
+pub fn end_all_children() {
+    use nix::sys::signal::{Signal, killpg};
+    use nix::sys::wait::waitpid;
+    use nix::unistd::Pid;
+    let running = std::mem::take(&mut *RUNNING.lock().unwrap_or_else(|e| e.into_inner()));
+    for (pid, sock) in running {
+        let pid = Pid::from_raw(pid as i32);
+        let _ = killpg(pid, Signal::SIGKILL);
+        let _ = waitpid(pid, None);
+        let _ = std::fs::remove_file(&sock);
+    }
+}
+
 /// QEMU options: instruction counting (one virtual ns per instruction, TIM2 counts
 /// instructions) without sleeping, so that idle time costs no wall time.
 pub const ICOUNT: &str = "shift=0,align=off,sleep=off";
@@ -158,6 +179,9 @@ impl Qemu {
             ))
             .args(["-serial", "chardev:u0", "-kernel"])
             .arg(elf)
+            // Its own process group: a terminal's Ctrl-C reaches `pto`, which ends it (and
+            // `end_all_children` kills the whole group).
+            .process_group(0)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
@@ -168,6 +192,9 @@ impl Qemu {
                      qemu-system-arm`"
                 )
             })?;
+        if let Ok(mut r) = RUNNING.lock() {
+            r.push((child.id(), sock.clone()));
+        }
         let mut stdout = child.stdout.take().ok_or("no QEMU stdout")?;
         // QEMU's own messages (the "waiting for connection" note, errors): kept for error reports.
         let mut stderr = child.stderr.take().ok_or("no QEMU stderr")?;
@@ -233,6 +260,8 @@ impl Qemu {
                 Ok(s) => break s,
                 Err(e) => {
                     if let Ok(Some(st)) = child.try_wait() {
+                        forget(child.id());
+                        let _ = std::fs::remove_file(&sock);
                         std::thread::sleep(Duration::from_millis(50));
                         return Err(format!(
                             "QEMU exited before the link was up ({st}): {}",
@@ -240,6 +269,7 @@ impl Qemu {
                         ));
                     }
                     if t0.elapsed() > Duration::from_secs(20) {
+                        forget(child.id());
                         let _ = child.kill();
                         let _ = child.wait();
                         return Err(format!("cannot connect to {}: {e}", sock.display()));
@@ -261,6 +291,11 @@ impl Qemu {
         q.link.send(&ToFirmware::Hello)?;
         q.link.hello()?;
         Ok(q)
+    }
+
+    /// QEMU is still running.
+    pub fn running(&mut self) -> bool {
+        matches!(self.child.try_wait(), Ok(None))
     }
 
     /// Log lines decoded so far.
@@ -291,8 +326,17 @@ impl Qemu {
     }
 }
 
+/// Takes a child off the interrupt handler's list (it has been or is being reaped: its pid may
+/// be reused).
+fn forget(pid: u32) {
+    if let Ok(mut r) = RUNNING.lock() {
+        r.retain(|(p, _)| *p != pid);
+    }
+}
+
 impl Drop for Qemu {
     fn drop(&mut self) {
+        forget(self.child.id());
         let _ = self.child.kill();
         let _ = self.child.wait();
         if let Some(r) = self.reader.take() {

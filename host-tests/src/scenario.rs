@@ -127,6 +127,18 @@ impl Scenario {
                 Err(err(field, format!("{v} outside [{min}, {max}] ({unit})")))
             }
         };
+        // The name becomes file names in `--out` (`<name>.csv`, `<name>.png`): nothing that
+        // could leave that folder or hide in it.
+        if !is_file_name_safe(&self.name) {
+            return Err(err(
+                "name",
+                format!(
+                    "{:?} is not a file-name-safe name: 1–64 letters, digits, `.`, `_` or `-`, \
+                     not starting with `.`",
+                    self.name
+                ),
+            ));
+        }
         let config = bench.config_index(&self.config).ok_or_else(|| {
             let names: Vec<_> = bench.configs.iter().map(|c| c.name.as_str()).collect();
             err(
@@ -582,6 +594,17 @@ pub fn builtin() -> Vec<Scenario> {
         Some(60.0),
     ));
     v
+}
+
+/// A scenario name that is safe as a file name in any output folder: 1–64 ASCII letters,
+/// digits, `.`, `_` or `-`, not starting with `.` (so no `..`, no path separators, no hidden
+/// files).
+pub fn is_file_name_safe(name: &str) -> bool {
+    (1..=64).contains(&name.len())
+        && !name.starts_with('.')
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
 }
 
 /// The built-in scenario called `name`.

@@ -146,3 +146,85 @@ fn scenarios_json_lists_every_builtin() {
         pto_host::scenario::builtin().len()
     );
 }
+
+#[test]
+fn a_scenario_name_cannot_leave_the_output_folder() {
+    let dir = tmp("escape");
+    let f = dir.join("s.toml");
+    let (mut s, _) = pto_host::scenario::resolve("torque-cfg1-c1").unwrap();
+    s.name = "../../escaped".into();
+    std::fs::write(&f, toml::to_string(&s).unwrap()).unwrap();
+    let out_dir = dir.join("out");
+    let out = pto()
+        .args(["simulate"])
+        .arg(&f)
+        .arg("--out")
+        .arg(&out_dir)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains(":name: \"../../escaped\" is not a file-name-safe name"),
+        "{err}"
+    );
+    assert!(
+        !dir.join("escaped.csv").exists() && !std::env::temp_dir().join("escaped.csv").exists()
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `pto paper` interrupted (SIGINT) over an earlier run leaves that run's output whole and no
+/// temporary folder; a folder of the user's own files is refused as `--out`, never replaced.
+#[test]
+fn an_interrupted_paper_run_leaves_the_previous_output_whole() {
+    use nix::sys::signal::{Signal, kill};
+    use nix::unistd::Pid;
+    let base = tmp("paper-int");
+    let out_dir = base.join("paper");
+    let run = |extra: &[&str]| {
+        let mut c = pto();
+        c.args(["paper", "--no-plots", "--json", "--out"])
+            .arg(&out_dir)
+            .args(extra);
+        c
+    };
+    let first = run(&[]).output().unwrap();
+    assert!(first.status.code().is_some_and(|c| c <= 1), "{first:?}");
+    let report = std::fs::read(out_dir.join("report.md")).unwrap();
+    let facts = std::fs::read(out_dir.join("facts.json")).unwrap();
+    // A second run, interrupted while it simulates.
+    let mut second = run(&[])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1500));
+    kill(Pid::from_raw(second.id() as i32), Signal::SIGINT).unwrap();
+    let st = second.wait().unwrap();
+    assert_eq!(st.code(), Some(130), "interrupted: {st}");
+    assert_eq!(std::fs::read(out_dir.join("report.md")).unwrap(), report);
+    assert_eq!(std::fs::read(out_dir.join("facts.json")).unwrap(), facts);
+    let left: Vec<String> = std::fs::read_dir(&base)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert_eq!(
+        left,
+        vec!["paper".to_string()],
+        "temporary folders left: {left:?}"
+    );
+    // The user's own folder.
+    let mine = base.join("mine");
+    std::fs::create_dir_all(&mine).unwrap();
+    std::fs::write(mine.join("notes.txt"), "mine").unwrap();
+    let r = pto()
+        .args(["paper", "--no-plots", "--out"])
+        .arg(&mine)
+        .output()
+        .unwrap();
+    assert_eq!(r.status.code(), Some(2));
+    assert!(String::from_utf8_lossy(&r.stderr).contains("not made by pto"));
+    assert!(mine.join("notes.txt").exists());
+    std::fs::remove_dir_all(&base).unwrap();
+}
