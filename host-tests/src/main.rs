@@ -45,8 +45,8 @@ enum Cmd {
         /// Machine-readable summary on stdout.
         #[arg(long)]
         json: bool,
-        /// Solver relative tolerance.
-        #[arg(long, default_value_t = SolverOptions::default().rtol)]
+        /// Solver relative tolerance, 1e-12 to 1e-2.
+        #[arg(long, allow_hyphen_values = true, default_value_t = SolverOptions::default().rtol, value_parser = finite_in(1e-12, 1e-2, ""))]
         rtol: f64,
     },
     /// Run every built-in scenario, check the paper's ten facts, write the figures and a report.
@@ -101,8 +101,8 @@ enum Cmd {
         /// Built-in scenarios to log (default: the seven experimental runs).
         #[arg(long, value_delimiter = ',')]
         runs: Vec<String>,
-        /// Sample rate, Hz.
-        #[arg(long, default_value_t = 10.0)]
+        /// Sample rate, 0.1 to 2000 Hz.
+        #[arg(long, allow_hyphen_values = true, default_value_t = 10.0, value_parser = finite_in(0.1, 2000.0, "Hz"))]
         rate: f64,
         /// Noise seed.
         #[arg(long, default_value_t = 1)]
@@ -132,12 +132,13 @@ enum Cmd {
             default_value = "trapped_air,cd,precharge"
         )]
         params: Vec<String>,
-        /// Residual samples every this many seconds of each log.
-        #[arg(long, default_value_t = 0.5)]
+        /// Residual samples every this many seconds of each log, 0.01 to 60 s.
+        #[arg(long, allow_hyphen_values = true, default_value_t = 0.5, value_parser = finite_in(0.01, 60.0, "s"))]
         spacing: f64,
-        /// Iteration limit (Levenberg–Marquardt patience, × parameters + 1 evaluations).
-        #[arg(long, default_value_t = 20)]
-        max_iter: usize,
+        /// Iteration limit (Levenberg–Marquardt patience, × parameters + 1 evaluations), 1 to
+        /// 10 000.
+        #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=10_000))]
+        max_iter: u32,
         /// Output directory (figures; the fitted files when starting from the built-in bench).
         #[arg(long, default_value = "out/fit")]
         out: PathBuf,
@@ -191,6 +192,22 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+}
+
+/// A clap parser for a finite number in [lo, hi] (`unit` for the message): NaN, infinities and
+/// values out of range are argument errors (exit 2), never a hang or a solver failure.
+fn finite_in(lo: f64, hi: f64, unit: &'static str) -> impl Fn(&str) -> Result<f64, String> + Clone {
+    move |v: &str| {
+        let x: f64 = v.parse().map_err(|_| format!("{v:?} is not a number"))?;
+        if x.is_finite() && (lo..=hi).contains(&x) {
+            Ok(x)
+        } else {
+            Err(format!(
+                "{v} outside [{lo:e}, {hi:e}]{}{unit}",
+                if unit.is_empty() { "" } else { " " }
+            ))
+        }
+    }
 }
 
 fn main() -> ExitCode {
@@ -249,7 +266,7 @@ fn main() -> ExitCode {
             bench.as_ref(),
             &params,
             spacing,
-            max_iter,
+            max_iter as usize,
             &out,
             json,
         ),

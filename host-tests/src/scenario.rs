@@ -169,8 +169,41 @@ impl Scenario {
                 format!("{n_samples:.0} samples: over the 5e6 limit, use a coarser interval"),
             ));
         }
+        if self.sample_interval_s >= self.duration_s {
+            return Err(err(
+                "sample_interval_s",
+                format!(
+                    "{} s is not shorter than duration_s = {} s (the run would record nothing)",
+                    self.sample_interval_s, self.duration_s
+                ),
+            ));
+        }
         range("initial_lp_bar", self.initial_lp_bar, 0.0, 100.0, "bar")?;
         let relief = bench.relief_setting / BAR;
+        // The accumulators must hold oil at the start: the HP precharge below the relief
+        // setting (else the HP accumulator never takes any), the LP precharge below the LP
+        // start (else LP runs below zero as the pumps draw from it).
+        let hp_pre = bench.hp_acc.precharge / BAR;
+        if hp_pre >= relief {
+            return Err(err(
+                "hp_accumulator.precharge_bar",
+                format!(
+                    "{hp_pre} bar is not below the relief setting {relief} bar: the HP accumulator \
+                     would never take oil"
+                ),
+            ));
+        }
+        let lp_pre = bench.lp_acc.precharge / BAR;
+        if lp_pre >= self.initial_lp_bar {
+            return Err(err(
+                "initial_lp_bar",
+                format!(
+                    "{} bar is not above the LP accumulator's precharge {lp_pre} bar: it would \
+                     start empty and LP fall below zero",
+                    self.initial_lp_bar
+                ),
+            ));
+        }
         match &self.valve {
             ValveSpec::Constant { aperture_pct } => {
                 range("valve.aperture_pct", *aperture_pct, 0.0, 100.0, "%")?
@@ -208,6 +241,8 @@ impl Scenario {
         }
         let motion = Motion::from_spec(&self.motion, bench.pinion_radius, base)
             .map_err(|e| err("motion", e.to_string()))?;
+        self.check_kinematics(bench, config, &motion)
+            .map_err(|m| err("motion", m))?;
         let lp = self.initial_lp_bar * BAR;
         let p2 = match self.initial_hp_bar {
             Some(p) => {
@@ -241,6 +276,81 @@ impl Scenario {
             on_duty,
             initial: Initial { p2, lp },
         })
+    }
+
+    /// The motion must stay feasible for the whole run: a trace must cover it, and every rod's
+    /// eye (all four are linked to the lever, on duty or not) must stay within its stroke.
+    fn check_kinematics(
+        &self,
+        bench: &Bench,
+        config: usize,
+        motion: &Motion,
+    ) -> Result<(), String> {
+        if let Motion::Trace { t, .. } = motion
+            && let Some(&end) = t.last()
+            && end < self.duration_s
+        {
+            return Err(format!(
+                "the trace ends at {end} s, before the run's {} s (its last angle would be held)",
+                self.duration_s
+            ));
+        }
+        // The extreme angles of the run (exact for a sine or a blocked input, sampled at
+        // ≤ 1 ms, at most 10^6 points, otherwise).
+        let (lo, hi, t_lo, t_hi) = match motion {
+            Motion::Sine { amplitude, omega } => {
+                let quarter = std::f64::consts::FRAC_PI_2 / omega.max(1e-12);
+                (-amplitude, *amplitude, 3.0 * quarter, quarter)
+            }
+            Motion::Blocked(a) => (*a, *a, 0.0, 0.0),
+            _ => {
+                let n = ((self.duration_s / 1e-3).ceil() as usize).clamp(2, 1_000_000);
+                let mut ext = (f64::INFINITY, f64::NEG_INFINITY, 0.0, 0.0);
+                for i in 0..=n {
+                    let t = self.duration_s * i as f64 / n as f64;
+                    let a = motion.at(t).0;
+                    if a < ext.0 {
+                        ext = (a, ext.1, t, ext.3);
+                    }
+                    if a > ext.1 {
+                        ext = (ext.0, a, ext.2, t);
+                    }
+                }
+                ext
+            }
+        };
+        let geom = &bench.configs[config];
+        // Every angle the shaft passes through (the eye is not monotonic over a whole turn).
+        let sweep = (0..=256).map(|i| {
+            let a = lo + (hi - lo) * f64::from(i) / 256.0;
+            (a, if i < 128 { t_lo } else { t_hi })
+        });
+        for c in &bench.cylinders {
+            let lever = crate::physics::Lever::new(geom, c.stroke, c.side);
+            for (a, t) in sweep.clone() {
+                let x = lever.eye(a, 0.0).0;
+                if !(0.0..=c.stroke).contains(&x) {
+                    let past = if x < 0.0 { -x } else { x - c.stroke };
+                    return Err(format!(
+                        "the shaft swings to {:.1}° (its extreme near t = {t:.2} s); at {:.1}° \
+                         {}'s rod eye is {:.1} mm past its {} (stroke {:.0} mm, lever {}): \
+                         reduce the amplitude",
+                        if a < 0.5 * (lo + hi) { lo } else { hi }.to_degrees(),
+                        a.to_degrees(),
+                        c.name,
+                        past * 1e3,
+                        if x < 0.0 {
+                            "retracted end"
+                        } else {
+                            "extended end"
+                        },
+                        c.stroke * 1e3,
+                        geom.name
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// The valve schedule in simulator units.

@@ -228,3 +228,126 @@ fn an_interrupted_paper_run_leaves_the_previous_output_whole() {
     assert!(mine.join("notes.txt").exists());
     std::fs::remove_dir_all(&base).unwrap();
 }
+
+/// Numeric options: NaN, infinities and out-of-range values are argument errors (exit 2) that
+/// name the option and its range (`--rtol nan` used to hang, `--rtol 1` to fail in the solver).
+#[test]
+fn numeric_options_must_be_finite_and_in_range() {
+    for (args, want) in [
+        (
+            vec!["simulate", "torque-cfg1-c1", "--rtol", "nan"],
+            "'--rtol <RTOL>': nan outside [1e-12, 1e-2]",
+        ),
+        (
+            vec!["simulate", "torque-cfg1-c1", "--rtol", "inf"],
+            "inf outside",
+        ),
+        (
+            vec!["simulate", "torque-cfg1-c1", "--rtol", "-1"],
+            "-1 outside",
+        ),
+        (
+            vec!["simulate", "torque-cfg1-c1", "--rtol", "1"],
+            "1 outside",
+        ),
+        (
+            vec!["synth-logs", "--rate", "0"],
+            "'--rate <RATE>': 0 outside [1e-1, 2e3] Hz",
+        ),
+        (vec!["fit", "x.csv", "--spacing", "nan"], "nan outside"),
+        (
+            vec!["fit", "x.csv", "--max-iter", "0"],
+            "0 is not in 1..=10000",
+        ),
+    ] {
+        let out = pto().args(&args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(want), "{args:?}: {err}");
+    }
+}
+
+/// Scenarios that cannot run as written are errors naming the field and the limit (they used
+/// to run with exit 0: rods past their end caps, "simulated 0 s", a held last angle, an HP
+/// accumulator that never takes oil, LP below zero).
+#[test]
+fn infeasible_scenarios_are_refused_with_the_field_and_the_limit() {
+    let dir = tmp("feasible");
+    let base = || pto_host::scenario::resolve("torque-cfg1-c1").unwrap().0;
+    let trace = dir.join("short.csv");
+    std::fs::write(&trace, "time_s,shaft_angle_deg\n0,0\n1,2\n2,0\n").unwrap();
+    let bench_hi = dir.join("hi-precharge.toml");
+    std::fs::write(
+        &bench_hi,
+        pto_host::bench::REFERENCE_BENCH_TOML.replacen(
+            "precharge_bar = 25.0",
+            "precharge_bar = 135.0",
+            1,
+        ),
+    )
+    .unwrap();
+    let cases: Vec<(pto_host::scenario::Scenario, Option<&std::path::Path>, &str)> = vec![
+        (
+            pto_host::scenario::Scenario {
+                motion: pto_host::motion::MotionSpec::Sine {
+                    amplitude_mm: 500.0,
+                    frequency_hz: 0.1,
+                },
+                ..base()
+            },
+            None,
+            ":motion: the shaft swings to",
+        ),
+        (
+            pto_host::scenario::Scenario {
+                sample_interval_s: 5.0,
+                duration_s: 2.0,
+                ..base()
+            },
+            None,
+            ":sample_interval_s: 5 s is not shorter than duration_s = 2 s",
+        ),
+        (
+            pto_host::scenario::Scenario {
+                motion: pto_host::motion::MotionSpec::Trace {
+                    file: trace.clone(),
+                },
+                duration_s: 10.0,
+                ..base()
+            },
+            None,
+            ":motion: the trace ends at 2 s, before the run's 10 s",
+        ),
+        (
+            pto_host::scenario::Scenario {
+                initial_lp_bar: 3.0,
+                ..base()
+            },
+            None,
+            ":initial_lp_bar: 3 bar is not above the LP accumulator's precharge",
+        ),
+        (
+            base(),
+            Some(&bench_hi),
+            ":hp_accumulator.precharge_bar: 135 bar is not below the relief",
+        ),
+    ];
+    for (i, (s, bench, want)) in cases.into_iter().enumerate() {
+        let f = dir.join(format!("case{i}.toml"));
+        std::fs::write(&f, toml::to_string(&s).unwrap()).unwrap();
+        let mut c = pto();
+        c.args(["simulate"])
+            .arg(&f)
+            .arg("--out")
+            .arg(dir.join("out"));
+        if let Some(b) = bench {
+            c.arg("--bench").arg(b);
+        }
+        let out = c.output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        println!("case {i}: {}", err.trim());
+        assert_eq!(out.status.code(), Some(2), "case {i}: {err}");
+        assert!(err.contains(want), "case {i}: {err}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
