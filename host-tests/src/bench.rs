@@ -344,6 +344,66 @@ impl Checker {
 }
 
 impl BenchFile {
+    /// Sets the field at a dotted path (`hp_accumulator.precharge_bar`, `cylinder[1].bore_mm`,
+    /// `control_valve.area_mm2[3]`) to `value` (TOML: a number, a boolean, a quoted string or
+    /// an array), keeping its type. Errors name the path and, for an unknown key, the keys
+    /// there. The result is validated when it becomes a [`Bench`].
+    pub fn set_field(&mut self, path: &str, value: &str) -> Result<(), String> {
+        let mut root = toml::Value::try_from(&*self).map_err(|e| e.to_string())?;
+        let mut at = &mut root;
+        for part in path.split('.') {
+            let (key, index) = match part.split_once('[') {
+                Some((k, rest)) => {
+                    let i = rest
+                        .strip_suffix(']')
+                        .and_then(|i| i.parse::<usize>().ok())
+                        .ok_or_else(|| format!("{path}: bad index in `{part}`"))?;
+                    (k, Some(i))
+                }
+                None => (part, None),
+            };
+            let table = at
+                .as_table_mut()
+                .ok_or_else(|| format!("{path}: `{key}` is inside a value, not a table"))?;
+            let known: Vec<String> = table.keys().cloned().collect();
+            at = table.get_mut(key).ok_or_else(|| {
+                format!(
+                    "{path}: unknown field `{key}` (fields here: {})",
+                    known.join(", ")
+                )
+            })?;
+            if let Some(i) = index {
+                let arr = at
+                    .as_array_mut()
+                    .ok_or_else(|| format!("{path}: `{key}` is not a list"))?;
+                let n = arr.len();
+                at = arr
+                    .get_mut(i)
+                    .ok_or_else(|| format!("{path}: index {i} outside `{key}`'s 0..{n}"))?;
+            }
+        }
+        let parsed: toml::Table = toml::from_str(&format!("v = {value}"))
+            .or_else(|_| toml::from_str(&format!("v = {value:?}")))
+            .map_err(|e| format!("{path}: `{value}` is not a value: {e}"))?;
+        let mut new = parsed["v"].clone();
+        new = match (&*at, new) {
+            (toml::Value::Float(_), toml::Value::Integer(i)) => toml::Value::Float(i as f64),
+            (old, new) if old.type_str() == new.type_str() => new,
+            (old, new) => {
+                return Err(format!(
+                    "{path}: `{value}` is a {}, the field holds a {}",
+                    new.type_str(),
+                    old.type_str()
+                ));
+            }
+        };
+        *at = new;
+        *self = root
+            .try_into()
+            .map_err(|e: toml::de::Error| format!("{path}: {e}"))?;
+        Ok(())
+    }
+
     /// Parses TOML text; `file` names the source in error messages.
     pub fn parse(text: &str, file: &str) -> Result<Self, BenchError> {
         toml::from_str(text).map_err(|e| BenchError::Parse {

@@ -885,35 +885,40 @@ pub const EXPERIMENTAL_RUNS: [&str; 7] = [
     "exp-discharge-71",
 ];
 
-/// Sets `key = value` overrides on a bench file (`pto synth-logs --set`), by parameter name
-/// or bench field.
+/// Sets a `name=value` override on a bench file (`pto synth-logs --set`, `pto simulate
+/// --set`): a fit parameter's short name (`trapped_air`, `cd`, `precharge`, …) or any bench
+/// field by its dotted path (`hp_accumulator.volume_l`, `cylinder[1].bore_mm`).
 pub fn apply_override(f: &mut BenchFile, kv: &str) -> Result<(), String> {
     let (k, v) = kv
         .split_once('=')
         .ok_or_else(|| format!("--set {kv}: want name=value"))?;
-    let v: f64 = v
-        .trim()
-        .parse()
-        .map_err(|_| format!("--set {kv}: `{v}` is not a number"))?;
     let k = k.trim();
+    if k.contains('.') || k.contains('[') {
+        return f.set_field(k, v.trim()).map_err(|e| format!("--set {e}"));
+    }
+    let Ok(v) = v.trim().parse::<f64>() else {
+        return f.set_field(k, v.trim()).map_err(|e| format!("--set {e}"));
+    };
     let scalars: Vec<String> = PARAM_NAMES
         .iter()
         .filter(|n| **n != "area_table")
         .map(|n| n.to_string())
         .collect();
     let all = params(&scalars, f)?;
-    let p = all
-        .iter()
-        .find(|p| p.name == k || p.key == k)
-        .ok_or_else(|| {
+    match all.iter().find(|p| p.name == k || p.key == k) {
+        Some(p) => {
+            (p.set)(f, v);
+            Ok(())
+        }
+        // Not a parameter name: a top-level bench field.
+        None => f.set_field(k, &v.to_string()).map_err(|e| {
             format!(
-                "--set {kv}: unknown `{k}` (known: {})",
+                "--set {e} (or a parameter: {})",
                 all.iter()
-                    .map(|p| format!("{} ({})", p.name, p.key))
+                    .map(|p| p.name.clone())
                     .collect::<Vec<_>>()
                     .join(", ")
             )
-        })?;
-    (p.set)(f, v);
-    Ok(())
+        }),
+    }
 }

@@ -27,12 +27,18 @@ struct Cli {
 #[derive(Subcommand)]
 enum Cmd {
     /// List the built-in scenarios.
+    #[command(
+        after_help = "Examples:\n  pto scenarios\n  pto scenarios --json > scenarios.json\n\nExit status:\n  0 always"
+    )]
     Scenarios {
         /// Machine-readable output.
         #[arg(long)]
         json: bool,
     },
     /// Run one scenario (built-in name or TOML file): CSV, plots and a summary.
+    #[command(
+        after_help = "Examples:\n  pto simulate test3-ap10\n  pto simulate my-run.toml --bench my-bench.toml --out runs --json\n  pto simulate torque-cfg1-c14 --set hp_accumulator.volume_l=5\n\nExit status:\n  0 the run finished and its oil and energy balances close within 1e-4\n  1 a balance missed 1e-4\n  2 bad input (file, field, value, range and unit named), or the run failed\n  130 interrupted (nothing left half-written)"
+    )]
     Simulate {
         /// Built-in scenario name (see `pto scenarios`) or a scenario TOML file.
         scenario: String,
@@ -45,11 +51,19 @@ enum Cmd {
         /// Machine-readable summary on stdout.
         #[arg(long)]
         json: bool,
+        /// Override a bench value: `--set hp_accumulator.volume_l=5 --set cylinder[1].bore_mm=50`
+        /// (any field of the bench file by its dotted path), or a fit parameter's short name
+        /// (`trapped_air=0.04`, `cd=0.17`, `precharge=45`).
+        #[arg(long = "set", value_name = "FIELD=VALUE")]
+        set: Vec<String>,
         /// Solver relative tolerance, 1e-12 to 1e-2.
         #[arg(long, allow_hyphen_values = true, default_value_t = SolverOptions::default().rtol, value_parser = finite_in(1e-12, 1e-2, ""))]
         rtol: f64,
     },
     /// Run every built-in scenario, check the paper's ten facts, write the figures and a report.
+    #[command(
+        after_help = "Examples:\n  pto paper\n  pto paper --bench my-bench.toml --out out/my-paper --no-plots --json\n\nExit status:\n  0 every fact holds\n  1 a fact failed (the report says which)\n  2 bad input\n  130 interrupted (the previous output folder left whole)"
+    )]
     Paper {
         /// Bench parameter file (default: the reference bench).
         #[arg(long)]
@@ -66,6 +80,9 @@ enum Cmd {
     },
     /// Run the fixed-point model against the full simulation on every built-in scenario, and the
     /// scheduler in closed loop; print the figures against the targets.
+    #[command(
+        after_help = "Examples:\n  pto validate\n  pto validate --filter test1 --no-loop --json\n\nExit status:\n  0 every target met in every scenario (and the closed loop, unless --no-loop)\n  1 a target missed (the row names it)\n  2 bad input"
+    )]
     Validate {
         /// Bench parameter file (default: the reference bench).
         #[arg(long)]
@@ -83,6 +100,9 @@ enum Cmd {
     /// Per-step cost of the fixed-point model: host ns/step, state and code size for both thumb
     /// targets (builds pto-model for them; needs `rustup target add thumbv6m-none-eabi
     /// thumbv7em-none-eabihf`).
+    #[command(
+        after_help = "Examples:\n  pto model-cost --json\n\nExit status:\n  0 every budget met\n  1 a budget missed\n  2 the build failed"
+    )]
     ModelCost {
         /// Machine-readable output.
         #[arg(long)]
@@ -90,19 +110,23 @@ enum Cmd {
     },
     /// Make synthetic bench logs of the paper's experimental runs (64.5 / 67.2 / 72 / 101.5 bar
     /// starts; discharges from 102 / 84 / 71 bar) from the full simulation and the sensor model.
+    #[command(
+        after_help = "Examples:\n  pto synth-logs\n  pto synth-logs --set trapped_air=0.04 --set hp_accumulator.precharge_bar=45 --runs test3-ap10 --rate 50 --out logs\n\nExit status:\n  0 the logs were written\n  2 bad input\n  130 interrupted (the previous logs left whole)"
+    )]
     SynthLogs {
         /// Bench parameter file (default: the reference bench).
         #[arg(long)]
         bench: Option<PathBuf>,
-        /// Override a bench value, e.g. `--set trapped_air=0.04 --set cd=0.17 --set
-        /// precharge=45` (names as in `pto fit --params`, or bench fields).
+        /// Override a bench value: any field of the bench file by its dotted path
+        /// (`--set hp_accumulator.precharge_bar=45 --set cylinder[1].bore_mm=50`), or a fit
+        /// parameter's short name (`trapped_air=0.04`, `cd=0.17`, `precharge=45`).
         #[arg(long = "set", value_name = "NAME=VALUE")]
         set: Vec<String>,
         /// Built-in scenarios to log (default: the seven experimental runs).
         #[arg(long, value_delimiter = ',')]
         runs: Vec<String>,
-        /// Sample rate, 0.1 to 2000 Hz.
-        #[arg(long, allow_hyphen_values = true, default_value_t = 10.0, value_parser = finite_in(0.1, 2000.0, "Hz"))]
+        /// Sample rate, 0.1 to 1000 Hz.
+        #[arg(long, allow_hyphen_values = true, default_value_t = 10.0, value_parser = finite_in(0.1, 1000.0, "Hz"))]
         rate: f64,
         /// Noise seed.
         #[arg(long, default_value_t = 1)]
@@ -117,6 +141,9 @@ enum Cmd {
     /// Fit bench parameters to bench logs by least squares over full simulations driven by the
     /// logged motion and valve aperture; writes the fitted bench file next to the input, the
     /// model-crate configuration for the firmware, and plots.
+    #[command(
+        after_help = "Examples:\n  pto fit logs/*.csv\n  pto fit logs/*.csv --bench my-bench.toml --params trapped_air,cd --json\n\nExit status:\n  0 the fit converged\n  1 it did not\n  2 bad input"
+    )]
     Fit {
         /// Bench log CSV files.
         #[arg(required = true)]
@@ -148,6 +175,9 @@ enum Cmd {
     },
     /// Boot the QEMU firmware, ping it, print its decoded defmt log and its counters, stop it.
     /// Needs qemu-system-arm and the thumbv7em-none-eabihf target (it builds the firmware).
+    #[command(
+        after_help = "Examples:\n  pto qemu\n  pto qemu --follow     # keep it running, its log live; Ctrl-C stops it\n  pto qemu --json\n\nExit status:\n  0 the firmware answered and exited cleanly\n  1 it did not\n  2 QEMU or the build missing\n  130 interrupted (QEMU stopped, its socket removed)"
+    )]
     Qemu {
         /// Print the log lines as they arrive and keep the firmware running until Ctrl-C (which
         /// stops QEMU and removes its socket; exit status 130).
@@ -160,6 +190,9 @@ enum Cmd {
     },
     /// Processor-in-the-loop: the full simulation as the plant, the QEMU firmware as the
     /// controller in lockstep (hold P2, hold motor speed, overpressure trip).
+    #[command(
+        after_help = "Examples:\n  pto pil\n  pto pil --bench my-bench.toml --json\n\nExit status:\n  0 every check met\n  1 a check missed\n  2 bad input, QEMU or the build missing\n  130 interrupted"
+    )]
     Pil {
         /// Bench parameter file (default: the reference bench).
         #[arg(long)]
@@ -170,6 +203,9 @@ enum Cmd {
     },
     /// Firmware cost: instructions per estimator + scheduler step (QEMU, -icount shift=0,
     /// TIM2), flash and static RAM of the bench and QEMU builds.
+    #[command(
+        after_help = "Examples:\n  pto fw-cost\n  pto fw-cost --json --trace step-costs.csv\n\nExit status:\n  0 every budget met (2 200 instructions a step, 128 KiB flash, 32 KiB RAM)\n  1 a budget missed\n  2 QEMU or the build missing\n  130 interrupted"
+    )]
     FwCost {
         /// Machine-readable output.
         #[arg(long)]
@@ -181,6 +217,9 @@ enum Cmd {
         trace: Option<PathBuf>,
     },
     /// Wall time, real-time factor and accuracy of Test III and a 1000 s irregular sea.
+    #[command(
+        after_help = "Examples:\n  pto bench\n  pto bench --repeats 5 --json\n\nExit status:\n  0 every target met\n  1 a target missed\n  2 bad input"
+    )]
     Bench {
         /// Bench parameter file (default: the reference bench).
         #[arg(long)]
@@ -223,8 +262,9 @@ fn main() -> ExitCode {
             bench,
             out,
             json,
+            set,
             rtol,
-        } => simulate(&scenario, bench.as_ref(), &out, json, rtol),
+        } => simulate(&scenario, bench.as_ref(), &set, &out, json, rtol),
         Cmd::Paper {
             bench,
             out,
@@ -285,6 +325,22 @@ fn main() -> ExitCode {
 
 fn load_bench(path: Option<&PathBuf>) -> Result<Bench> {
     Ok(Bench::load_or_reference(path)?)
+}
+
+/// The bench file with `--set` overrides applied, validated (errors name the field).
+fn load_bench_with(path: Option<&PathBuf>, set: &[String]) -> Result<Bench> {
+    if set.is_empty() {
+        return load_bench(path);
+    }
+    let base = load_bench(path)?;
+    let mut file = base.file;
+    for kv in set {
+        pto_host::fit::apply_override(&mut file, kv).map_err(anyhow::Error::msg)?;
+    }
+    Ok(Bench::from_file(
+        file,
+        &format!("{} with --set", base.source),
+    )?)
 }
 
 fn scenarios(json: bool) -> Result<bool> {
@@ -363,11 +419,12 @@ fn progress_bar(len_ms: u64, label: &str) -> ProgressBar {
 fn simulate(
     name: &str,
     bench_path: Option<&PathBuf>,
+    set: &[String],
     out: &Path,
     json: bool,
     rtol: f64,
 ) -> Result<bool> {
-    let bench = load_bench(bench_path)?;
+    let bench = load_bench_with(bench_path, set)?;
     let (s, base) = scenario::resolve(name)?;
     let prepared = s.prepare(&bench, &base)?;
     let solver = SolverOptions {
@@ -931,14 +988,7 @@ fn synth_logs_cmd(
     json: bool,
 ) -> Result<bool> {
     use pto_host::fit;
-    if !(0.1..=1000.0).contains(&rate) {
-        bail!("--rate {rate}: outside [0.1, 1000] Hz");
-    }
-    let mut file = load_bench(bench)?.file;
-    for kv in set {
-        fit::apply_override(&mut file, kv).map_err(anyhow::Error::msg)?;
-    }
-    let b = Bench::from_file(file, "--set").context("the overridden bench")?;
+    let b = load_bench_with(bench, set)?;
     let names: Vec<String> = if runs.is_empty() {
         fit::EXPERIMENTAL_RUNS
             .iter()

@@ -252,7 +252,7 @@ fn numeric_options_must_be_finite_and_in_range() {
         ),
         (
             vec!["synth-logs", "--rate", "0"],
-            "'--rate <RATE>': 0 outside [1e-1, 2e3] Hz",
+            "'--rate <RATE>': 0 outside [1e-1, 1e3] Hz",
         ),
         (vec!["fit", "x.csv", "--spacing", "nan"], "nan outside"),
         (
@@ -350,4 +350,80 @@ fn infeasible_scenarios_are_refused_with_the_field_and_the_limit() {
         assert!(err.contains(want), "case {i}: {err}");
     }
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `--set` reaches any bench field by its dotted path (simulate and synth-logs alike), keeps
+/// its type, and names a wrong path with the fields there.
+#[test]
+fn set_reaches_any_bench_field() {
+    let dir = tmp("set");
+    let ok = pto()
+        .args([
+            "simulate",
+            "torque-cfg1-c1",
+            "--json",
+            "--set",
+            "hp_accumulator.precharge_bar=30",
+            "--set",
+            "cylinder[0].bore_mm=40",
+            "--out",
+        ])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
+    for (set, want) in [
+        (
+            "hp_accumulator.precharge=30",
+            "unknown field `precharge` (fields here:",
+        ),
+        ("cylinder[9].bore_mm=40", "index 9 outside"),
+        (
+            "hp_accumulator.precharge_bar=\"high\"",
+            "is a string, the field holds a float",
+        ),
+        (
+            "relief_valve.setting_bar=900",
+            "relief_valve.setting_bar: 900 outside [1, 400] (bar)",
+        ),
+    ] {
+        let out = pto()
+            .args(["simulate", "torque-cfg1-c1", "--set", set, "--out"])
+            .arg(&dir)
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{set}: {err}");
+        assert!(err.contains(want), "{set}: {err}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn every_command_help_shows_examples_and_exit_codes() {
+    for cmd in [
+        "scenarios",
+        "simulate",
+        "paper",
+        "validate",
+        "model-cost",
+        "synth-logs",
+        "fit",
+        "qemu",
+        "pil",
+        "fw-cost",
+        "bench",
+    ] {
+        let out = pto().args([cmd, "--help"]).output().unwrap();
+        let help = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{cmd}");
+        assert!(
+            help.contains("Examples:\n  pto ") && help.contains("Exit status:\n  0 "),
+            "{cmd} --help:\n{help}"
+        );
+    }
 }
