@@ -266,8 +266,9 @@ pub fn all(r: &Results) -> Vec<Figure> {
     figs
 }
 
-/// The standard figure of a single run: P2/LP, flows, motor speed, torque.
-pub fn single(name: &str, t: &Trace) -> Figure {
+/// The standard figure of a single run: P2/LP, flows, motor speed, torque, the valve aperture
+/// and the chamber pressures of the cylinders on duty (`on_duty`, with their names).
+pub fn single(name: &str, t: &Trace, on_duty: &[(usize, String)]) -> Figure {
     let s = |label: &str, col: Col| Series {
         label: label.into(),
         x: t.t.clone(),
@@ -299,6 +300,31 @@ pub fn single(name: &str, t: &Trace) -> Figure {
                 Col::Torque,
                 vec![s("shaft", Col::Torque)],
             ),
+            Panel {
+                title: "control valve".into(),
+                x_label: "time (s)".into(),
+                y_label: "aperture (%)".into(),
+                series: vec![Series {
+                    label: "aperture".into(),
+                    x: t.t.clone(),
+                    y: t.aperture.iter().map(|a| a * 100.0).collect(),
+                }],
+            },
+            Panel {
+                title: "chamber pressures (cylinders on duty)".into(),
+                x_label: "time (s)".into(),
+                y_label: "pressure (bar)".into(),
+                series: on_duty
+                    .iter()
+                    .flat_map(|(i, n)| {
+                        [(&t.p_cap[*i], "cap"), (&t.p_rod[*i], "rod")].map(|(p, side)| Series {
+                            label: format!("{n} {side}"),
+                            x: t.t.clone(),
+                            y: p.iter().map(|v| v / BAR).collect(),
+                        })
+                    })
+                    .collect(),
+            },
         ],
         cols: 2,
     }

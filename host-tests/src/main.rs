@@ -440,7 +440,14 @@ fn simulate(
     r.trace
         .write_csv(&csv, &names)
         .with_context(|| format!("cannot write {}", csv.display()))?;
-    let fig = figures::single(&s.name, &r.trace)
+    let duty: Vec<(usize, String)> = prepared
+        .on_duty
+        .iter()
+        .enumerate()
+        .filter(|(_, d)| **d)
+        .map(|(i, _)| (i, bench.cylinders[i].name.clone()))
+        .collect();
+    let fig = figures::single(&s.name, &r.trace, &duty)
         .write(out)
         .map_err(anyhow::Error::msg)?;
     let sum = summarize(&s.name, &r, &csv, &fig);

@@ -115,11 +115,26 @@ fn bounds(p: &Panel) -> ((f64, f64), (f64, f64)) {
     ((x0, x1), (y0 - pad, y1 + pad))
 }
 
-fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> Result<(), String> {
+/// Draws one panel with lines `width` px wide: 1 on the bitmap backend, whose wider lines are
+/// rasterised with spikes and gaps at steep turns (stray strokes across neighbouring panels).
+fn draw_panel<DB: DrawingBackend>(
+    area: &DrawingArea<DB, Shift>,
+    p: &Panel,
+    width: u32,
+) -> Result<(), String> {
     let ((x0, x1), (y0, y1)) = bounds(p);
+    let legend = p.series.len() > 1 || p.series.first().is_some_and(|s| !s.label.is_empty());
+    // Headroom for the legend, so it sits above the data instead of on it: one line of it is
+    // ≈ 6 % of the panel's height.
+    let y1 = if legend {
+        y1 + (y1 - y0) * (0.08 + 0.07 * p.series.len() as f64)
+    } else {
+        y1
+    };
     let mut chart = ChartBuilder::on(area)
         .caption(&p.title, ("sans-serif", 18))
         .margin(8)
+        .margin_right(22)
         .x_label_area_size(38)
         .y_label_area_size(62)
         .build_cartesian_2d(x0..x1, y0..y1)
@@ -136,14 +151,14 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
         let color = Palette99::pick(i).to_rgba();
         let pts = decimate(&s.x, &s.y, 4000);
         chart
-            .draw_series(LineSeries::new(pts, color.stroke_width(2)))
+            .draw_series(LineSeries::new(pts, color.stroke_width(width)))
             .map_err(|e| e.to_string())?
             .label(&s.label)
             .legend(move |(x, y)| {
                 PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
             });
     }
-    if p.series.len() > 1 || p.series.first().is_some_and(|s| !s.label.is_empty()) {
+    if legend {
         chart
             .configure_series_labels()
             .background_style(WHITE.mix(0.85))
@@ -156,7 +171,11 @@ fn draw_panel<DB: DrawingBackend>(area: &DrawingArea<DB, Shift>, p: &Panel) -> R
     Ok(())
 }
 
-fn draw<DB: DrawingBackend>(root: DrawingArea<DB, Shift>, fig: &Figure) -> Result<(), String> {
+fn draw<DB: DrawingBackend>(
+    root: DrawingArea<DB, Shift>,
+    fig: &Figure,
+    width: u32,
+) -> Result<(), String> {
     root.fill(&WHITE).map_err(|e| e.to_string())?;
     let root = root
         .titled(&fig.title, ("sans-serif", 22))
@@ -165,7 +184,7 @@ fn draw<DB: DrawingBackend>(root: DrawingArea<DB, Shift>, fig: &Figure) -> Resul
     let rows = fig.panels.len().div_ceil(cols).max(1);
     let areas = root.split_evenly((rows, cols));
     for (area, p) in areas.iter().zip(&fig.panels) {
-        draw_panel(area, p)?;
+        draw_panel(area, p, width)?;
     }
     root.present().map_err(|e| e.to_string())
 }
@@ -182,9 +201,13 @@ impl Figure {
         let svg = dir.join(format!("{}.svg", self.name));
         let png_tmp = dir.join(format!(".{}.tmp.png", self.name));
         let svg_tmp = dir.join(format!(".{}.tmp.svg", self.name));
-        draw(BitMapBackend::new(&png_tmp, size).into_drawing_area(), self)
-            .map_err(|e| format!("{}: {e}", png.display()))?;
-        draw(SVGBackend::new(&svg_tmp, size).into_drawing_area(), self)
+        draw(
+            BitMapBackend::new(&png_tmp, size).into_drawing_area(),
+            self,
+            1,
+        )
+        .map_err(|e| format!("{}: {e}", png.display()))?;
+        draw(SVGBackend::new(&svg_tmp, size).into_drawing_area(), self, 2)
             .map_err(|e| format!("{}: {e}", svg.display()))?;
         std::fs::rename(&png_tmp, &png).map_err(|e| format!("{}: {e}", png.display()))?;
         std::fs::rename(&svg_tmp, &svg).map_err(|e| format!("{}: {e}", svg.display()))?;
