@@ -153,15 +153,19 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
         for sym in file.symbols() {
             let n = sym.name().unwrap_or("");
             // The per-step functions (legacy mangling: length-prefixed path segments).
-            const STEP: [&str; 9] = [
+            const STEP: [&str; 13] = [
                 "9estimator4step",
                 "9estimator8cylinder",
+                "9estimator13reversal_unit",
                 "9estimator15tracker_startup",
                 "6coeffs15TRACKER_STARTUP",
                 "9scheduler4step",
                 "17aperture_for_flow",
                 "2fx5recip",
+                "2fx7mul_q24",
                 "2at17h",
+                "6at_ext17h",
+                "6at_q3217h",
                 "6locate",
             ];
             if n.contains("9pto_model") && STEP.iter().any(|m| n.contains(m)) {

@@ -170,8 +170,9 @@ impl QMul for Fx {
 }
 
 /// `a × b` for a Q8.24 `b` (a shaft speed kept to 2^−24 rad/s), floored to Q16.16 and
-/// saturated like [`QMul::qmul`] (the same one-compare range check, on bits 55..24).
-#[inline(always)]
+/// saturated like [`QMul::qmul`] (the same one-compare range check, on bits 55..24). Out of
+/// line: called twice a step, and on a Cortex-M0 its 64-bit product is long.
+#[inline(never)]
 pub fn mul_q24(a: Fx, b_q24: i32) -> Fx {
     let p = i64::from(a.to_bits()) * i64::from(b_q24);
     let r = (p >> 24) as i32;

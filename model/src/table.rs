@@ -102,8 +102,9 @@ impl<const N: usize> Table1<N> {
     /// `Coefficients::gain_q32`). Bit budget: the offset's Q16.16 part times the reciprocal
     /// spacing is < 2^62 as in `locate`, its 16 low bits times it < 2^47; the 32-bit fraction
     /// times a node difference (a saturated Q16.16 difference, < 2^31 in magnitude) is < 2^63.
-    /// Every product is of two 32-bit words (one `smull`/`umull` each on a Cortex-M4).
-    #[inline(always)]
+    /// Every product is of two 32-bit words (one `smull`/`umull` each on a Cortex-M4). Out of
+    /// line: on a Cortex-M0 its 64-bit arithmetic is long.
+    #[inline(never)]
     pub fn at_q32(&self, x: Fx, lo: u16) -> i64 {
         let dx = x.saturating_sub(self.x0);
         let inv = self.inv_dx.to_bits();
