@@ -52,8 +52,16 @@ impl StagedDir {
         };
         std::fs::create_dir_all(&parent)
             .map_err(|e| format!("cannot create {}: {e}", parent.display()))?;
-        let tmp = parent.join(format!(".{name}.partial-{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&tmp);
+        // Staging folders of earlier runs that were killed before they could clean up.
+        let prefix = format!(".{name}.partial-");
+        if let Ok(entries) = std::fs::read_dir(&parent) {
+            for e in entries.flatten() {
+                if e.file_name().to_string_lossy().starts_with(&prefix) {
+                    let _ = std::fs::remove_dir_all(e.path());
+                }
+            }
+        }
+        let tmp = parent.join(format!("{prefix}{}", std::process::id()));
         std::fs::create_dir(&tmp).map_err(|e| format!("cannot create {}: {e}", tmp.display()))?;
         std::fs::write(
             tmp.join(MARKER),
@@ -85,15 +93,33 @@ impl StagedDir {
         use nix::fcntl::{AT_FDCWD, RenameFlags, renameat2};
         let err = |e: &dyn std::fmt::Display| format!("cannot replace {}: {e}", self.out.display());
         if self.out.exists() {
-            renameat2(
-                AT_FDCWD,
-                &self.tmp,
-                AT_FDCWD,
-                &self.out,
-                RenameFlags::RENAME_EXCHANGE,
-            )
-            .map_err(|e| err(&e))?;
-            // `tmp` now holds the previous output.
+            let exchange = || {
+                renameat2(
+                    AT_FDCWD,
+                    &self.tmp,
+                    AT_FDCWD,
+                    &self.out,
+                    RenameFlags::RENAME_EXCHANGE,
+                )
+                .map_err(|e| err(&e))
+            };
+            exchange()?;
+            // `tmp` now holds the previous output. Checked again (the run took a while): only a
+            // folder pto made or an empty one is removed; anything else is swapped back.
+            let ours = self.tmp.join(MARKER).exists()
+                || std::fs::read_dir(&self.tmp).is_ok_and(|mut d| d.next().is_none());
+            if !ours {
+                exchange()?;
+                // Kept where it is for the user to look at (the next run removes it).
+                self.committed = true;
+                forget(&self.tmp);
+                return Err(format!(
+                    "{}: files that pto did not write appeared there during the run: left as \
+                     they were; this run's output is in {}",
+                    self.out.display(),
+                    self.tmp.display()
+                ));
+            }
             std::fs::remove_dir_all(&self.tmp).map_err(|e| err(&e))?;
         } else {
             std::fs::rename(&self.tmp, &self.out).map_err(|e| err(&e))?;
@@ -167,6 +193,27 @@ mod tests {
         assert!(!out.join("a.txt").exists() && out.join("b.txt").exists());
         let left: Vec<_> = std::fs::read_dir(&base).unwrap().collect();
         assert_eq!(left.len(), 1, "no temporary folders: {left:?}");
+        // Files of the user's appearing in an empty --out during the run: swapped back, kept.
+        let late = base.join("late");
+        let s = StagedDir::new(&late).unwrap();
+        std::fs::create_dir_all(&late).unwrap();
+        std::fs::write(late.join("mine.txt"), "x").unwrap();
+        let e = s.commit().unwrap_err();
+        assert!(e.contains("did not write"), "{e}");
+        assert!(late.join("mine.txt").exists());
+        let kept = base.join(format!(".late.partial-{}", std::process::id()));
+        assert!(
+            kept.join(MARKER).exists(),
+            "this run's output kept for the user"
+        );
+        std::fs::remove_dir_all(&late).unwrap();
+        std::fs::remove_dir_all(&kept).unwrap();
+        // A staging folder a killed run left behind goes with the next run.
+        let stale = base.join(".out.partial-1");
+        std::fs::create_dir_all(&stale).unwrap();
+        let s = StagedDir::new(&out).unwrap();
+        assert!(!stale.exists());
+        drop(s);
         // A folder of the user's own files is refused, never replaced.
         let mine = base.join("mine");
         std::fs::create_dir_all(&mine).unwrap();
