@@ -168,22 +168,16 @@ impl Controller {
             10_000.0,
         )?;
         check("boot_sigma_bar", cc.boot_sigma_bar, 0.1, 200.0)?;
-        check(
-            "trip_release_hold_ms",
-            cc.trip_release_hold_ms,
-            1.0,
-            60_000.0,
-        )?;
         let release = k
             .trip
             .saturating_sub(Fx::saturating_from_num(cc.trip_release_margin_bar));
         let steps_per_s = f32::from(1u16 << k.dt_log2);
-        // The hold counts steps in a u16: at most 65 535 steps of the configured dt.
+        // 1 ms to 60 s, and within what the hold's u16 step count holds at the configured dt.
         check(
             "trip_release_hold_ms",
             cc.trip_release_hold_ms,
-            1e3 / steps_per_s,
-            65_535e3 / steps_per_s,
+            (1e3 / steps_per_s).max(1.0),
+            (65_535e3 / steps_per_s).min(60_000.0),
         )?;
         let hold_steps = (cc.trip_release_hold_ms * 1e-3 * steps_per_s + 0.5) as u16;
         let latch = TripLatch::new(Pressure(k.trip), Pressure(release), hold_steps);

@@ -241,6 +241,14 @@ mod tests {
         TripLatch::new(bar(140.0), bar(125.0), 100)
     }
 
+    /// Steps `s` through the 100-step hold: tripped for 99 steps, released by the 100th.
+    fn hold_releases(l: &mut TripLatch, s: &TripSample) {
+        for i in 0..99 {
+            assert!(l.step(s), "released early at step {i}");
+        }
+        assert!(!l.step(s), "released after 100 steps");
+    }
+
     #[test]
     fn trips_on_the_reading_or_the_estimate_and_releases_after_the_hold() {
         let mut l = latch();
@@ -250,10 +258,7 @@ mod tests {
             "a valid reading above the trip"
         );
         assert_eq!(l.cause, Some(TripCause::HpReading));
-        for i in 0..99 {
-            assert!(l.step(&good(100.0, 100.0)), "released early at step {i}");
-        }
-        assert!(!l.step(&good(100.0, 100.0)), "released after 100 steps");
+        hold_releases(&mut l, &good(100.0, 100.0));
         assert!(l.step(&good(100.0, 141.0)), "the estimate above the trip");
         assert_eq!((l.cause, l.trips), (Some(TripCause::Estimate), 2));
     }
@@ -288,10 +293,7 @@ mod tests {
         );
         assert_eq!(l.reset_allowed(None), Err(TripHold::HpMissing));
         // Readings return: the hold starts from their return.
-        for _ in 0..99 {
-            assert!(l.step(&good(100.0, 100.0)));
-        }
-        assert!(!l.step(&good(100.0, 100.0)));
+        hold_releases(&mut l, &good(100.0, 100.0));
     }
 
     #[test]
@@ -337,10 +339,7 @@ mod tests {
         assert_eq!(l.hold_reason(&good(0.0, 0.0)), Some(TripHold::Contradicted));
         assert_eq!(l.reset_allowed(Some(&good(0.0, 0.0))), Ok(()));
         assert!(l.tripped() && !l.contradicted());
-        for _ in 0..99 {
-            assert!(l.step(&good(0.0, 0.0)));
-        }
-        assert!(!l.step(&good(0.0, 0.0)));
+        hold_releases(&mut l, &good(0.0, 0.0));
     }
 
     #[test]
@@ -367,9 +366,6 @@ mod tests {
         assert!(l.tripped());
         assert_eq!(l.cause, Some(TripCause::Remembered));
         assert_eq!(l.reset_allowed(None), Err(TripHold::HpMissing));
-        for _ in 0..99 {
-            assert!(l.step(&good(100.0, 100.0)));
-        }
-        assert!(!l.step(&good(100.0, 100.0)));
+        hold_releases(&mut l, &good(100.0, 100.0));
     }
 }

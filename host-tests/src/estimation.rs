@@ -287,8 +287,6 @@ pub struct Reference {
     meas_wait: u32,
     /// Start-up steps of the shaft tracker run since it started.
     enc_n: u32,
-    /// Consecutive steps with the valve closed.
-    closed_steps: u32,
 }
 
 /// The motor reading's state of the reference (`pto_model::estimator::State`'s `q_meas`,
@@ -363,7 +361,6 @@ impl Reference {
             meas: None,
             meas_wait: 0,
             enc_n: 0,
-            closed_steps: 0,
         }
     }
 
@@ -418,7 +415,6 @@ impl Reference {
             var: f(s.meas_var),
         });
         r.meas_wait = u32::from(s.meas_wait);
-        r.closed_steps = u32::from(s.closed_steps);
         r
     }
 
@@ -733,7 +729,6 @@ impl Reference {
         let f = |x: Fx| x.to_num::<f64>();
         let closed = cmd < f(k.motor_reading_min_aperture)
             || self.aperture < f(k.motor_reading_min_aperture);
-        self.closed_steps = if closed { self.closed_steps + 1 } else { 0 };
         if let Some(z) = hp {
             if self.p2 >= f(k.relief_setting) {
                 self.var += f(k.q_relief);

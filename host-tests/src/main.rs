@@ -724,14 +724,8 @@ fn validate_cmd(
         format!("≤{}*", target::FIXED_VS_F64_NM)
     );
     let pct = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{:.2}%", v * 100.0));
-    let pre = f64::from(
-        pto_host::estimation::model_config(&bench)
-            .map_err(anyhow::Error::msg)?
-            .hp
-            .precharge_bar,
-    );
     for r in &rep.rows {
-        let misses = r.misses(pre);
+        let misses = &r.missed;
         println!(
             "{:<20} {:>7.3} {:>6.2} {:>7.3} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7.4} {:>8.3}  {}",
             r.scenario,

@@ -100,6 +100,8 @@ pub struct Row {
     /// The f64 reference's P2 entered the capacitance table's cell at the HP precharge (there
     /// the node's dynamics are locally unstable and trajectories separate).
     pub crosses_precharge_cell: bool,
+    /// The targets missed, each named with its figure (empty: every target met).
+    pub missed: Vec<String>,
     /// Every target met.
     pub pass: bool,
 }
@@ -261,10 +263,15 @@ fn validate_scenario(
         empty_flag_delay_ms: empty_flag_delay_ms.map(|d| d * 1e3),
         empty_flag_early,
         crosses_precharge_cell: crosses_cell,
+        missed: Vec::new(),
         pass: false,
     };
-    let pass = row.misses(pre_model).is_empty();
-    Ok(Row { pass, ..row })
+    let missed = row.misses(pre_model);
+    Ok(Row {
+        pass: missed.is_empty(),
+        missed,
+        ..row
+    })
 }
 
 impl Row {

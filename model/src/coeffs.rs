@@ -5,7 +5,7 @@
 //! functions, so it is the same on host and target), then rounded to Q16.16.
 
 use crate::config::{AccumulatorConfig, ConfigError, ModelConfig};
-use crate::fx::{Fx, ONE, ZERO};
+use crate::fx::Fx;
 use crate::table::{Table1, Table2};
 use libm::{cosf, expf, powf, sinf, sqrtf};
 
@@ -167,8 +167,6 @@ pub struct Coefficients {
     pub spool_gain: Fx,
     /// Relief setting, bar.
     pub relief_setting: Fx,
-    /// HP accumulator precharge, bar (below it the accumulator is empty).
-    pub hp_precharge: Fx,
     /// Below this P2 the estimate reports the HP accumulator empty, bar: the precharge plus
     /// `ModelConfig::hp_empty_margin_bar`.
     pub hp_empty_below: Fx,
@@ -583,7 +581,6 @@ impl ModelConfig {
             .y,
             spool_gain: fx(spool_gain),
             relief_setting: fx(self.relief_setting_bar),
-            hp_precharge: fx(self.hp.precharge_bar),
             hp_empty_below: fx(self.hp.precharge_bar + self.hp_empty_margin_bar),
             q_relief: fx(self.relief_process_noise_bar_per_sqrt_s
                 * self.relief_process_noise_bar_per_sqrt_s
@@ -649,16 +646,6 @@ impl ModelConfig {
 }
 
 impl Coefficients {
-    /// Kalman gain for prior variance `var` (bar²).
-    #[inline]
-    pub fn gain(&self, var: Fx) -> Fx {
-        if var < self.r {
-            self.gain_fine.at(var)
-        } else {
-            self.gain_coarse.at(var).min(ONE).max(ZERO)
-        }
-    }
-
     /// Kalman gain for the prior variance `var` with its 16 bits below the LSB (`var_lo`), in
     /// units of 2^−32, held to [0, 1]. A Q16.16 gain near its steady ≈ 0.008 is good to 0.2 %:
     /// times a 2 bar innovation that was 2.5 P2 LSBs a step, and the variance's own rounding
