@@ -817,18 +817,6 @@ pub fn fit(
     })
 }
 
-/// A path next to `input` named `<stem>.fitted.<ext>` that does not exist yet (`-2`, `-3`, …
-/// appended as needed): the input is never overwritten.
-pub fn fresh_path(dir: &Path, stem: &str, ext: &str) -> PathBuf {
-    let mut p = dir.join(format!("{stem}.fitted.{ext}"));
-    let mut k = 2;
-    while p.exists() {
-        p = dir.join(format!("{stem}.fitted-{k}.{ext}"));
-        k += 1;
-    }
-    p
-}
-
 /// Makes a bench log of a built-in scenario from the full simulation and the sensor model
 /// (encoder 16 384 counts/rev, 12-bit pressures with noise, motor speed noise), sampled at
 /// `rate_hz`.

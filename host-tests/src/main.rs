@@ -139,10 +139,11 @@ enum Cmd {
         json: bool,
     },
     /// Fit bench parameters to bench logs by least squares over full simulations driven by the
-    /// logged motion and valve aperture; writes the fitted bench file next to the input, the
-    /// model-crate configuration for the firmware, and plots.
+    /// logged motion and valve aperture; writes the fitted bench file, the model-crate
+    /// configuration for the firmware, a figure per log and `fit.json` into --out, swapped in
+    /// whole.
     #[command(
-        after_help = "Examples:\n  pto fit logs/*.csv\n  pto fit logs/*.csv --bench my-bench.toml --params trapped_air,cd --json\n\nExit status:\n  0 the fit converged\n  1 it did not\n  2 bad input"
+        after_help = "Examples:\n  pto fit logs/*.csv\n  pto fit logs/*.csv --bench my-bench.toml --params trapped_air,cd --out fits/run1 --json\n\nExit status:\n  0 the fit converged\n  1 it did not\n  2 bad input\n  130 interrupted (the previous --out folder left whole)"
     )]
     Fit {
         /// Bench log CSV files.
@@ -166,7 +167,8 @@ enum Cmd {
         /// 10 000.
         #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=10_000))]
         max_iter: u32,
-        /// Output directory (figures; the fitted files when starting from the built-in bench).
+        /// Output folder: fitted bench, model configuration, figures, fit.json (replaced whole;
+        /// a folder of other files is refused).
         #[arg(long, default_value = "out/fit")]
         out: PathBuf,
         /// Machine-readable output.
@@ -1103,20 +1105,15 @@ fn fit_cmd(
     )
     .map_err(anyhow::Error::msg)?;
     pb.finish_and_clear();
-    // Outputs: the fitted bench next to the input (or in --out for the built-in bench), never
-    // overwriting; the model configuration for the firmware; figures.
-    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
-    let (dir, stem) = match bench_path {
-        Some(p) => (
-            p.parent()
-                .map_or_else(|| PathBuf::from("."), Path::to_path_buf),
-            p.file_stem()
-                .map_or("bench".into(), |s| s.to_string_lossy().into_owned()),
-        ),
-        None => (out.to_path_buf(), "reference-bench".to_string()),
-    };
+    // Outputs, all in --out and swapped in whole: the fitted bench, the model configuration
+    // for the firmware, the figures and the report.
+    let stage = pto_host::output::StagedDir::new(out).map_err(anyhow::Error::msg)?;
+    let stem = bench_path
+        .and_then(|p| p.file_stem())
+        .map_or("reference-bench".into(), |s| {
+            s.to_string_lossy().into_owned()
+        });
     let fitted = Bench::from_file(o.fitted.clone(), "fitted").context("the fitted bench")?;
-    let bench_out = fit::fresh_path(&dir, &stem, "toml");
     let mut text = format!(
         "# Fitted by `pto fit` to {} log(s) from {}; parameters: {}.\n",
         logs.len(),
@@ -1124,17 +1121,29 @@ fn fit_cmd(
         params.join(", ")
     );
     text.push_str(&toml::to_string_pretty(&o.fitted)?);
-    write_atomic(&bench_out, text.as_bytes())?;
+    let bench_name = format!("{stem}.fitted.toml");
+    std::fs::write(stage.path().join(&bench_name), text.as_bytes())?;
     // The reduced model has a constant Cd: it takes the fitted Cd at 50 bar Δp.
     let model = pto_host::estimation::model_config(&fitted).map_err(anyhow::Error::msg)?;
     model
         .validate()
         .map_err(|e| anyhow::anyhow!("fitted model configuration: {e}"))?;
-    let model_out = fit::fresh_path(&dir, &format!("{stem}.model"), "toml");
-    write_atomic(&model_out, toml::to_string_pretty(&model)?.as_bytes())?;
-    o.report.bench_file = Some(bench_out);
-    o.report.model_file = Some(model_out);
-    o.report.figures = fit_figures(&logs, &o, out)?;
+    let model_name = format!("{stem}.model.toml");
+    std::fs::write(
+        stage.path().join(&model_name),
+        toml::to_string_pretty(&model)?.as_bytes(),
+    )?;
+    o.report.bench_file = Some(out.join(bench_name));
+    o.report.model_file = Some(out.join(model_name));
+    o.report.figures = fit_figures(&logs, &o, stage.path())?
+        .iter()
+        .filter_map(|f| f.file_name().map(|n| out.join(n)))
+        .collect();
+    std::fs::write(
+        stage.path().join("fit.json"),
+        serde_json::to_string_pretty(&o.report)?,
+    )?;
+    stage.commit().map_err(anyhow::Error::msg)?;
     let r = &o.report;
     if json {
         println!("{}", serde_json::to_string_pretty(r)?);

@@ -189,13 +189,22 @@ fn draw<DB: DrawingBackend>(
     root.present().map_err(|e| e.to_string())
 }
 
+/// Line width of the data in the PNG (see [`draw_panel`]) and in the SVG.
+const PNG_LINE_PX: u32 = 1;
+const SVG_LINE_PX: u32 = 2;
+
 impl Figure {
+    /// Size in pixels: 560 × 380 per panel and 60 for the title.
+    fn size(&self) -> (u32, u32) {
+        let cols = self.cols.max(1);
+        let rows = self.panels.len().div_ceil(cols).max(1);
+        (560 * cols as u32, 60 + 380 * rows as u32)
+    }
+
     /// Writes `<dir>/<name>.png` and `.svg`; returns the PNG path.
     pub fn write(&self, dir: &Path) -> Result<PathBuf, String> {
         register_font();
-        let cols = self.cols.max(1);
-        let rows = self.panels.len().div_ceil(cols).max(1);
-        let size = (560 * cols as u32, 60 + 380 * rows as u32);
+        let size = self.size();
         // Render to temporary names and rename, so a failed run leaves no half-written figure.
         let png = dir.join(format!("{}.png", self.name));
         let svg = dir.join(format!("{}.svg", self.name));
@@ -204,11 +213,15 @@ impl Figure {
         draw(
             BitMapBackend::new(&png_tmp, size).into_drawing_area(),
             self,
-            1,
+            PNG_LINE_PX,
         )
         .map_err(|e| format!("{}: {e}", png.display()))?;
-        draw(SVGBackend::new(&svg_tmp, size).into_drawing_area(), self, 2)
-            .map_err(|e| format!("{}: {e}", svg.display()))?;
+        draw(
+            SVGBackend::new(&svg_tmp, size).into_drawing_area(),
+            self,
+            SVG_LINE_PX,
+        )
+        .map_err(|e| format!("{}: {e}", svg.display()))?;
         std::fs::rename(&png_tmp, &png).map_err(|e| format!("{}: {e}", png.display()))?;
         std::fs::rename(&svg_tmp, &svg).map_err(|e| format!("{}: {e}", svg.display()))?;
         Ok(png)
@@ -218,6 +231,86 @@ impl Figure {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The figure as RGB pixels (what the PNG holds), lines `width` px wide.
+    fn pixels(fig: &Figure, width: u32) -> (Vec<u8>, (u32, u32)) {
+        register_font();
+        let size = fig.size();
+        let mut buf = vec![0u8; (size.0 * size.1 * 3) as usize];
+        draw(
+            BitMapBackend::with_buffer(&mut buf, size).into_drawing_area(),
+            fig,
+            width,
+        )
+        .unwrap();
+        (buf, size)
+    }
+
+    /// Pixels of the first series' colour outside the first panel's cell (the left column
+    /// below the title): strokes that escaped their panel.
+    fn stray_pixels(fig: &Figure, width: u32) -> usize {
+        let (buf, (w, h)) = pixels(fig, width);
+        let c = Palette99::pick(0).to_rgba();
+        let cell_w = w / fig.cols.max(1) as u32;
+        let (title_h, cell_h) = (60, 380);
+        let mut n = 0;
+        for y in 0..h {
+            for x in 0..w {
+                let inside = x < cell_w && y >= title_h && y < title_h + cell_h;
+                let k = ((y * w + x) * 3) as usize;
+                if !inside && buf[k] == c.0 && buf[k + 1] == c.1 && buf[k + 2] == c.2 {
+                    n += 1;
+                }
+            }
+        }
+        n
+    }
+
+    /// The PNG artefact of issue 21: with lines 2 px wide, plotters' bitmap backend drew
+    /// strokes across the neighbouring panels and the titles at the steep turns of a noisy
+    /// trace. At the width used for the PNG, no pixel of a panel's data lies outside it.
+    #[test]
+    fn png_lines_stay_inside_their_panel() {
+        let n = 3000;
+        let x: Vec<f64> = (0..n).map(|k| k as f64 * 0.01).collect();
+        // A noisy, steep trace: alternate ±1 with a slow drift (like a pressure with sensor
+        // noise at 30 s on a 560 px panel).
+        let y: Vec<f64> = (0..n)
+            .map(|k| (k as f64 * 0.003).sin() * 50.0 + if k % 2 == 0 { 8.0 } else { -8.0 })
+            .collect();
+        let quiet = Panel {
+            title: "neighbour".into(),
+            x_label: "time (s)".into(),
+            y_label: "y".into(),
+            series: vec![],
+        };
+        let fig = Figure {
+            name: "stray".into(),
+            title: "stray strokes".into(),
+            cols: 2,
+            panels: vec![
+                Panel {
+                    title: "noisy".into(),
+                    x_label: "time (s)".into(),
+                    y_label: "P2 (bar)".into(),
+                    series: vec![Series {
+                        label: String::new(),
+                        x,
+                        y,
+                    }],
+                },
+                quiet.clone(),
+                quiet.clone(),
+                quiet,
+            ],
+        };
+        let stray = stray_pixels(&fig, PNG_LINE_PX);
+        println!(
+            "stray pixels: {stray} at {PNG_LINE_PX} px, {} at 2 px",
+            stray_pixels(&fig, 2)
+        );
+        assert_eq!(stray, 0);
+    }
 
     #[test]
     fn decimation_keeps_extremes() {

@@ -229,6 +229,89 @@ fn an_interrupted_paper_run_leaves_the_previous_output_whole() {
     std::fs::remove_dir_all(&base).unwrap();
 }
 
+/// `pto fit` writes all of its files into `--out`, swapped in whole: an interrupted fit leaves
+/// the previous fitted bench, model configuration, figures and report as they were, and no
+/// staging folder.
+#[test]
+fn an_interrupted_fit_leaves_the_previous_output_whole() {
+    use nix::sys::signal::{Signal, kill};
+    use nix::unistd::Pid;
+    let base = tmp("fit-int");
+    let logs = base.join("logs");
+    let made = pto()
+        .args([
+            "synth-logs",
+            "--runs",
+            "exp-charge-64.5",
+            "--rate",
+            "5",
+            "--out",
+        ])
+        .arg(&logs)
+        .output()
+        .unwrap();
+    assert!(made.status.success(), "{made:?}");
+    let log = logs.join("exp-charge-64.5.csv");
+    let out_dir = base.join("fit");
+    let run = |max_iter: &str| {
+        let mut c = pto();
+        c.arg("fit")
+            .arg(&log)
+            .args([
+                "--params",
+                "trapped_air,cd",
+                "--spacing",
+                "1",
+                "--max-iter",
+                max_iter,
+            ])
+            .arg("--out")
+            .arg(&out_dir);
+        c
+    };
+    let first = run("1").output().unwrap();
+    assert!(first.status.code().is_some_and(|c| c <= 1), "{first:?}");
+    let mut files: Vec<String> = std::fs::read_dir(&out_dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    files.sort();
+    assert_eq!(
+        files,
+        [
+            ".pto-output",
+            "fit-exp-charge-64.5.png",
+            "fit-exp-charge-64.5.svg",
+            "fit.json",
+            "reference-bench.fitted.toml",
+            "reference-bench.model.toml",
+        ]
+    );
+    let before: Vec<Vec<u8>> = files
+        .iter()
+        .map(|f| std::fs::read(out_dir.join(f)).unwrap())
+        .collect();
+    let mut second = run("200")
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(1200));
+    kill(Pid::from_raw(second.id() as i32), Signal::SIGINT).unwrap();
+    let st = second.wait().unwrap();
+    assert_eq!(st.code(), Some(130), "interrupted: {st}");
+    for (f, b) in files.iter().zip(&before) {
+        assert_eq!(&std::fs::read(out_dir.join(f)).unwrap(), b, "{f} changed");
+    }
+    let mut left: Vec<String> = std::fs::read_dir(&base)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    left.sort();
+    assert_eq!(left, ["fit", "logs"], "temporary folders left: {left:?}");
+    std::fs::remove_dir_all(&base).unwrap();
+}
+
 /// Numeric options: NaN, infinities and out-of-range values are argument errors (exit 2) that
 /// name the option and its range (`--rtol nan` used to hang, `--rtol 1` to fail in the solver).
 #[test]
