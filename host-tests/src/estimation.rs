@@ -607,12 +607,20 @@ impl Reference {
                         if !cs.from_rest {
                             let (p_new0, p_old0) = held(cs);
                             let net = p_old0 - ratio * p_new0;
-                            cs.play = if net.abs() < f(pto_model::estimator::FLOAT_BAND) {
-                                0.25 * f(k.play_mm)
-                            } else if net < 0.0 {
+                            // A quarter of the play inside the band, ramps at its edges.
+                            let band = f(pto_model::estimator::FLOAT_BAND);
+                            let ramp = f(pto_model::estimator::FLOAT_RAMP);
+                            let play = f(k.play_mm);
+                            cs.play = if net <= -band {
                                 0.0
+                            } else if net >= band {
+                                play
+                            } else if net < ramp - band {
+                                0.25 * play * (net + band) / ramp
+                            } else if net > band - ramp {
+                                0.25 * play + 0.75 * play * (net - (band - ramp)) / ramp
                             } else {
-                                f(k.play_mm)
+                                0.25 * play
                             };
                         }
                         cs.setup_left -= 1;
