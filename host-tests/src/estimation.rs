@@ -4,6 +4,7 @@
 use crate::bench::{BAR, Bench, Load};
 use crate::scenario::{Scenario, ValveSpec};
 use crate::sim::{SimResult, Trace};
+use pto_firmware::frontend::{LoopSpec, Transducer};
 use pto_model::config::{AccumulatorConfig, CylinderConfig, GeometryConfig};
 use pto_model::estimator::{Inputs, P_MAX, P_MIN, State};
 use pto_model::fx::{Aperture, Fx, Pressure, Rpm};
@@ -66,6 +67,7 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
         oil_bulk_modulus_mpa: (b.oil.liquid_modulus * 1e-6) as f32,
         oil_density_kg_m3: b.oil.density as f32,
         trapped_air_fraction: b.oil.air_fraction as f32,
+        air_polytropic_index: b.oil.air_index as f32,
         hp: acc(&b.hp_acc, b.hp_line_volume),
         lp: acc(&b.lp_acc, b.lp_line_volume),
         valve_cd: b.valve_cd as f32,
@@ -85,17 +87,17 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
     Ok(c)
 }
 
-/// How the bench's sensors see the plant.
+/// How the bench's sensors see the plant: the one description used by `pto validate`,
+/// `pto pil`, `pto synth-logs` and the golden vectors. The pressure transducers are the
+/// firmware's own 4–20 mA loops ([`LoopSpec`]), read through the firmware's [`Transducer`].
 #[derive(Debug, Clone, Copy)]
 pub struct SensorSpec {
     /// Encoder counts per shaft revolution.
     pub counts_per_rev: u32,
-    /// 12-bit ADC full scale of the HP transducer, bar.
-    pub hp_full_scale_bar: f64,
-    /// Same for LP.
-    pub lp_full_scale_bar: f64,
-    /// ADC bits.
-    pub adc_bits: u32,
+    /// The HP transducer's loop (range, shunt, ADC reference).
+    pub hp_loop: LoopSpec,
+    /// The LP transducer's loop.
+    pub lp_loop: LoopSpec,
     /// HP noise σ, bar.
     pub hp_noise_bar: f64,
     /// LP noise σ, bar.
@@ -108,9 +110,8 @@ impl Default for SensorSpec {
     fn default() -> Self {
         SensorSpec {
             counts_per_rev: 16_384,
-            hp_full_scale_bar: 250.0,
-            lp_full_scale_bar: 40.0,
-            adc_bits: 12,
+            hp_loop: LoopSpec::HP,
+            lp_loop: LoopSpec::LP,
             hp_noise_bar: 0.5,
             lp_noise_bar: 0.2,
             motor_noise_rpm: 2.0,
@@ -158,9 +159,12 @@ pub fn truth_at(tr: &Trace, t: f64) -> Truth {
     }
 }
 
-/// Makes sensor readings: quantised encoder, 12-bit pressures with Gaussian noise.
+/// Makes sensor readings: quantised encoder, pressures with Gaussian noise read through the
+/// firmware's 4–20 mA front end (its 12-bit ADC counts and its conversion back to bar).
 pub struct SensorSynth {
     spec: SensorSpec,
+    hp: Transducer,
+    lp: Transducer,
     rng: ChaCha8Rng,
     hp_noise: Normal<f64>,
     lp_noise: Normal<f64>,
@@ -169,9 +173,17 @@ pub struct SensorSynth {
 
 impl SensorSynth {
     /// A seeded synthesiser.
+    ///
+    /// # Panics
+    /// If a loop of `spec` is not a valid transducer (the firmware's own loops are).
     pub fn new(spec: SensorSpec, seed: u64) -> Self {
+        let loop_of = |l: LoopSpec| {
+            Transducer::new(l).unwrap_or_else(|e| panic!("sensor spec: {l:?}: {e:?}"))
+        };
         SensorSynth {
             spec,
+            hp: loop_of(spec.hp_loop),
+            lp: loop_of(spec.lp_loop),
             rng: ChaCha8Rng::seed_from_u64(seed),
             hp_noise: Normal::new(0.0, spec.hp_noise_bar.max(1e-12))
                 .unwrap_or_else(|_| unreachable!()),
@@ -182,9 +194,13 @@ impl SensorSynth {
         }
     }
 
-    fn adc(&self, p: f64, full_scale: f64) -> f64 {
-        let lsb = full_scale / f64::from((1u32 << self.spec.adc_bits) - 1);
-        (p.clamp(0.0, full_scale) / lsb).round() * lsb
+    /// A pressure as the firmware reads it: the transducer's output held to its 4–20 mA range,
+    /// the ADC's count, the firmware's conversion back to bar.
+    fn through(t: &Transducer, spec: &LoopSpec, bar: f64) -> f64 {
+        let held = bar.clamp(0.0, f64::from(spec.full_scale_bar)) as f32;
+        // Inside the 3.6–21 mA window by construction: `None` cannot come back.
+        t.pressure(t.counts_at_bar(held))
+            .map_or(f64::NAN, |p| f64::from(p.to_f32()))
     }
 
     /// Encoder count of a shaft angle.
@@ -195,8 +211,8 @@ impl SensorSynth {
     /// Readings of the plant state `truth` at shaft angle `theta`.
     pub fn read(&mut self, theta: f64, truth: &Truth) -> (i32, f64, f64, f64) {
         let (enc, hp, lp, motor) = self.read_analog(theta, truth);
-        let hp = self.adc(hp, self.spec.hp_full_scale_bar);
-        let lp = self.adc(lp, self.spec.lp_full_scale_bar);
+        let hp = Self::through(&self.hp, &self.spec.hp_loop, hp);
+        let lp = Self::through(&self.lp, &self.spec.lp_loop, lp);
         (enc, hp, lp, motor)
     }
 

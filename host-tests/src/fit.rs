@@ -13,7 +13,6 @@ use crate::estimation::{SensorSpec, SensorSynth, Truth, truth_at};
 use crate::motion::Motion;
 use crate::plant::Plant;
 use crate::sim::{self, Initial, Run, SolverOptions, ValveSchedule};
-use indicatif::ProgressBar;
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use rayon::prelude::*;
@@ -421,6 +420,9 @@ pub fn crossing(t: &[f64], y: &[f64], level: f64) -> Option<f64> {
     })
 }
 
+/// A progress callback: called once per simulation the fit runs (from any thread).
+pub type Tick = Arc<dyn Fn() + Send + Sync>;
+
 /// The fit problem.
 struct Problem {
     start: BenchFile,
@@ -430,7 +432,7 @@ struct Problem {
     /// log, bar.
     offsets: bool,
     z: DVector<f64>,
-    progress: Option<ProgressBar>,
+    progress: Option<Tick>,
     evals: std::sync::atomic::AtomicUsize,
 }
 
@@ -463,8 +465,8 @@ impl Problem {
                 let r = benches[b]
                     .as_ref()
                     .and_then(|b| simulate_log_from(b, &self.logs[l], off).ok());
-                if let Some(pb) = &self.progress {
-                    pb.inc(1);
+                if let Some(tick) = &self.progress {
+                    tick();
                 }
                 r
             })
@@ -665,7 +667,7 @@ pub fn fit(
     logs: Vec<BenchLog>,
     spacing_s: f64,
     max_iter: usize,
-    progress: Option<ProgressBar>,
+    progress: Option<Tick>,
 ) -> Result<FitOutcome, String> {
     let t0 = std::time::Instant::now();
     let params = params(names, start)?;

@@ -434,7 +434,8 @@ fn simulate(
         ..SolverOptions::default()
     };
     let pb = progress_bar((s.duration_s * 1000.0) as u64, &s.name);
-    let r = prepared.run(solver, Some(pb.clone()))?;
+    let at = |t: f64| pb.set_position((t * 1000.0) as u64);
+    let r = prepared.run(solver, Some(&at))?;
     pb.finish_and_clear();
     std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
     let csv = out.join(format!("{}.csv", s.name));
@@ -1101,7 +1102,10 @@ fn fit_cmd(
         logs.clone(),
         spacing,
         max_iter,
-        Some(pb.clone()),
+        Some({
+            let pb = pb.clone();
+            std::sync::Arc::new(move || pb.inc(1))
+        }),
     )
     .map_err(anyhow::Error::msg)?;
     pb.finish_and_clear();

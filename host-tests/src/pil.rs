@@ -8,7 +8,7 @@ use crate::estimation::{SensorSpec, SensorSynth, Truth};
 use crate::plant::Eval;
 use crate::qemu::Qemu;
 use crate::sim::{SimResult, ValveController};
-use pto_firmware::frontend::{LoopSpec, Transducer};
+use pto_firmware::frontend::Transducer;
 use pto_model::estimator::{Estimate, Inputs};
 use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::protocol::{FromFirmware, Refusal, SensorFrame, Status, ToFirmware};
@@ -167,8 +167,8 @@ impl FirmwareController {
             q,
             period: 2f64.powi(-i32::from(dt_log2)),
             synth: SensorSynth::new(spec, seed),
-            hp: Transducer::new(LoopSpec::HP).map_err(|e| e.to_string())?,
-            lp: Transducer::new(LoopSpec::LP).map_err(|e| e.to_string())?,
+            hp: Transducer::new(spec.hp_loop).map_err(|e| e.to_string())?,
+            lp: Transducer::new(spec.lp_loop).map_err(|e| e.to_string())?,
             tick: 0,
             last_enc: 0,
             applied: 0.0,

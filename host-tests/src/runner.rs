@@ -44,8 +44,9 @@ pub fn run_all(
             let pb = multi.add(ProgressBar::new((s.duration_s * 1000.0) as u64));
             pb.set_style(style.clone());
             pb.set_prefix(s.name.clone());
+            let at = |t: f64| pb.set_position((t * 1000.0) as u64);
             let result = s
-                .simulate(bench, Path::new("."), solver, Some(pb.clone()))
+                .simulate(bench, Path::new("."), solver, Some(&at))
                 .map(|(_, r)| r);
             pb.finish_and_clear();
             multi.remove(&pb);

@@ -4,7 +4,6 @@ use crate::bench::{BAR, Bench};
 use crate::motion::{Motion, MotionSpec};
 use crate::plant::{N_CYL, Plant};
 use crate::sim::{self, Initial, Run, SimError, SimResult, SolverOptions, ValveSchedule};
-use indicatif::ProgressBar;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -427,7 +426,7 @@ impl Scenario {
         bench: &Bench,
         base: &Path,
         solver: SolverOptions,
-        progress: Option<ProgressBar>,
+        progress: Option<crate::sim::Progress<'_>>,
     ) -> Result<(Prepared, SimResult), String> {
         let prep = self.prepare(bench, base).map_err(|e| e.to_string())?;
         let res = prep
@@ -442,7 +441,7 @@ impl Prepared {
     pub fn run(
         &self,
         solver: SolverOptions,
-        progress: Option<ProgressBar>,
+        progress: Option<crate::sim::Progress<'_>>,
     ) -> Result<SimResult, SimError> {
         sim::simulate(Run {
             plant: &self.plant,

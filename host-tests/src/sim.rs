@@ -5,7 +5,6 @@ use crate::plant::{Eval, N_CYL, N_QUAD, Plant, QUAD_NAMES};
 use diffsol::{
     NalgebraLU, NalgebraMat, NalgebraVec, OdeBuilder, OdeSolverMethod, OdeSolverStopReason, Vector,
 };
-use indicatif::ProgressBar;
 use serde::Serialize;
 use std::cell::RefCell;
 use std::time::Instant;
@@ -428,6 +427,9 @@ impl JvCache {
     }
 }
 
+/// A progress callback: the simulated time reached, s.
+pub type Progress<'a> = &'a (dyn Fn(f64) + Sync);
+
 /// Everything a run needs.
 pub struct Run<'a> {
     /// The plant (bench, duty, geometry, motion).
@@ -442,8 +444,9 @@ pub struct Run<'a> {
     pub sample_dt: f64,
     /// Solver settings.
     pub solver: SolverOptions,
-    /// Progress bar advanced in simulated milliseconds.
-    pub progress: Option<ProgressBar>,
+    /// Told the simulated time reached, s (a progress bar, or nothing): the simulation
+    /// library knows no terminal.
+    pub progress: Option<Progress<'a>>,
 }
 
 /// Runs `run` with `controller` driving the valve (whatever `run.valve` says) and hands the
@@ -654,8 +657,8 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
             trace.push(tk, &plant.evaluate(tk, &ysample, None, false));
             next_k += 1;
         }
-        if let Some(pb) = &run.progress {
-            pb.set_position((t_emit * 1000.0) as u64);
+        if let Some(progress) = run.progress {
+            progress(t_emit);
         }
         match reason {
             OdeSolverStopReason::RootFound(tr, _) => {

@@ -31,6 +31,16 @@ fn validate_named(names: &[&str]) -> Vec<validate::Row> {
     rep.rows
 }
 
+/// Every target of `pto validate` met, or the targets missed named.
+fn assert_meets(r: &validate::Row) {
+    assert!(
+        r.pass && r.missed.is_empty(),
+        "{}: missed {:?}",
+        r.scenario,
+        r.missed
+    );
+}
+
 #[test]
 fn model_tracks_the_full_simulation_on_representative_runs() {
     let names = [
@@ -57,34 +67,14 @@ fn model_tracks_the_full_simulation_on_representative_runs() {
             r.fixed_vs_f64_bar,
             r.fixed_vs_f64_nm
         );
-        assert!(r.p2_rms_bar <= target::P2_RMS_BAR, "{}", r.scenario);
+        assert_meets(r);
+        // Stricter than the harness, which judges it only where the estimate stays above the
+        // precharge + 1 bar: these runs meet it throughout.
         assert!(
             r.p2_model_only_max_bar <= target::P2_MODEL_ONLY_MAX_BAR,
             "{}",
             r.scenario
         );
-        assert!(
-            r.motor_rms_rel.is_none_or(|m| m <= target::MOTOR_RMS_REL),
-            "{}",
-            r.scenario
-        );
-        assert!(
-            r.fixed_vs_f64_bar <= target::FIXED_VS_F64_BAR,
-            "{}",
-            r.scenario
-        );
-        assert!(
-            r.fixed_vs_f64_nm <= target::FIXED_VS_F64_NM,
-            "{}",
-            r.scenario
-        );
-        assert!(
-            r.torque_rms_of_peak
-                .is_none_or(|t| t <= target::TORQUE_RMS_OF_PEAK),
-            "{}",
-            r.scenario
-        );
-        assert!(r.pass, "{}", r.scenario);
     }
 }
 
@@ -115,12 +105,8 @@ fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
         r.fixed_vs_f64_bar,
         target::FIXED_VS_F64_BAR
     );
-    assert!(r.p2_rms_bar <= target::P2_RMS_BAR);
+    assert_meets(r);
     assert!(r.p2_model_only_max_bar <= target::P2_MODEL_ONLY_MAX_BAR);
-    assert!(torque <= target::TORQUE_RMS_OF_PEAK);
-    assert!(motor <= target::MOTOR_RMS_REL);
-    assert!(r.fixed_vs_f64_bar <= target::FIXED_VS_F64_BAR);
-    assert!(r.pass);
 }
 
 /// Why model-only P2 misses its 2 bar target in Test I with HC3.1 + HC3.4 in Configs 1–2 (README,
@@ -132,7 +118,8 @@ fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
 /// deviation from its straight-line course over the 40 ms before), so no estimator on these
 /// sensors can follow the fall within 2 bar. With HC3.4 alone or HC3.1 + HC3.3 the fall is
 /// slower (2 bar in 19–39 ms) and the speed has seen it (d′ 2.1–6.1): there the 2 bar is a
-/// matter of the detector.
+/// matter of the detector. The model on the two runs: P2 off by more than 2 bar without the
+/// transducer, the error covered by its σ, the empty flag in time.
 #[test]
 fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() {
     let bench = Bench::reference();
@@ -201,6 +188,24 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
         assert!(n >= 10, "{name}: the accumulator runs empty in every wave");
         (d_lo, d_hi)
     };
+    // The model on these runs: without the transducer its P2 misses 2 bar where the
+    // measurement says any estimator on these sensors must, and it says so: σ covers the error
+    // and the empty flag follows the bench's accumulator (the targets `pto validate` judges
+    // these runs by).
+    for r in &validate_named(&["test1-cfg1-c14", "test1-cfg2-c14"]) {
+        println!(
+            "{}: model-only P2 max error {:.2} bar, within 2σ {:.2} %, within 3σ {:.2} %, \
+             empty flag ≤ {:?} ms after the bench",
+            r.scenario,
+            r.p2_model_only_max_bar,
+            100.0 * r.cover_2s_model_only,
+            100.0 * r.cover_3s_model_only,
+            r.empty_flag_delay_ms
+        );
+        assert!(r.p2_model_only_max_bar > target::P2_MODEL_ONLY_MAX_BAR);
+        assert!(r.model_only_min_p2_bar < bench.hp_acc.precharge / pto_host::bench::BAR + 1.0);
+        assert_meets(r);
+    }
     for cfg in [1, 2] {
         let (_, hi) = events(&format!("test1-cfg{cfg}-c14"));
         assert!(hi < 1.5, "HC3.1 + HC3.4, Config {cfg}: d′ up to {hi}");

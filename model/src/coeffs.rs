@@ -278,7 +278,7 @@ const TWO_PI_Q32: u64 = 26_986_075_409;
 fn modulus_bar(cfg: &ModelConfig, p: f32) -> f32 {
     let el = cfg.oil_bulk_modulus_mpa * 10.0;
     let a = cfg.trapped_air_fraction;
-    let n = 1.4f32;
+    let n = cfg.air_polytropic_index;
     let pabs = (P_ATM_BAR + p).max(1e-3);
     let ratio = powf(P_ATM_BAR / pabs, 1.0 / n);
     el * (1.0 + a * ratio) / (1.0 + a * ratio / (n * pabs) * el)

@@ -68,6 +68,8 @@ pub struct ModelConfig {
     pub oil_density_kg_m3: f32,
     /// Trapped air fraction at atmospheric pressure.
     pub trapped_air_fraction: f32,
+    /// Polytropic index of the trapped air (1 isothermal … 1.4 adiabatic).
+    pub air_polytropic_index: f32,
     /// HP accumulator (+ HP line).
     pub hp: AccumulatorConfig,
     /// LP accumulator (+ LP lines).
@@ -246,6 +248,7 @@ impl ModelConfig {
             oil_bulk_modulus_mpa: 1600.0,
             oil_density_kg_m3: 870.0,
             trapped_air_fraction: 0.06,
+            air_polytropic_index: 1.4,
             // HP line 3 m × 12.7 mm; LP lines 6 m × 12.7 mm.
             hp: AccumulatorConfig {
                 volume_l: 10.0,
@@ -387,6 +390,7 @@ impl ModelConfig {
         )?;
         check("oil_density_kg_m3", self.oil_density_kg_m3, 600.0, 1200.0)?;
         check("trapped_air_fraction", self.trapped_air_fraction, 0.0, 0.5)?;
+        check("air_polytropic_index", self.air_polytropic_index, 1.0, 1.67)?;
         for a in [&self.hp, &self.lp] {
             check("accumulator.volume_l", a.volume_l, 0.1, 500.0)?;
             check("accumulator.precharge_bar", a.precharge_bar, 0.5, 400.0)?;

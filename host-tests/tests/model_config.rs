@@ -1,0 +1,219 @@
+//! The one conversion from the bench file to the model's configuration
+//! (`pto_host::estimation::model_config`), checked over every field: the reference bench gives
+//! `ModelConfig::reference()` (the configuration the firmware boots) in every field, and every
+//! numeric field of the bench file either changes the model's configuration or is named below
+//! with the reason it does not apply to the reduced model.
+
+use pto_host::bench::Bench;
+use pto_host::estimation::model_config;
+use std::collections::BTreeMap;
+
+/// Numeric leaves of a serialised value by dotted path (`a.b[2].c`): the value, and whether
+/// it is an integer.
+fn leaves(v: &serde_json::Value, path: &str, out: &mut BTreeMap<String, (f64, bool)>) {
+    match v {
+        serde_json::Value::Object(m) => {
+            for (k, x) in m {
+                let p = if path.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{path}.{k}")
+                };
+                leaves(x, &p, out);
+            }
+        }
+        serde_json::Value::Array(a) => {
+            for (i, x) in a.iter().enumerate() {
+                leaves(x, &format!("{path}[{i}]"), out);
+            }
+        }
+        serde_json::Value::Number(n) => {
+            out.insert(
+                path.to_string(),
+                (n.as_f64().unwrap_or(f64::NAN), n.is_i64()),
+            );
+        }
+        _ => {}
+    }
+}
+
+fn model_leaves(b: &Bench) -> Result<BTreeMap<String, (f64, bool)>, String> {
+    let m = model_config(b)?;
+    let mut out = BTreeMap::new();
+    leaves(&serde_json::to_value(m).unwrap(), "", &mut out);
+    Ok(out)
+}
+
+/// Bench-file fields the reduced model does not take, and why.
+const NOT_IN_MODEL: &[(&str, &str)] = &[
+    (
+        "check_valve.",
+        "the reduced model holds each chamber a constant `check_valve_drop_bar` (0.7 bar) above \
+         P2 or below LP; the bench's flow-dependent valve law (cracking, full-open, area, Cd) has \
+         no single value to map to yet",
+    ),
+    (
+        "makeup_valve.",
+        "no make-up valves in the reduced model: a sucking chamber is held at LP − the check \
+         valve's drop",
+    ),
+    (
+        "cylinder_mounting.hard_stop_",
+        "the ends of the free play are rigid in the reduced model: the eye crosses the play, \
+         then the rod moves with it",
+    ),
+    (
+        "input.pinion_radius_mm",
+        "turns the rack's motion into the shaft's in the simulation; the controller reads the \
+         shaft angle from its encoder",
+    ),
+    (
+        "lines.hp_line_resistance_bar_per_lpm",
+        "one HP node in the reduced model, no line pressure drop (0 on the reference bench)",
+    ),
+    (
+        "lines.lp_line_resistance_bar_per_lpm",
+        "one LP node in the reduced model, no line pressure drop (0 on the reference bench)",
+    ),
+    (
+        "lines.valve_to_motor_",
+        "no node between the valve and the motor in the reduced model (the valve/motor branch \
+         is one flow with the rotor's inertia)",
+    ),
+    (
+        "oil.critical_reynolds",
+        "laminar–turbulent transition of the simulation's orifices; the reduced model's valve \
+         law is turbulent",
+    ),
+    (
+        "oil.kinematic_viscosity_cst",
+        "enters the simulation's laminar flows only (orifices below the critical Reynolds \
+         number, leakage); the reduced model's motor leakage is its own coefficient",
+    ),
+    (
+        "oil.leakage_area_mm2",
+        "the cylinders' internal leakage (1e-6 mm² on the reference bench, negligible); none in \
+         the reduced model",
+    ),
+];
+
+/// Fields no valid bench can move, and why.
+const FIXED: &[(&str, &str)] = &[
+    (
+        "control_valve.aperture_pct[0]",
+        "the valve table starts at a closed valve, 0 %",
+    ),
+    (
+        "control_valve.aperture_pct[10]",
+        "the valve table ends at a fully open valve, 100 %",
+    ),
+];
+
+#[test]
+fn the_reference_bench_gives_the_firmware_default_in_every_field() {
+    let from_bench = model_leaves(&Bench::reference()).unwrap();
+    let mut fw = BTreeMap::new();
+    leaves(
+        &serde_json::to_value(pto_model::ModelConfig::reference()).unwrap(),
+        "",
+        &mut fw,
+    );
+    assert_eq!(
+        from_bench.keys().collect::<Vec<_>>(),
+        fw.keys().collect::<Vec<_>>()
+    );
+    // Equal to f32 rounding, but for the volumes derived from hose and line lengths and
+    // diameters, which `ModelConfig::reference()` writes to four digits.
+    const ROUNDED: [&str; 3] = [
+        "chamber_dead_volume_cm3",
+        "hp.line_volume_l",
+        "lp.line_volume_l",
+    ];
+    let mut worst = (0.0f64, String::new());
+    for (k, b) in &from_bench {
+        let (f, b) = (fw[k].0, b.0);
+        let rel = (b - f).abs() / f.abs().max(1e-30);
+        if rel > worst.0 {
+            worst = (rel, k.clone());
+        }
+        let tol = if ROUNDED.contains(&k.as_str()) {
+            1e-4
+        } else {
+            1e-6
+        };
+        assert!(
+            rel <= tol,
+            "{k}: bench {b} vs firmware {f} ({rel:.1e} > {tol:.0e})"
+        );
+    }
+    println!(
+        "{} fields equal; worst relative difference {:.2e} ({})",
+        fw.len(),
+        worst.0,
+        worst.1
+    );
+}
+
+#[test]
+fn every_bench_field_reaches_the_model_or_is_named_as_not_applying() {
+    let base_bench = Bench::reference();
+    let base = model_leaves(&base_bench).unwrap();
+    let file = serde_json::to_value(&base_bench.file).unwrap();
+    let mut fields = BTreeMap::new();
+    leaves(&file, "", &mut fields);
+    let (mut reached, mut unused) = (Vec::new(), Vec::new());
+    for (path, &(v, is_int)) in &fields {
+        let tries = if is_int {
+            vec![-v, v + 1.0]
+        } else if v == 0.0 {
+            vec![0.01, 1.0]
+        } else {
+            vec![v * 1.05, v * 0.95]
+        };
+        let mut outcome = None;
+        for t in tries {
+            let mut f = base_bench.file.clone();
+            let value = if is_int {
+                format!("{}", t as i64)
+            } else {
+                format!("{t:e}")
+            };
+            if f.set_field(path, &value).is_err() {
+                continue;
+            }
+            let Ok(b) = Bench::from_file(f, "perturbed") else {
+                continue;
+            };
+            outcome = Some(match model_leaves(&b) {
+                // The model rejects it: the field reaches it.
+                Err(_) => true,
+                Ok(m) => m != base,
+            });
+            break;
+        }
+        match outcome {
+            Some(true) => reached.push(path.clone()),
+            Some(false) => unused.push(path.clone()),
+            None => assert!(
+                FIXED.iter().any(|(f, _)| f == path),
+                "{path}: no valid bench with the field moved by ±5 %, and not named in FIXED"
+            ),
+        }
+    }
+    println!("{} fields reach the model: {reached:?}", reached.len());
+    println!("{} do not: {unused:?}", unused.len());
+    let named: Vec<&str> = NOT_IN_MODEL.iter().map(|(f, _)| *f).collect();
+    for f in &unused {
+        assert!(
+            named.iter().any(|n| f.starts_with(n)),
+            "{f}: changing it leaves the model's configuration unchanged and it is not named \
+             in NOT_IN_MODEL"
+        );
+    }
+    for n in &named {
+        assert!(
+            !reached.iter().any(|f| f.starts_with(n)),
+            "{n}: named as not applying, yet it changes the model's configuration"
+        );
+    }
+}
