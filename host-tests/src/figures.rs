@@ -1,10 +1,10 @@
 //! The paper's Figures 10–19 (and the experimental runs) rebuilt from the built-in scenarios.
 
-use crate::bench::BAR;
 use crate::paper::Results;
 use crate::plot::{Figure, Panel, Series};
-use crate::scenario::{BLOCKED_APERTURES, SETS, TEST3_APERTURES};
-use crate::sim::Trace;
+use crate::sim::bench::BAR;
+use crate::sim::scenario::{BLOCKED_APERTURES, SETS, TEST3_APERTURES};
+use crate::sim::solver::Trace;
 
 const RPM: f64 = 30.0 / std::f64::consts::PI;
 const LPM: f64 = 6e4;

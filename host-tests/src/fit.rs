@@ -7,12 +7,13 @@
 //! p = lo + (hi − lo)(1 + tanh z)/2, so a step can never leave the range the bench file accepts.
 //! The valve's area table is fitted as factors on its increments (≥ 0), so it stays monotone.
 
-use crate::bench::{BAR, Bench, BenchFile};
-use crate::benchlog::BenchLog;
-use crate::estimation::{SensorSpec, SensorSynth, Truth, truth_at};
-use crate::motion::Motion;
-use crate::plant::Plant;
-use crate::sim::{self, Initial, Run, SolverOptions, ValveSchedule};
+use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::sim::bench::{BAR, Bench, BenchFile};
+use crate::sim::benchlog::BenchLog;
+use crate::sim::motion::Motion;
+use crate::sim::plant::Plant;
+use crate::sim::solver::{self, Initial, Run, SolverOptions, ValveSchedule};
+use crate::sim::trace::{Truth, truth_at};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use rayon::prelude::*;
@@ -358,7 +359,7 @@ pub fn simulate_log_from(
     let plant = Plant::new(bench, log.config - 1, on, p.motion.clone());
     let t0 = log.t[0];
     let dur = log.t[log.t.len() - 1] - t0;
-    let res = sim::simulate(Run {
+    let res = solver::simulate(Run {
         plant: &plant,
         valve: ValveSchedule::Table(p.valve.clone()),
         initial: Initial {
@@ -829,7 +830,7 @@ pub fn synth_log(
     seed: u64,
     out: &Path,
 ) -> Result<BenchLog, String> {
-    let mut s = crate::scenario::builtin_named(scenario)
+    let mut s = crate::sim::scenario::builtin_named(scenario)
         .ok_or_else(|| format!("unknown scenario `{scenario}` (see `pto scenarios`)"))?;
     s.sample_interval_s = (0.5 / rate_hz).min(s.sample_interval_s);
     let (prep, res) = s.simulate(bench, Path::new("."), SolverOptions::default(), None)?;
@@ -859,7 +860,7 @@ pub fn synth_log(
         log.lp.push(lp);
         log.rpm.push(motor);
         log.aperture
-            .push(crate::estimation::commanded_aperture_pct(&s, &res, t));
+            .push(crate::model::commanded_aperture_pct(&s, &res, t));
     }
     Ok(log)
 }

@@ -1,28 +1,23 @@
-//! Full, high-fidelity simulation of the hydraulic PTO test bench of a wave energy converter,
-//! the paper's scenarios with their facts checked automatically, and the `pto` tool behind it.
+//! The full, high-fidelity simulation of the hydraulic PTO test bench of a wave energy
+//! converter, the paper's scenarios with their facts checked automatically, the fixed-point
+//! model's validation against it, the firmware in the loop, the fit, and the `pto` tool behind
+//! them.
 //!
-//! Layers: [`bench`](mod@bench) (validated parameter file) → [`physics`] (component laws) → [`plant`]
-//! (the ODE) → [`sim`] (diffsol BDF driver, sampling, balances) → [`scenario`] (named runs) →
-//! [`paper`] (the paper's facts) → [`plot`] / [`figures`] (figures and tables).
+//! - [`sim`]: the simulation library (bench file, physics, plant, solver, motion, scenarios);
+//!   it imports neither the model nor the firmware.
+//! - [`paper`]: the paper's facts and figures, on the simulation.
+//! - [`fit`]: bench parameters fitted to bench logs, on the simulation.
+//! - [`model`]: the fixed-point model against the simulation (configuration from the bench,
+//!   sensors, the f64 mirror, `pto validate`, golden vectors, code cost).
+//! - [`hil`]: the firmware under QEMU, processor-in-the-loop, firmware cost.
+//! - [`figures`] (the figures of a run and of the paper), [`plot`] (the plotting), [`output`]
+//!   (outputs written whole).
 
-pub mod bench;
-pub mod benchlog;
-pub mod estimation;
 pub mod figures;
 pub mod fit;
-pub mod fw_cost;
-pub mod golden;
-pub mod model_cost;
-pub mod motion;
+pub mod hil;
+pub mod model;
 pub mod output;
 pub mod paper;
-pub mod perf;
-pub mod physics;
-pub mod pil;
-pub mod plant;
 pub mod plot;
-pub mod qemu;
-pub mod runner;
-pub mod scenario;
 pub mod sim;
-pub mod validate;

@@ -157,7 +157,7 @@ pub fn remove_staged() {
 /// staging folders, exit with 130. Call once at the start of the program.
 pub fn install_interrupt_handler() -> Result<(), String> {
     ctrlc::set_handler(|| {
-        crate::qemu::end_all_children();
+        crate::hil::qemu::end_all_children();
         remove_staged();
         eprintln!("interrupted: nothing left half-written, QEMU stopped");
         std::process::exit(130);

@@ -1,8 +1,8 @@
 //! Solver accuracy: the default tolerance against a tight reference, and conservation.
 
-use pto_host::bench::{BAR, Bench};
-use pto_host::scenario;
-use pto_host::sim::SolverOptions;
+use pto_host::sim::bench::{BAR, Bench};
+use pto_host::sim::scenario;
+use pto_host::sim::solver::SolverOptions;
 use std::path::Path;
 
 /// P2 accuracy target of the full-simulation issue, bar.
@@ -36,7 +36,7 @@ fn test3_default_tolerance_tracks_a_tight_run_within_0_05_bar() {
 }
 
 fn bench_with_lines(hp: f64, lp: f64) -> Bench {
-    let text = pto_host::bench::REFERENCE_BENCH_TOML
+    let text = pto_host::sim::bench::REFERENCE_BENCH_TOML
         .replace(
             "hp_line_resistance_bar_per_lpm = 0.0",
             &format!("hp_line_resistance_bar_per_lpm = {hp}"),
@@ -64,8 +64,9 @@ fn line_resistances_conserve_oil_and_energy_and_vanish_when_small() {
             .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()))
             / BAR
     };
-    let peak =
-        |r: &pto_host::sim::SimResult| r.trace.p_cap[0].iter().fold(0.0f64, |m, v| m.max(*v)) / BAR;
+    let peak = |r: &pto_host::sim::solver::SimResult| {
+        r.trace.p_cap[0].iter().fold(0.0f64, |m, v| m.max(*v)) / BAR
+    };
     let d_tiny = max_diff(&lumped.trace.p2, &tiny.trace.p2);
     let (pk_l, pk_r) = (peak(&lumped), peak(&resistive));
     println!(

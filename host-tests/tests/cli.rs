@@ -17,8 +17,8 @@ fn tmp(name: &str) -> PathBuf {
 fn bad_bench_file_names_file_field_range_and_unit() {
     let dir = tmp("bench");
     let f = dir.join("my-bench.toml");
-    let text =
-        pto_host::bench::REFERENCE_BENCH_TOML.replace("setting_bar = 130.0", "setting_bar = 900.0");
+    let text = pto_host::sim::bench::REFERENCE_BENCH_TOML
+        .replace("setting_bar = 130.0", "setting_bar = 900.0");
     std::fs::write(&f, text).unwrap();
     let out = pto()
         .args(["simulate", "torque-cfg1-c1", "--bench"])
@@ -143,7 +143,7 @@ fn scenarios_json_lists_every_builtin() {
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(
         v.as_array().unwrap().len(),
-        pto_host::scenario::builtin().len()
+        pto_host::sim::scenario::builtin().len()
     );
 }
 
@@ -151,7 +151,7 @@ fn scenarios_json_lists_every_builtin() {
 fn a_scenario_name_cannot_leave_the_output_folder() {
     let dir = tmp("escape");
     let f = dir.join("s.toml");
-    let (mut s, _) = pto_host::scenario::resolve("torque-cfg1-c1").unwrap();
+    let (mut s, _) = pto_host::sim::scenario::resolve("torque-cfg1-c1").unwrap();
     s.name = "../../escaped".into();
     std::fs::write(&f, toml::to_string(&s).unwrap()).unwrap();
     let out_dir = dir.join("out");
@@ -356,23 +356,31 @@ fn numeric_options_must_be_finite_and_in_range() {
 #[test]
 fn infeasible_scenarios_are_refused_with_the_field_and_the_limit() {
     let dir = tmp("feasible");
-    let base = || pto_host::scenario::resolve("torque-cfg1-c1").unwrap().0;
+    let base = || {
+        pto_host::sim::scenario::resolve("torque-cfg1-c1")
+            .unwrap()
+            .0
+    };
     let trace = dir.join("short.csv");
     std::fs::write(&trace, "time_s,shaft_angle_deg\n0,0\n1,2\n2,0\n").unwrap();
     let bench_hi = dir.join("hi-precharge.toml");
     std::fs::write(
         &bench_hi,
-        pto_host::bench::REFERENCE_BENCH_TOML.replacen(
+        pto_host::sim::bench::REFERENCE_BENCH_TOML.replacen(
             "precharge_bar = 25.0",
             "precharge_bar = 135.0",
             1,
         ),
     )
     .unwrap();
-    let cases: Vec<(pto_host::scenario::Scenario, Option<&std::path::Path>, &str)> = vec![
+    let cases: Vec<(
+        pto_host::sim::scenario::Scenario,
+        Option<&std::path::Path>,
+        &str,
+    )> = vec![
         (
-            pto_host::scenario::Scenario {
-                motion: pto_host::motion::MotionSpec::Sine {
+            pto_host::sim::scenario::Scenario {
+                motion: pto_host::sim::motion::MotionSpec::Sine {
                     amplitude_mm: 500.0,
                     frequency_hz: 0.1,
                 },
@@ -382,7 +390,7 @@ fn infeasible_scenarios_are_refused_with_the_field_and_the_limit() {
             ":motion: the shaft swings to",
         ),
         (
-            pto_host::scenario::Scenario {
+            pto_host::sim::scenario::Scenario {
                 sample_interval_s: 5.0,
                 duration_s: 2.0,
                 ..base()
@@ -391,8 +399,8 @@ fn infeasible_scenarios_are_refused_with_the_field_and_the_limit() {
             ":sample_interval_s: 5 s is not shorter than duration_s = 2 s",
         ),
         (
-            pto_host::scenario::Scenario {
-                motion: pto_host::motion::MotionSpec::Trace {
+            pto_host::sim::scenario::Scenario {
+                motion: pto_host::sim::motion::MotionSpec::Trace {
                     file: trace.clone(),
                 },
                 duration_s: 10.0,
@@ -402,7 +410,7 @@ fn infeasible_scenarios_are_refused_with_the_field_and_the_limit() {
             ":motion: the trace ends at 2 s, before the run's 10 s",
         ),
         (
-            pto_host::scenario::Scenario {
+            pto_host::sim::scenario::Scenario {
                 initial_lp_bar: 3.0,
                 ..base()
             },

@@ -1,6 +1,6 @@
 //! The QEMU build boots, logs its version and configuration, answers a ping, exits on command.
 
-use pto_host::qemu::{self, Build, Qemu};
+use pto_host::hil::qemu::{self, Build, Qemu};
 use pto_model::protocol::{FromFirmware, ToFirmware};
 use std::time::Duration;
 

@@ -4,7 +4,7 @@
 //! six seconds of four cylinders holding P2 through a stroke reversal (the costliest case).
 //! QEMU's instruction count is deterministic, so the maxima are exact, not samples.
 
-use pto_host::fw_cost::{self, target};
+use pto_host::hil::fw_cost::{self, target};
 
 #[test]
 fn firmware_cost_report() {

@@ -2,10 +2,10 @@
 //! lockstep over USART1 (one sensor frame out and one output back per 2^-10 s step). Also the
 //! fault injections and the watchdog test.
 
-use pto_host::bench::Bench;
-use pto_host::estimation::SensorSpec;
-use pto_host::pil::{self, Injection, PilRow};
-use pto_host::qemu::{self, Build, Qemu};
+use pto_host::hil::pil::{self, Injection, PilRow};
+use pto_host::hil::qemu::{self, Build, Qemu};
+use pto_host::model::sensors::SensorSpec;
+use pto_host::sim::bench::Bench;
 use pto_model::estimator::fault;
 use pto_model::fx::Pressure;
 use pto_model::protocol::ToFirmware;

@@ -3,10 +3,10 @@
 //! firmware give, step for step, the same estimate and scheduler output as the model crate run
 //! on the host.
 
-use pto_host::bench::Bench;
-use pto_host::golden;
-use pto_host::pil;
-use pto_host::qemu::{self, Build, Qemu};
+use pto_host::hil::pil;
+use pto_host::hil::qemu::{self, Build, Qemu};
+use pto_host::model::golden;
+use pto_host::sim::bench::Bench;
 use pto_model::fx::Pressure;
 use pto_model::scheduler::Mode;
 use std::time::{Duration, Instant};

@@ -4,9 +4,9 @@
 //! 6 %, 0.154, 25 bar), with the sensor model's noise and quantisation; the fit starts from the
 //! reference values.
 
-use pto_host::bench::Bench;
-use pto_host::benchlog::BenchLog;
 use pto_host::fit;
+use pto_host::sim::bench::Bench;
+use pto_host::sim::benchlog::BenchLog;
 
 #[test]
 fn fit_recovers_trapped_air_cd_and_precharge() {

@@ -1,11 +1,11 @@
 //! The one conversion from the bench file to the model's configuration
-//! (`pto_host::estimation::model_config`), checked over every field: the reference bench gives
+//! (`pto_host::model::model_config`), checked over every field: the reference bench gives
 //! `ModelConfig::reference()` (the configuration the firmware boots) in every field, and every
 //! numeric field of the bench file either changes the model's configuration or is named below
 //! with the reason it does not apply to the reduced model.
 
-use pto_host::bench::Bench;
-use pto_host::estimation::model_config;
+use pto_host::model::model_config;
+use pto_host::sim::bench::Bench;
 use std::collections::BTreeMap;
 
 /// Numeric leaves of a serialised value by dotted path (`a.b[2].c`): the value, and whether

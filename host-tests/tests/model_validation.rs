@@ -16,12 +16,12 @@
 //! `pto validate` (see the README), and why two of them cannot meet it with these sensors is
 //! measured on the full simulation below.
 
-use pto_host::bench::Bench;
-use pto_host::validate::{self, target};
+use pto_host::model::validate::{self, target};
+use pto_host::sim::bench::Bench;
 
 /// `pto validate`'s rows for the named built-in scenarios (every one must exist and run).
 fn validate_named(names: &[&str]) -> Vec<validate::Row> {
-    let sel: Vec<_> = pto_host::scenario::builtin()
+    let sel: Vec<_> = pto_host::sim::scenario::builtin()
         .into_iter()
         .filter(|s| names.contains(&s.name.as_str()))
         .collect();
@@ -123,18 +123,18 @@ fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
 #[test]
 fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() {
     let bench = Bench::reference();
-    let sigma = pto_host::estimation::SensorSpec::default().motor_noise_rpm;
-    let p0 = bench.hp_acc.precharge / pto_host::bench::BAR;
+    let sigma = pto_host::model::sensors::SensorSpec::default().motor_noise_rpm;
+    let p0 = bench.hp_acc.precharge / pto_host::sim::bench::BAR;
     let dt = 1.0 / 1024.0;
     // (fastest 2 bar fall in ms, smallest d′, largest d′) over a run's emptying events.
     let events = |name: &str| {
-        let mut s = pto_host::scenario::builtin_named(name).expect("built-in scenario");
+        let mut s = pto_host::sim::scenario::builtin_named(name).expect("built-in scenario");
         s.sample_interval_s = dt;
         let (_, res) = s
             .simulate(
                 &bench,
                 std::path::Path::new("."),
-                pto_host::sim::SolverOptions::default(),
+                pto_host::sim::solver::SolverOptions::default(),
                 None,
             )
             .unwrap();
@@ -143,7 +143,7 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
         let (p, w): (Vec<f64>, Vec<f64>) =
             tr.t.iter()
                 .map(|&t| {
-                    let v = pto_host::estimation::truth_at(tr, t);
+                    let v = pto_host::sim::trace::truth_at(tr, t);
                     (v.p2, v.motor_rpm)
                 })
                 .unzip();
@@ -203,7 +203,7 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
             r.empty_flag_delay_ms
         );
         assert!(r.p2_model_only_max_bar > target::P2_MODEL_ONLY_MAX_BAR);
-        assert!(r.model_only_min_p2_bar < bench.hp_acc.precharge / pto_host::bench::BAR + 1.0);
+        assert!(r.model_only_min_p2_bar < bench.hp_acc.precharge / pto_host::sim::bench::BAR + 1.0);
         assert_meets(r);
     }
     for cfg in [1, 2] {
@@ -238,8 +238,11 @@ fn scheduler_holds_p2_and_motor_speed_in_closed_loop_with_the_full_simulation() 
 /// arithmetic's own error.
 #[test]
 fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
-    use pto_host::estimation::{self, Reference, SensorSpec, SensorSynth, truth_at};
-    use pto_host::sim::SolverOptions;
+    use pto_host::model::reference::Reference;
+    use pto_host::model::sensors::{SensorSpec, SensorSynth};
+    use pto_host::model::{self as estimation};
+    use pto_host::sim::solver::SolverOptions;
+    use pto_host::sim::trace::truth_at;
     use pto_model::estimator::{self, State};
     use pto_model::fx::Pressure;
     let bench = Bench::reference();
@@ -258,7 +261,7 @@ fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
         "blocked-ap25",
         "test3-ap25",
     ] {
-        let mut s = pto_host::scenario::builtin_named(name).unwrap();
+        let mut s = pto_host::sim::scenario::builtin_named(name).unwrap();
         s.sample_interval_s = 1.0 / 128.0;
         s.duration_s = s.duration_s.min(120.0);
         let (prep, res) = s

@@ -1,8 +1,8 @@
 //! Cost of the fixed-point model: host nanoseconds per estimator + scheduler step, and code size
 //! of `pto-model` for both thumb targets (the `.text` of its release rlib).
 
-use crate::bench::Bench;
-use crate::estimation::{self, model_config};
+use crate::model::{self as estimation, model_config};
+use crate::sim::bench::Bench;
 use pto_model::estimator::{self, State};
 use pto_model::fx::Pressure;
 use pto_model::scheduler::{self, Mode, SchedulerConfig, SchedulerState};

@@ -1,9 +1,9 @@
 //! Firmware cost: instructions per estimator + scheduler step under QEMU `-icount shift=0`
 //! (TIM2 counts one tick per instruction), and flash / static RAM of both builds.
 
-use crate::golden;
-use crate::pil;
-use crate::qemu::{self, Build, Qemu};
+use crate::hil::pil;
+use crate::hil::qemu::{self, Build, Qemu};
+use crate::model::golden;
 use object::{Object, ObjectSection, SectionKind};
 use pto_model::estimator::Inputs;
 use pto_model::fx::{Aperture, Pressure};
@@ -188,7 +188,7 @@ fn hold_p2() -> Mode {
 /// The four-cylinder window of the torque run (Config 1) and its start pressures.
 fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), String> {
     golden::clean_inputs(
-        &crate::bench::Bench::reference(),
+        &crate::sim::bench::Bench::reference(),
         "torque-cfg1-c1234",
         Some(FOUR_CYLINDER_START_S),
         6 * 1024,

@@ -1,8 +1,8 @@
 //! Runs many scenarios in parallel with one progress bar each.
 
-use crate::bench::Bench;
-use crate::scenario::Scenario;
-use crate::sim::{SimResult, SolverOptions};
+use crate::sim::bench::Bench;
+use crate::sim::scenario::Scenario;
+use crate::sim::solver::{SimResult, SolverOptions};
 use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 use std::path::Path;

@@ -6,8 +6,10 @@
 //! break (reads −60 bar), noise bursts, a missing encoder. The estimator and the scheduler
 //! (holding P2 at 100 bar) run from a known start.
 
-use crate::bench::Bench;
-use crate::estimation::{self, SensorSpec, SensorSynth, truth_at};
+use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::model::{self as estimation};
+use crate::sim::bench::Bench;
+use crate::sim::trace::truth_at;
 use pto_model::estimator::{self, Estimate, Inputs, State};
 use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::scheduler::{self, Command, Mode, Override, SchedulerConfig, SchedulerState};
@@ -57,7 +59,7 @@ pub fn scenario_inputs(
     steps: usize,
     faults: Faults,
 ) -> Result<(Vec<Inputs>, f32, f32), String> {
-    let mut s = crate::scenario::builtin_named(name).ok_or(format!("{name} missing"))?;
+    let mut s = crate::sim::scenario::builtin_named(name).ok_or(format!("{name} missing"))?;
     s.sample_interval_s = 1.0 / 128.0;
     let dt = 1.0 / 1024.0;
     if let Some(t0) = t_start {
@@ -230,7 +232,7 @@ pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), String> {
 }
 
 /// The model configuration the vectors are made with: the firmware's `ModelConfig::reference()`
-/// (a test keeps it equal to `estimation::model_config` of the reference bench).
+/// (a test keeps it equal to `model::model_config` of the reference bench).
 pub fn coefficients() -> Result<Coefficients, String> {
     ModelConfig::reference()
         .coefficients()

@@ -1,11 +1,14 @@
 //! `pto validate`: the fixed-point model against the full simulation, per scenario, and the
 //! scheduler in closed loop with the full simulation.
 
-use crate::bench::{BAR, Bench};
-use crate::estimation::{self, Reference, SensorSpec, SensorSynth, Truth, model_config, truth_at};
-use crate::plant::Eval;
-use crate::scenario::Scenario;
-use crate::sim::{self, Initial, Run, SolverOptions, ValveController, ValveSchedule};
+use crate::model::reference::Reference;
+use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::model::{self as estimation, model_config};
+use crate::sim::bench::{BAR, Bench};
+use crate::sim::plant::Eval;
+use crate::sim::scenario::Scenario;
+use crate::sim::solver::{self, Initial, Run, SolverOptions, ValveController, ValveSchedule};
+use crate::sim::trace::{Truth, truth_at};
 use pto_model::estimator::{self, Estimate, State};
 use pto_model::fx::{Pressure, Rpm};
 use pto_model::scheduler::{self, Mode, SchedulerCoeffs, SchedulerConfig, SchedulerState};
@@ -248,7 +251,7 @@ fn validate_scenario(
         p2_rms_bar: rms(se_p2),
         p2_max_bar: max_p2,
         p2_model_only_max_bar: max_mo,
-        torque_rms_of_peak: (!matches!(s.motion, crate::motion::MotionSpec::Blocked { .. }))
+        torque_rms_of_peak: (!matches!(s.motion, crate::sim::motion::MotionSpec::Blocked { .. }))
             .then(|| rms(se_tq) / peak_tq.max(1.0)),
         motor_rms_rel,
         fixed_vs_f64_bar: d_p2.max(d_p2_mo),
@@ -554,14 +557,14 @@ pub fn test3_like_loop<C: ValveController + 'static>(
     bench: &Bench,
     p2_start: f64,
     duration: f64,
-    make: impl FnOnce(&crate::scenario::Prepared) -> Result<C, String>,
-) -> Result<(crate::sim::SimResult, C), String> {
-    let s = crate::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
+    make: impl FnOnce(&crate::sim::scenario::Prepared) -> Result<C, String>,
+) -> Result<(crate::sim::solver::SimResult, C), String> {
+    let s = crate::sim::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
     let prep = s
         .prepare(bench, Path::new("."))
         .map_err(|e| e.to_string())?;
     let ctrl = make(&prep)?;
-    let (res, ctrl) = sim::simulate_with(
+    let (res, ctrl) = solver::simulate_with(
         Run {
             plant: &prep.plant,
             valve: ValveSchedule::Constant(0.0),
@@ -589,7 +592,7 @@ pub fn closed_loop(
     p2_start: f64,
     duration: f64,
     dt_log2: u8,
-) -> Result<(crate::sim::SimResult, ModelController), String> {
+) -> Result<(crate::sim::solver::SimResult, ModelController), String> {
     let mut mcfg = model_config(bench)?;
     mcfg.dt_log2 = dt_log2;
     test3_like_loop(bench, p2_start, duration, |prep| {
@@ -607,7 +610,7 @@ pub fn closed_loop(
 
 fn judge_loop(
     name: &str,
-    res: &crate::sim::SimResult,
+    res: &crate::sim::solver::SimResult,
     setpoint: f64,
     settle_from: f64,
     rel: bool,

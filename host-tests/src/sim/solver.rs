@@ -1,7 +1,7 @@
 //! The solver driver: diffsol BDF over the plant, valve schedules, sampling and balances.
 
-use crate::bench::{BAR, Bench};
-use crate::plant::{Eval, N_CYL, N_QUAD, Plant, QUAD_NAMES};
+use crate::sim::bench::{BAR, Bench};
+use crate::sim::plant::{Eval, N_CYL, N_QUAD, Plant, QUAD_NAMES};
 use diffsol::{
     NalgebraLU, NalgebraMat, NalgebraVec, OdeBuilder, OdeSolverMethod, OdeSolverStopReason, Vector,
 };
@@ -477,14 +477,14 @@ pub fn simulate_with<C: ValveController + 'static>(
 
 /// Steady motor state (inlet pressure Pa, speed rad/s) for P2, LP and aperture.
 pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture: f64) -> (f64, f64) {
-    use crate::bench::Load;
+    use crate::sim::bench::Load;
     let dp_of = |w: f64| match bench.load {
         Load::Viscous(c) => c * w / (bench.motor_disp * bench.motor_eta_mech),
         Load::Constant(t) => t / (bench.motor_disp * bench.motor_eta_mech),
     };
     let resid = |w: f64| {
         let dpm = dp_of(w);
-        crate::physics::valve_flow(bench, aperture, p2 - lp - dpm)
+        crate::sim::physics::valve_flow(bench, aperture, p2 - lp - dpm)
             - bench.motor_disp * w
             - bench.motor_leak * dpm
     };

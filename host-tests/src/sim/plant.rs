@@ -4,9 +4,9 @@
 //! positions in mm, motor speed in rad/s, spool aperture in %. Chambers of idle cylinders are
 //! bypassed to LP and carry no state.
 
-use crate::bench::{BAR, Bench, Load};
-use crate::motion::Motion;
-use crate::physics::{self, Fluid, Lever, check_flow};
+use crate::sim::bench::{BAR, Bench, Load};
+use crate::sim::motion::Motion;
+use crate::sim::physics::{self, Fluid, Lever, check_flow};
 use std::cell::Cell;
 
 /// Number of cylinders on the bench.
@@ -599,7 +599,7 @@ impl Plant {
             .chain(self.i_hm)
             .chain(self.i_lm);
         for i in pressure_idx {
-            if y[i] * BAR <= -crate::bench::P_ATM {
+            if y[i] * BAR <= -crate::sim::bench::P_ATM {
                 return Err((i, y[i]));
             }
         }

@@ -1,8 +1,8 @@
 //! `pto bench`: wall time, real-time factor and accuracy of the reference runs.
 
-use crate::bench::{BAR, Bench};
-use crate::scenario;
-use crate::sim::{SimResult, SolverOptions};
+use crate::sim::bench::{BAR, Bench};
+use crate::sim::scenario;
+use crate::sim::solver::{SimResult, SolverOptions};
 use serde::Serialize;
 
 /// Targets of the full-simulation issue.

@@ -1,9 +1,9 @@
 //! Named scenarios: the paper's tests as built-ins, and the same format loadable from TOML.
 
-use crate::bench::{BAR, Bench};
-use crate::motion::{Motion, MotionSpec};
-use crate::plant::{N_CYL, Plant};
-use crate::sim::{self, Initial, Run, SimError, SimResult, SolverOptions, ValveSchedule};
+use crate::sim::bench::{BAR, Bench};
+use crate::sim::motion::{Motion, MotionSpec};
+use crate::sim::plant::{N_CYL, Plant};
+use crate::sim::solver::{self, Initial, Run, SimError, SimResult, SolverOptions, ValveSchedule};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -325,7 +325,7 @@ impl Scenario {
             (a, if i < 128 { t_lo } else { t_hi })
         });
         for c in &bench.cylinders {
-            let lever = crate::physics::Lever::new(geom, c.stroke, c.side);
+            let lever = crate::sim::physics::Lever::new(geom, c.stroke, c.side);
             for (a, t) in sweep.clone() {
                 let x = lever.eye(a, 0.0).0;
                 if !(0.0..=c.stroke).contains(&x) {
@@ -395,13 +395,13 @@ fn steady_p2(
     let geom = &bench.configs[config];
     let mut q = 0.0;
     for (c, _) in bench.cylinders.iter().zip(on_duty).filter(|(_, d)| **d) {
-        let lever = crate::physics::Lever::new(geom, c.stroke, c.side);
+        let lever = crate::sim::physics::Lever::new(geom, c.stroke, c.side);
         let travel = (lever.eye(*amplitude, 0.0).0 - lever.eye(-amplitude, 0.0).0).abs();
         q += f * (c.area_cap + c.area_ann) * (travel - bench.free_play).max(0.0);
     }
     let q = q * (1.0 - 0.016);
     let motor_flow = |p2: f64| {
-        let (pm, w) = sim::steady_motor(bench, p2, lp, aperture);
+        let (pm, w) = solver::steady_motor(bench, p2, lp, aperture);
         bench.motor_disp * w + bench.motor_leak * (pm - lp)
     };
     let (mut lo, mut hi) = (lp, bench.relief_setting);
@@ -426,7 +426,7 @@ impl Scenario {
         bench: &Bench,
         base: &Path,
         solver: SolverOptions,
-        progress: Option<crate::sim::Progress<'_>>,
+        progress: Option<crate::sim::solver::Progress<'_>>,
     ) -> Result<(Prepared, SimResult), String> {
         let prep = self.prepare(bench, base).map_err(|e| e.to_string())?;
         let res = prep
@@ -441,9 +441,9 @@ impl Prepared {
     pub fn run(
         &self,
         solver: SolverOptions,
-        progress: Option<crate::sim::Progress<'_>>,
+        progress: Option<crate::sim::solver::Progress<'_>>,
     ) -> Result<SimResult, SimError> {
-        sim::simulate(Run {
+        solver::simulate(Run {
             plant: &self.plant,
             valve: self.scenario.schedule(),
             initial: self.initial,

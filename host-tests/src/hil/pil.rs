@@ -3,11 +3,12 @@
 //! lockstep over USART1, is its valve controller (sensor frame out, command back, virtual time =
 //! the tick in the frame).
 
-use crate::bench::{BAR, Bench};
-use crate::estimation::{SensorSpec, SensorSynth, Truth};
-use crate::plant::Eval;
-use crate::qemu::Qemu;
-use crate::sim::{SimResult, ValveController};
+use crate::hil::qemu::Qemu;
+use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::sim::bench::{BAR, Bench};
+use crate::sim::plant::Eval;
+use crate::sim::solver::{SimResult, ValveController};
+use crate::sim::trace::Truth;
 use pto_firmware::frontend::Transducer;
 use pto_model::estimator::{Estimate, Inputs};
 use pto_model::fx::{Aperture, Pressure, Rpm};
@@ -314,7 +315,7 @@ impl ValveController for FirmwareController {
 /// What a closed-loop run returns: the firmware (still running), the plant's trace, every step.
 pub type LoopRun = (Qemu, SimResult, Vec<PilRow>);
 
-/// A Test III-like closed-loop run ([`crate::validate::test3_like_loop`]) with the firmware as
+/// A Test III-like closed-loop run ([`crate::model::validate::test3_like_loop`]) with the firmware as
 /// the controller, from P2 `p2_start` bar, for `duration` s, with the sensors of `spec` (4–20 mA
 /// loops quantised by the firmware's own front end).
 pub fn closed_loop(
@@ -327,15 +328,15 @@ pub fn closed_loop(
     inject: Box<dyn Fn(f64) -> Injection>,
 ) -> Result<LoopRun, String> {
     let dt_log2 = pto_model::ModelConfig::reference().dt_log2;
-    let (res, ctrl) = crate::validate::test3_like_loop(bench, p2_start, duration, |prep| {
+    let (res, ctrl) = crate::model::validate::test3_like_loop(bench, p2_start, duration, |prep| {
         prime(
             &mut q,
             p2_start as f32,
-            crate::validate::LOOP_LP_START_BAR as f32,
+            crate::model::validate::LOOP_LP_START_BAR as f32,
             mode,
         )?;
         q.link.send(&ToFirmware::SetDuty {
-            on_duty: crate::estimation::duty_mask(&prep.on_duty),
+            on_duty: crate::model::duty_mask(&prep.on_duty),
             config: prep.config as u8,
         })?;
         FirmwareController::new(q, dt_log2, spec, 11, inject)

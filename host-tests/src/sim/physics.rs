@@ -2,7 +2,7 @@
 //!
 //! Pure functions of the bench parameters: the plant's right-hand side is assembled from them.
 
-use crate::bench::{Accumulator, Bench, CheckValve, Geometry, Oil, P_ATM};
+use crate::sim::bench::{Accumulator, Bench, CheckValve, Geometry, Oil, P_ATM};
 
 /// Equation of state of oil with trapped air.
 ///
@@ -292,7 +292,7 @@ impl Lever {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::bench::{BAR, Bench};
+    use crate::sim::bench::{BAR, Bench};
 
     #[test]
     fn bulk_modulus_matches_hand_values() {
@@ -417,7 +417,7 @@ mod tests {
 #[cfg(test)]
 mod properties {
     use super::*;
-    use crate::bench::{BAR, Bench};
+    use crate::sim::bench::{BAR, Bench};
     use proptest::prelude::*;
 
     proptest! {

@@ -1,0 +1,159 @@
+//! `pto qemu`, `pil` and `fw-cost`: the firmware under QEMU.
+
+use super::{load_bench, write_atomic};
+use anyhow::Result;
+use std::path::{Path, PathBuf};
+
+pub(crate) fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
+    use pto_host::hil::qemu::{self, Build, Qemu};
+    use pto_model::protocol::{FromFirmware, ToFirmware};
+    eprintln!("building the QEMU firmware…");
+    let elf = qemu::build(Build::Qemu).map_err(anyhow::Error::msg)?;
+    let mut q = Qemu::boot(&elf, follow).map_err(anyhow::Error::msg)?;
+    let t0 = std::time::Instant::now();
+    q.link
+        .request(&ToFirmware::Ping(1), |r| {
+            matches!(r, FromFirmware::Pong(1)).then_some(())
+        })
+        .map_err(anyhow::Error::msg)?;
+    let ping = t0.elapsed();
+    let st = pto_host::hil::pil::status(&mut q).map_err(anyhow::Error::msg)?;
+    let host = q.link.counts();
+    if follow {
+        eprintln!(
+            "ping answered in {:.2} ms; following the firmware's log — Ctrl-C stops it",
+            ping.as_secs_f64() * 1e3
+        );
+        eprint!("{}", pto_host::hil::qemu::status_table(&st, &host));
+        while q.running() {
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        anyhow::bail!("QEMU ended by itself");
+    }
+    q.link
+        .send(&ToFirmware::Exit(0))
+        .map_err(anyhow::Error::msg)?;
+    let code = q
+        .wait_exit(std::time::Duration::from_secs(10))
+        .map_err(anyhow::Error::msg)?;
+    if !follow {
+        for l in q.log() {
+            if json {
+                eprintln!("{l}");
+            } else {
+                println!("{l}");
+            }
+        }
+    }
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "ping_ms": ping.as_secs_f64() * 1e3,
+                "status": st,
+                "host_link": host,
+                "exit_code": code,
+            }))?
+        );
+    } else {
+        println!("ping answered in {:.2} ms", ping.as_secs_f64() * 1e3);
+        print!("{}", pto_host::hil::qemu::status_table(&st, &host));
+        println!("QEMU exit code {code}");
+    }
+    Ok(code == 0)
+}
+
+pub(crate) fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
+    use pto_host::hil::qemu::{self, Build, Qemu};
+    let bench = load_bench(bench)?;
+    eprintln!("building the QEMU firmware…");
+    let elf = qemu::build(Build::Qemu).map_err(anyhow::Error::msg)?;
+    let checks: [(&str, pto_host::hil::pil::CheckFn); 5] = [
+        ("hold P2", pto_host::hil::pil::check_hold_p2),
+        ("hold speed", pto_host::hil::pil::check_hold_speed),
+        ("trip", pto_host::hil::pil::check_trip),
+        ("trip holds", pto_host::hil::pil::check_trip_holds),
+        (
+            "motor behind a closed valve",
+            pto_host::hil::pil::check_motor_behind_closed_valve,
+        ),
+    ];
+    let mut out = Vec::new();
+    for (name, f) in checks {
+        eprintln!("PIL {name}: running in lockstep with the firmware (≈ 2–3 ms per step)…");
+        let q = Qemu::boot(&elf, false).map_err(anyhow::Error::msg)?;
+        let (mut q, c) = f(q, &bench).map_err(anyhow::Error::msg)?;
+        let _ = q.link.send(&pto_model::protocol::ToFirmware::Exit(0));
+        if !json {
+            println!(
+                "{:<24} {:>8.3} {:<13} target {:<6} {}  ({} steps, {:.0} s)\n    {}",
+                c.name,
+                c.measured,
+                c.unit,
+                c.target,
+                if c.pass { "ok" } else { "MISSED" },
+                c.steps,
+                c.wall_s,
+                c.detail
+            );
+        }
+        out.push(c);
+    }
+    let pass = out.iter().all(|c| c.pass);
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({ "checks": out, "pass": pass }))?
+        );
+    }
+    Ok(pass)
+}
+
+pub(crate) fn fw_cost_cmd(json: bool, trace: Option<&Path>) -> Result<bool> {
+    eprintln!(
+        "building both firmwares and replaying the golden vectors (and a four-cylinder run) under QEMU…"
+    );
+    let r = pto_host::hil::fw_cost::measure().map_err(anyhow::Error::msg)?;
+    if let Some(path) = trace {
+        eprintln!("tracing the four-cylinder run step by step…");
+        let t = pto_host::hil::fw_cost::trace_four_cylinders().map_err(anyhow::Error::msg)?;
+        let mut csv = String::from("step,instructions,background_units,phases\n");
+        for s in &t {
+            csv += &format!(
+                "{},{},{},{}\n",
+                s.step, s.instructions, s.background_units, s.phases
+            );
+        }
+        write_atomic(path, csv.as_bytes())?;
+        eprintln!("wrote {}", path.display());
+    }
+    if json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        use pto_host::hil::fw_cost::target;
+        for s in &r.step {
+            println!(
+                "step ({:<27}) {} steps: mean {:.0}, max {} instructions (target ≤ {})",
+                s.mode,
+                s.steps,
+                s.mean,
+                s.max,
+                target::STEP_INSTRUCTIONS
+            );
+        }
+        for s in &r.size {
+            println!(
+                "{:<6} build: flash {} B, static RAM {} B{}",
+                s.build,
+                s.flash,
+                s.ram,
+                if s.build == "bench" {
+                    format!(" (targets ≤ {} B, ≤ {} B)", target::FLASH, target::RAM)
+                } else {
+                    String::new()
+                }
+            );
+        }
+    }
+    Ok(r.pass)
+}

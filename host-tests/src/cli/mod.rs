@@ -1,0 +1,61 @@
+//! Shared by the commands: loading the bench file, progress bars, atomic writes.
+
+pub(crate) mod firmware;
+pub(crate) mod fit;
+pub(crate) mod model;
+pub(crate) mod sim;
+
+use anyhow::Result;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use pto_host::sim::bench::Bench;
+use pto_host::sim::runner::{self};
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+
+pub(crate) fn load_bench(path: Option<&PathBuf>) -> Result<Bench> {
+    Ok(Bench::load_or_reference(path)?)
+}
+
+/// The bench file with `--set` overrides applied, validated (errors name the field).
+pub(crate) fn load_bench_with(path: Option<&PathBuf>, set: &[String]) -> Result<Bench> {
+    if set.is_empty() {
+        return load_bench(path);
+    }
+    let base = load_bench(path)?;
+    let mut file = base.file;
+    for kv in set {
+        pto_host::fit::apply_override(&mut file, kv).map_err(anyhow::Error::msg)?;
+    }
+    Ok(Bench::from_file(
+        file,
+        &format!("{} with --set", base.source),
+    )?)
+}
+
+pub(crate) fn progress_bar(len_ms: u64, label: &str) -> ProgressBar {
+    let pb = ProgressBar::with_draw_target(Some(len_ms), ProgressDrawTarget::stderr());
+    pb.set_style(
+        ProgressStyle::with_template("{prefix} [{bar:40}] {pos}/{len} ms simulated  {elapsed}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    pb.set_prefix(label.to_string());
+    pb
+}
+
+pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    runner::write_atomic(path, bytes).map_err(anyhow::Error::msg)
+}
+
+pub(crate) fn count_bar(n: u64, what: &str) -> ProgressBar {
+    let pb = ProgressBar::new(n);
+    if std::io::stderr().is_terminal() {
+        pb.set_style(
+            ProgressStyle::with_template(&format!("{{bar:40}} {{pos}}/{{len}} {what} {{elapsed}}"))
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+    } else {
+        pb.set_draw_target(ProgressDrawTarget::hidden());
+    }
+    pb
+}

@@ -1,0 +1,164 @@
+//! `pto validate` and `model-cost`: the fixed-point model against the simulation.
+
+use super::load_bench;
+use anyhow::{Result, bail};
+use pto_host::sim::scenario;
+use std::path::{Path, PathBuf};
+
+pub(crate) fn validate_cmd(
+    bench_path: Option<&PathBuf>,
+    filter: &str,
+    with_loop: bool,
+    json: bool,
+) -> Result<bool> {
+    use pto_host::model::validate::{self, target};
+    let bench = load_bench(bench_path)?;
+    let sel: Vec<_> = scenario::builtin()
+        .into_iter()
+        .filter(|s| s.name.contains(filter))
+        .collect();
+    if sel.is_empty() {
+        bail!("--filter {filter:?} matches no built-in scenario (see `pto scenarios`)");
+    }
+    if !json {
+        eprintln!(
+            "validating the model on {} scenarios{}…",
+            sel.len(),
+            if with_loop { " + closed loop" } else { "" }
+        );
+    }
+    let rep = validate::run(&bench, &sel, with_loop);
+    if json {
+        println!("{}", serde_json::to_string_pretty(&rep)?);
+        return Ok(rep.pass);
+    }
+    println!(
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>8} {:>7}",
+        "scenario",
+        "P2 RMS",
+        "P2 max",
+        "no-HP",
+        "2σ",
+        "3σ",
+        "empty",
+        "torque",
+        "motor",
+        "fx P2",
+        "fx T",
+        ""
+    );
+    println!(
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>8}",
+        "(target)",
+        format!("≤{}", target::P2_RMS_BAR),
+        "-",
+        format!("≤{}*", target::P2_MODEL_ONLY_MAX_BAR),
+        format!("≥{}", target::COVER_2S * 100.0),
+        format!("≥{}", target::COVER_3S * 100.0),
+        format!("≤{}", target::EMPTY_FLAG_MS),
+        format!("≤{}%", target::TORQUE_RMS_OF_PEAK * 100.0),
+        format!("≤{}%", target::MOTOR_RMS_REL * 100.0),
+        format!("≤{}*", target::FIXED_VS_F64_BAR),
+        format!("≤{}*", target::FIXED_VS_F64_NM)
+    );
+    let pct = |x: Option<f64>| x.map_or("-".to_string(), |v| format!("{:.2}%", v * 100.0));
+    for r in &rep.rows {
+        let misses = &r.missed;
+        println!(
+            "{:<20} {:>7.3} {:>6.2} {:>7.3} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7.4} {:>8.3}  {}",
+            r.scenario,
+            r.p2_rms_bar,
+            r.p2_max_bar,
+            r.p2_model_only_max_bar,
+            format!(
+                "{:.2}/{:.2}",
+                r.cover_2s * 100.0,
+                r.cover_2s_model_only * 100.0
+            ),
+            format!(
+                "{:.2}/{:.2}",
+                r.cover_3s * 100.0,
+                r.cover_3s_model_only * 100.0
+            ),
+            r.empty_flag_delay_ms
+                .map_or("-".to_string(), |d| format!("{d:.0}")),
+            pct(r.torque_rms_of_peak),
+            pct(r.motor_rms_rel),
+            r.fixed_vs_f64_bar,
+            r.fixed_vs_f64_nm,
+            if misses.is_empty() {
+                "ok".to_string()
+            } else {
+                format!("MISSED: {}", misses.join("; "))
+            }
+        );
+    }
+    println!(
+        "σ coverage: with the transducer / without it (%). * no-HP ≤ {} bar in runs whose \
+         estimate stays above the precharge + {} bar (else σ coverage and the empty flag, ms \
+         after the bench's accumulator ran empty, judge it); fixed vs f64 ≤ {} bar and ≤ {} N·m \
+         where P2 stays out of the cells at the precharge, else ≤ {} bar (torque not judged)",
+        target::P2_MODEL_ONLY_MAX_BAR,
+        target::PRECHARGE_MARGIN_BAR,
+        target::FIXED_VS_F64_BAR,
+        target::FIXED_VS_F64_NM,
+        target::FIXED_VS_F64_CELL_BAR
+    );
+    for l in &rep.closed_loop {
+        println!(
+            "closed loop: {:<24} max deviation {:.4} (target {}) over {:.0}–{:.0} s: {}",
+            l.name,
+            l.max_deviation,
+            l.target,
+            l.window_s.0,
+            l.window_s.1,
+            if l.pass { "met" } else { "MISSED" }
+        );
+    }
+    for e in &rep.errors {
+        println!("error: {e}");
+    }
+    let ok = rep.rows.iter().filter(|r| r.pass).count();
+    println!(
+        "{ok}/{} scenarios meet every target; closed loop {}",
+        rep.rows.len(),
+        if !with_loop {
+            "not run (--no-loop)"
+        } else if rep.closed_loop.iter().all(|l| l.pass) {
+            "met"
+        } else {
+            "MISSED"
+        }
+    );
+    Ok(rep.pass)
+}
+
+pub(crate) fn model_cost_cmd(json: bool) -> Result<bool> {
+    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let cost = pto_host::model::cost::measure(&workspace).map_err(anyhow::Error::msg)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&cost)?);
+    } else {
+        println!(
+            "estimator + scheduler step on this host: {:.0} ns",
+            cost.host_ns_per_step
+        );
+        println!(
+            "state: {} bytes (target ≤ {}); coefficients (tables, RAM): {} bytes",
+            cost.state_bytes,
+            pto_host::model::cost::target::STATE_BYTES,
+            cost.coefficient_bytes
+        );
+        for c in &cost.code {
+            println!(
+                "{:<24} per-step code {:>6} B (target ≤ {} B); whole crate .text {:>6} B, .rodata {:>5} B",
+                c.target,
+                c.step_code_bytes,
+                pto_host::model::cost::target::FLASH_BYTES,
+                c.text_bytes,
+                c.rodata_bytes
+            );
+        }
+    }
+    Ok(cost.pass)
+}

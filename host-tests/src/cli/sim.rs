@@ -1,0 +1,328 @@
+//! `pto scenarios`, `simulate`, `paper` and `bench`: the simulation's commands.
+
+use super::{load_bench, load_bench_with, progress_bar, write_atomic};
+use anyhow::{Context, Result, bail};
+use pto_host::figures;
+use pto_host::paper::{self, Fact, Results, tol};
+use pto_host::sim::bench::BAR;
+use pto_host::sim::runner::{self, Outcome};
+use pto_host::sim::solver::{SimResult, SolverOptions};
+use pto_host::sim::{perf, scenario};
+use serde::Serialize;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+
+pub(crate) fn scenarios(json: bool) -> Result<bool> {
+    let all = scenario::builtin();
+    if json {
+        println!("{}", serde_json::to_string_pretty(&all)?);
+    } else {
+        println!("{:<22} {:>7}  description", "name", "length");
+        for s in &all {
+            println!("{:<22} {:>6.0}s  {}", s.name, s.duration_s, s.description);
+        }
+        println!(
+            "\n{} scenarios. Write your own in the same TOML form (`pto scenarios --json` shows the fields).",
+            all.len()
+        );
+    }
+    Ok(true)
+}
+
+#[derive(Serialize)]
+pub(crate) struct RunSummary {
+    scenario: String,
+    simulated_s: f64,
+    wall_s: f64,
+    steps: usize,
+    p2_start_bar: f64,
+    p2_end_bar: f64,
+    p2_min_bar: f64,
+    p2_max_bar: f64,
+    lp_end_bar: f64,
+    mean_injected_lpm: f64,
+    mean_motor_flow_lpm: f64,
+    mean_motor_speed_rpm: f64,
+    peak_torque_nm: f64,
+    balance_worst_rel: f64,
+    balance_target_rel: f64,
+    csv: String,
+    figure: String,
+}
+
+pub(crate) fn summarize(name: &str, r: &SimResult, csv: &Path, fig: &Path) -> RunSummary {
+    let t = &r.trace;
+    let mean = |x: &[f64]| x.iter().sum::<f64>() / x.len().max(1) as f64;
+    RunSummary {
+        scenario: name.into(),
+        simulated_s: *t.t.last().unwrap_or(&0.0),
+        wall_s: r.stats.wall_s,
+        steps: r.stats.steps,
+        p2_start_bar: t.p2[0] / BAR,
+        p2_end_bar: t.p2[t.len() - 1] / BAR,
+        p2_min_bar: t.p2.iter().copied().fold(f64::INFINITY, f64::min) / BAR,
+        p2_max_bar: t.p2.iter().copied().fold(f64::NEG_INFINITY, f64::max) / BAR,
+        lp_end_bar: t.lp[t.len() - 1] / BAR,
+        mean_injected_lpm: mean(&t.q_inj) * 6e4,
+        mean_motor_flow_lpm: mean(&t.q_motor) * 6e4,
+        mean_motor_speed_rpm: mean(&t.omega) * 30.0 / std::f64::consts::PI,
+        peak_torque_nm: t.torque.iter().fold(0.0f64, |m, v| m.max(v.abs())),
+        balance_worst_rel: r.balance.worst(),
+        balance_target_rel: tol::BALANCE_REL,
+        csv: csv.display().to_string(),
+        figure: fig.display().to_string(),
+    }
+}
+
+pub(crate) fn simulate(
+    name: &str,
+    bench_path: Option<&PathBuf>,
+    set: &[String],
+    out: &Path,
+    json: bool,
+    rtol: f64,
+) -> Result<bool> {
+    let bench = load_bench_with(bench_path, set)?;
+    let (s, base) = scenario::resolve(name)?;
+    let prepared = s.prepare(&bench, &base)?;
+    let solver = SolverOptions {
+        rtol,
+        ..SolverOptions::default()
+    };
+    let pb = progress_bar((s.duration_s * 1000.0) as u64, &s.name);
+    let at = |t: f64| pb.set_position((t * 1000.0) as u64);
+    let r = prepared.run(solver, Some(&at))?;
+    pb.finish_and_clear();
+    std::fs::create_dir_all(out).with_context(|| format!("cannot create {}", out.display()))?;
+    let csv = out.join(format!("{}.csv", s.name));
+    let names: [String; 4] = std::array::from_fn(|i| bench.cylinders[i].name.clone());
+    r.trace
+        .write_csv(&csv, &names)
+        .with_context(|| format!("cannot write {}", csv.display()))?;
+    let duty: Vec<(usize, String)> = prepared
+        .on_duty
+        .iter()
+        .enumerate()
+        .filter(|(_, d)| **d)
+        .map(|(i, _)| (i, bench.cylinders[i].name.clone()))
+        .collect();
+    let fig = figures::single(&s.name, &r.trace, &duty)
+        .write(out)
+        .map_err(anyhow::Error::msg)?;
+    let sum = summarize(&s.name, &r, &csv, &fig);
+    let pass = sum.balance_worst_rel <= tol::BALANCE_REL;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&sum)?);
+    } else {
+        println!("{} — {}", s.name, s.description);
+        println!(
+            "  simulated {:.0} s in {:.3} s ({} steps)",
+            sum.simulated_s, sum.wall_s, sum.steps
+        );
+        println!(
+            "  P2 {:.2} -> {:.2} bar (min {:.2}, max {:.2}); LP at end {:.2} bar",
+            sum.p2_start_bar, sum.p2_end_bar, sum.p2_min_bar, sum.p2_max_bar, sum.lp_end_bar
+        );
+        println!(
+            "  mean injected {:.3} L/min, mean motor flow {:.3} L/min, mean motor speed {:.1} rpm, peak torque {:.0} N·m",
+            sum.mean_injected_lpm,
+            sum.mean_motor_flow_lpm,
+            sum.mean_motor_speed_rpm,
+            sum.peak_torque_nm
+        );
+        println!(
+            "  oil/energy balance worst relative error {:.1e} (target {:.0e}): {}",
+            sum.balance_worst_rel,
+            tol::BALANCE_REL,
+            if pass { "met" } else { "MISSED" }
+        );
+        println!("  wrote {} and {}", sum.csv, sum.figure);
+    }
+    Ok(pass)
+}
+
+#[derive(Serialize)]
+pub(crate) struct PaperReport<'a> {
+    bench: String,
+    runs: usize,
+    failed_runs: Vec<String>,
+    wall_s: f64,
+    facts: &'a [Fact],
+    pass: bool,
+    figures: Vec<String>,
+}
+
+pub(crate) fn paper_cmd(
+    bench_path: Option<&PathBuf>,
+    out: &Path,
+    json: bool,
+    plots: bool,
+) -> Result<bool> {
+    let bench = load_bench(bench_path)?;
+    let all = scenario::builtin();
+    let start = std::time::Instant::now();
+    if !json {
+        eprintln!(
+            "running {} scenarios on {} threads…",
+            all.len(),
+            rayon::current_num_threads()
+        );
+    }
+    let outcomes = runner::run_all(
+        &bench,
+        &all,
+        SolverOptions::default(),
+        std::io::stderr().is_terminal(),
+    );
+    let wall = start.elapsed().as_secs_f64();
+    let facts = paper::check(&bench, &outcomes);
+    let pass = facts.iter().all(|f| f.pass);
+    // Every file of the run goes into a staging folder swapped in whole at the end: an
+    // interrupted run leaves the previous figures, report and facts together.
+    let stage = pto_host::output::StagedDir::new(out).map_err(anyhow::Error::msg)?;
+    let dir = stage.path().to_path_buf();
+    let mut fig_paths = Vec::new();
+    if plots {
+        let r = Results::new(&outcomes);
+        for f in figures::all(&r) {
+            let p = f.write(&dir).map_err(anyhow::Error::msg)?;
+            let name = p.file_name().map(PathBuf::from).unwrap_or_default();
+            fig_paths.push(out.join(name).display().to_string());
+        }
+    }
+    let failed_runs: Vec<String> = outcomes
+        .iter()
+        .filter_map(|o| o.result.as_ref().err().cloned())
+        .collect();
+    let report = PaperReport {
+        bench: bench.source.clone(),
+        runs: outcomes.len(),
+        failed_runs,
+        wall_s: wall,
+        facts: &facts,
+        pass,
+        figures: fig_paths,
+    };
+    let md = markdown_report(&report, &outcomes);
+    write_atomic(&dir.join("report.md"), md.as_bytes())?;
+    write_atomic(
+        &dir.join("facts.json"),
+        serde_json::to_string_pretty(&report)?.as_bytes(),
+    )?;
+    stage.commit().map_err(anyhow::Error::msg)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", facts_table(&facts));
+        println!(
+            "\n{} runs in {:.1} s on {}; {} of 10 facts hold. Report: {}, figures: {} in {}",
+            report.runs,
+            wall,
+            bench.source,
+            facts.iter().filter(|f| f.pass).count(),
+            out.join("report.md").display(),
+            report.figures.len(),
+            out.display()
+        );
+    }
+    Ok(pass)
+}
+
+pub(crate) fn facts_table(facts: &[Fact]) -> String {
+    let mut s = String::new();
+    s.push_str(&format!("{:<3} {:<5} {}\n", "#", "", "fact — measured"));
+    for f in facts {
+        s.push_str(&format!(
+            "{:<3} {:<5} {}\n",
+            f.id,
+            if f.pass { "PASS" } else { "FAIL" },
+            f.statement
+        ));
+        s.push_str(&format!("{:<9} {}\n", "", f.measured));
+    }
+    s
+}
+
+pub(crate) fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
+    let mut s = format!(
+        "# Paper check on `{}`\n\n{} runs in {:.1} s. Result: **{}**.\n\n| # | fact | measured | |\n|---|---|---|---|\n",
+        r.bench,
+        r.runs,
+        r.wall_s,
+        if r.pass {
+            "all facts hold"
+        } else {
+            "some facts FAIL"
+        }
+    );
+    for f in r.facts {
+        s.push_str(&format!(
+            "| {} | {} | {} | {} |\n",
+            f.id,
+            f.statement,
+            f.measured,
+            if f.pass { "pass" } else { "**FAIL**" }
+        ));
+    }
+    s.push_str("\n## Runs\n\n| scenario | wall (s) | steps | P2 start → end (bar) | worst balance error |\n|---|---|---|---|---|\n");
+    for o in outcomes {
+        match &o.result {
+            Ok(res) => {
+                let t = &res.trace;
+                s.push_str(&format!(
+                    "| {} | {:.3} | {} | {:.1} → {:.1} | {:.1e} |\n",
+                    o.scenario.name,
+                    res.stats.wall_s,
+                    res.stats.steps,
+                    t.p2[0] / BAR,
+                    t.p2[t.len() - 1] / BAR,
+                    res.balance.worst()
+                ));
+            }
+            Err(e) => s.push_str(&format!("| {} | failed: {e} | | | |\n", o.scenario.name)),
+        }
+    }
+    if !r.figures.is_empty() {
+        s.push_str("\n## Figures\n\n");
+        for f in &r.figures {
+            let file = Path::new(f)
+                .file_name()
+                .map(|n| n.to_string_lossy().to_string())
+                .unwrap_or_default();
+            s.push_str(&format!("![{file}]({file})\n\n"));
+        }
+    }
+    s
+}
+
+pub(crate) fn bench_cmd(bench_path: Option<&PathBuf>, repeats: usize, json: bool) -> Result<bool> {
+    if repeats == 0 {
+        bail!("--repeats must be at least 1");
+    }
+    let bench = load_bench(bench_path)?;
+    let rep = perf::measure(&bench, repeats).map_err(anyhow::Error::msg)?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&rep)?);
+    } else {
+        println!(
+            "{:<16} {:>10} {:>10} {:>10} {:>9} {:>9} {:>14}",
+            "scenario", "simulated", "wall (s)", "RTF", "steps", "f evals", "P2 err (bar)"
+        );
+        for r in &rep.rows {
+            println!(
+                "{:<16} {:>9.0}s {:>10.3} {:>10.0} {:>9} {:>9} {:>14}",
+                r.scenario,
+                r.simulated_s,
+                r.wall_s,
+                r.real_time_factor,
+                r.steps,
+                r.rhs_evals,
+                r.p2_max_err_bar.map_or("-".into(), |e| format!("{e:.4}"))
+            );
+        }
+        for t in &rep.targets {
+            println!("{t}");
+        }
+    }
+    Ok(rep.pass)
+}

@@ -1,0 +1,46 @@
+//! Plant values at an instant of a run, in the units the controller uses (bar, N·m, rpm).
+
+use crate::sim::bench::BAR;
+use crate::sim::solver::Trace;
+
+const RPM: f64 = 30.0 / std::f64::consts::PI;
+
+/// Plant values at one instant (linear interpolation of a trace, or the plant's evaluation).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Truth {
+    /// P2, bar.
+    pub p2: f64,
+    /// LP, bar.
+    pub lp: f64,
+    /// Restraining torque, N·m.
+    pub torque: f64,
+    /// Motor speed, rpm.
+    pub motor_rpm: f64,
+}
+
+impl Truth {
+    /// The plant's values as its controller callback sees them.
+    pub fn of_eval(p: &crate::sim::plant::Eval) -> Truth {
+        Truth {
+            p2: p.p2 / BAR,
+            lp: p.lp / BAR,
+            torque: p.torque.iter().sum(),
+            motor_rpm: p.omega * RPM,
+        }
+    }
+}
+
+/// Plant values at time `t` of a trace (linear interpolation).
+pub fn truth_at(tr: &Trace, t: f64) -> Truth {
+    let n = tr.len();
+    let k = tr.t.partition_point(|&x| x <= t).clamp(1, n - 1);
+    let (t0, t1) = (tr.t[k - 1], tr.t[k]);
+    let u = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0);
+    let l = |v: &[f64]| v[k - 1] + u * (v[k] - v[k - 1]);
+    Truth {
+        p2: l(&tr.p2) / BAR,
+        lp: l(&tr.lp) / BAR,
+        torque: l(&tr.torque),
+        motor_rpm: l(&tr.omega) * RPM,
+    }
+}
