@@ -10,6 +10,7 @@
 //! - [`model`]: the fixed-point model against the simulation (configuration from the bench,
 //!   sensors, the f64 mirror, `pto validate`, golden vectors, code cost).
 //! - [`hil`]: the firmware under QEMU, processor-in-the-loop, firmware cost.
+//! - [`runner`]: scenarios run in parallel on all cores, with progress bars.
 //! - [`figures`] (the figures of a run and of the paper), [`plot`] (the plotting), [`output`]
 //!   (outputs written whole).
 
@@ -20,4 +21,5 @@ pub mod model;
 pub mod output;
 pub mod paper;
 pub mod plot;
+pub mod runner;
 pub mod sim;

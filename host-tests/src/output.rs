@@ -9,6 +9,14 @@
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
+/// Writes `bytes` to a temporary name next to `path`, then renames it: a file is never left
+/// half-written.
+pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<(), String> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).map_err(|e| format!("cannot write {}: {e}", tmp.display()))?;
+    std::fs::rename(&tmp, path).map_err(|e| format!("cannot write {}: {e}", path.display()))
+}
+
 /// The file that marks a folder as a `pto` output (so it may be replaced whole).
 pub const MARKER: &str = ".pto-output";
 

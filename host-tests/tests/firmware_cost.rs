@@ -1,5 +1,5 @@
 //! Firmware cost report: instructions per estimator + scheduler step under QEMU, flash and
-//! static RAM of both builds. Asserted: the memory targets and the 2 000-instruction step target
+//! static RAM of both builds. Asserted: the memory targets and the 2 200-instruction step target
 //! for every run — the golden vectors (two cylinders on duty, fixed aperture and holding P2) and
 //! six seconds of four cylinders holding P2 through a stroke reversal (the costliest case).
 //! QEMU's instruction count is deterministic, so the maxima are exact, not samples.

@@ -1,5 +1,5 @@
 //! `pto fit` recovers known parameters from synthetic bench logs (the reduced, fast case of the
-//! README's full recovery run): five of the experimental runs at 5 Hz, made by the full
+//! full recovery run of `docs/fit.md`): five of the experimental runs at 5 Hz, made by the full
 //! simulation from a bench with trapped air 4 %, Cd 0.17 and HP precharge 45 bar (reference:
 //! 6 %, 0.154, 25 bar), with the sensor model's noise and quantisation; the fit starts from the
 //! reference values.

@@ -13,7 +13,7 @@
 //! (HP accumulator empty) meet the P2, torque and motor-speed targets, and with one small
 //! cylinder every target (the motor speed reading P2, the rod floating in its free play),
 //! asserted on one of them below; the model-only P2 of the runs with HC3.4 is left to
-//! `pto validate` (see the README), and why two of them cannot meet it with these sensors is
+//! `pto validate` (see `docs/model.md`), and why two of them cannot meet it with these sensors is
 //! measured on the full simulation below.
 
 use pto_host::model::validate::{self, target};
@@ -109,8 +109,8 @@ fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
     assert!(r.p2_model_only_max_bar <= target::P2_MODEL_ONLY_MAX_BAR);
 }
 
-/// Why model-only P2 misses its 2 bar target in Test I with HC3.1 + HC3.4 in Configs 1–2 (README,
-/// "Still open"): each time the plant's HP accumulator runs empty, P2 falls 2 bar below where it
+/// Why model-only P2 misses its 2 bar target in Test I with HC3.1 + HC3.4 in Configs 1–2 (`docs/model.md`,
+/// "Known limits"): each time the plant's HP accumulator runs empty, P2 falls 2 bar below where it
 /// hovered within 7–13 ms, and by then the motor speed, the only sensor left that sees the fall,
 /// has moved ≤ 1.4 rpm from its course against a noise of 2 rpm per sample. Even a matched filter
 /// that knew the instant and the shape of the deviation would reach a detectability d′ of only

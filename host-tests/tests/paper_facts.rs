@@ -1,9 +1,10 @@
 //! The paper's ten facts hold on the reference bench (every built-in scenario is run).
 
 use pto_host::paper;
+use pto_host::runner;
 use pto_host::sim::bench::Bench;
+use pto_host::sim::scenario;
 use pto_host::sim::solver::SolverOptions;
-use pto_host::sim::{runner, scenario};
 
 #[test]
 fn all_ten_facts_hold_on_the_reference_bench() {

@@ -274,7 +274,7 @@ fn fx(x: f32) -> Fx {
 /// ⌊2π · 2^32⌋: a full turn in the tracker's Q32.32 angle.
 const TWO_PI_Q32: u64 = 26_986_075_409;
 
-/// Trapped-air bulk modulus (physics.md), bar.
+/// Trapped-air bulk modulus (`docs/physics.md` §2), bar.
 fn modulus_bar(cfg: &ModelConfig, p: f32) -> f32 {
     let el = cfg.oil_bulk_modulus_mpa * 10.0;
     let a = cfg.trapped_air_fraction;

@@ -17,6 +17,32 @@
 //! each other with a clear error instead of misreading frames. The firmware also sends its
 //! `Hello` once at boot.
 //!
+//! ```
+//! use pto_model::protocol::{MAX_FRAME, Receiver, ToFirmware, encode};
+//!
+//! // The host numbers its frames; frame 2 is lost on the way and one byte of frame 3 flips.
+//! let mut wire = Vec::new();
+//! for seq in 0..5u16 {
+//!     let mut buf = [0u8; MAX_FRAME];
+//!     let n = encode(seq, &ToFirmware::Ping(u32::from(seq)), &mut buf).unwrap();
+//!     match seq {
+//!         2 => {}
+//!         3 => {
+//!             buf[2] ^= 0x10;
+//!             wire.extend_from_slice(&buf[..n]);
+//!         }
+//!         _ => wire.extend_from_slice(&buf[..n]),
+//!     }
+//! }
+//! let mut rx = Receiver::<ToFirmware>::new();
+//! let got: Vec<ToFirmware> = wire.iter().filter_map(|b| rx.push(*b)).collect();
+//! assert_eq!(got, [ToFirmware::Ping(0), ToFirmware::Ping(1), ToFirmware::Ping(4)]);
+//! // Every loss is counted: the damaged frame by its cause, and the sequence numbers missing
+//! // before frame 4 (2 lost, 3 damaged).
+//! let c = rx.counts;
+//! assert_eq!((c.ok, c.cobs + c.crc + c.payload, c.lost), (3, 1, 2), "{c:?}");
+//! ```
+//!
 //! A typed RPC layer (`postcard-rpc`: endpoints keyed by a hash of path and schema, sequence
 //! numbers, a standard error type) was considered and left for later: its embassy server wraps
 //! `embassy-executor` 0.9's spawner (this firmware runs 0.10, so it would need its own

@@ -8,7 +8,7 @@ pub(crate) mod sim;
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use pto_host::sim::bench::Bench;
-use pto_host::sim::runner::{self};
+
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
@@ -44,7 +44,7 @@ pub(crate) fn progress_bar(len_ms: u64, label: &str) -> ProgressBar {
 }
 
 pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    runner::write_atomic(path, bytes).map_err(anyhow::Error::msg)
+    pto_host::output::write_atomic(path, bytes).map_err(anyhow::Error::msg)
 }
 
 pub(crate) fn count_bar(n: u64, what: &str) -> ProgressBar {

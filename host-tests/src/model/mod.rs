@@ -2,6 +2,22 @@
 //! bench into the model's configuration, the model's inputs from a run, the sensor model, the
 //! f64 mirror of the estimator, and the tools built on them (`pto validate`, the golden vectors,
 //! `pto model-cost`).
+//!
+//! The one conversion from a bench to the controller's model, then the model's coefficients:
+//!
+//! ```
+//! use pto_host::model::model_config;
+//! use pto_host::sim::bench::Bench;
+//!
+//! let mut file = Bench::reference().file;
+//! file.set_field("hp_accumulator.precharge_bar", "45")?;
+//! let bench = Bench::from_file(file, "my bench").map_err(|e| e.to_string())?;
+//! let cfg = model_config(&bench)?;
+//! assert_eq!(cfg.hp.precharge_bar, 45.0);
+//! let k = cfg.coefficients().map_err(|e| e.to_string())?;
+//! assert_eq!(k.dt_log2, 10);
+//! # Ok::<(), String>(())
+//! ```
 
 pub mod cost;
 pub mod golden;

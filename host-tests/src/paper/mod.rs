@@ -1,7 +1,7 @@
 //! The paper's facts (Section 4.1), checked on the built-in scenarios.
 
+use crate::runner::Outcome;
 use crate::sim::bench::{BAR, Bench};
-use crate::sim::runner::Outcome;
 use crate::sim::scenario::{BLOCKED_APERTURES, SETS, TEST3_APERTURES};
 use crate::sim::solver::{SimResult, Trace};
 use serde::Serialize;

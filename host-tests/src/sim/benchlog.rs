@@ -213,7 +213,7 @@ impl BenchLog {
 
     /// Writes the log (to a temporary name, then renamed: never half-written).
     pub fn write(&self) -> Result<(), String> {
-        crate::sim::runner::write_atomic(&self.path, self.to_csv().as_bytes())
+        crate::output::write_atomic(&self.path, self.to_csv().as_bytes())
     }
 
     /// The valve schedule as (time from the log's start, aperture %) steps.

@@ -1,4 +1,4 @@
-//! Component laws of `physics.md` §2 in SI units (pressures gauge, Pa).
+//! Component laws of `docs/physics.md` §2 in SI units (pressures gauge, Pa).
 //!
 //! Pure functions of the bench parameters: the plant's right-hand side is assembled from them.
 
@@ -12,7 +12,7 @@ use crate::sim::bench::{Accumulator, Bench, CheckValve, Geometry, Oil, P_ATM};
 ///
 /// `E(p) = −v/v' = [e^(−p/E_l) + α·r] / [e^(−p/E_l)/E_l + α·r/(n·(p_a+p))]`
 ///
-/// is the SimHydraulics trapped-air formula of physics.md with `e^(−p/E_l)` kept where the
+/// is the SimHydraulics trapped-air formula of `docs/physics.md` with `e^(−p/E_l)` kept where the
 /// formula rounds it to 1 (they differ by < 0.15 % up to 130 bar, see the tests). We keep the
 /// exact form because mass and energy are then state functions in closed form (`content`,
 /// [`Fluid::exergy`]): a volumetric (constant-density) flow balance loses ≈2 % of the pumped
@@ -83,7 +83,7 @@ pub fn bulk_modulus(oil: &Oil, p: f64) -> f64 {
     Fluid::new(oil).bulk_modulus(p)
 }
 
-/// The physics.md (SimHydraulics) form of the trapped-air modulus, kept for comparison:
+/// The `docs/physics.md` (SimHydraulics) form of the trapped-air modulus, kept for comparison:
 /// `E_l·[1 + α·(p_a/(p_a+p))^(1/n)] / [1 + α·p_a^(1/n)/(n·(p_a+p)^((n+1)/n))·E_l]`.
 pub fn bulk_modulus_simhydraulics(oil: &Oil, p: f64) -> f64 {
     let pabs = (P_ATM + p).max(1.0);
@@ -391,7 +391,7 @@ mod tests {
             })
             .collect();
         println!("eye travel per config (mm): {travel:?}");
-        // physics.md: rod travel ≈ 101 / 97 / 65 / 81 mm (eye travel minus nothing here).
+        // docs/physics.md: rod travel ≈ 101 / 97 / 65 / 81 mm (eye travel minus nothing here).
         for (t, want) in travel.iter().zip([101.0, 97.0, 65.0, 81.0]) {
             assert!((t - want).abs() < 2.0, "{t} vs {want}");
         }

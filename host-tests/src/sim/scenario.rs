@@ -379,7 +379,7 @@ impl Scenario {
 
 /// Periodic steady-state P2 of a constant-aperture sine run: the pressure at which the motor
 /// passes the mean pumped flow. Mean pumped flow = f·Σ(A_cap + A_ann)·(eye travel − free play),
-/// less the ≈1.6 % compressibility lag of physics.md; the run then settles within a few periods.
+/// less the ≈1.6 % compressibility lag of `docs/physics.md`; the run then settles within a few periods.
 fn steady_p2(
     bench: &Bench,
     config: usize,

@@ -1,0 +1,246 @@
+//! The bench file as written: TOML sections whose key names carry their units, and editing a
+//! field by its dotted path.
+
+use super::BenchError;
+use serde::{Deserialize, Serialize};
+
+/// Raw bench file, field names carry their units.
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct BenchFile {
+    pub input: InputSection,
+    pub oil: OilSection,
+    pub cylinder_mounting: MountingSection,
+    pub cylinder: Vec<CylinderSection>,
+    pub config: Vec<ConfigSection>,
+    pub check_valve: ValveSection,
+    pub makeup_valve: ValveSection,
+    pub relief_valve: ReliefSection,
+    pub control_valve: ControlValveSection,
+    pub hp_accumulator: AccumulatorSection,
+    pub lp_accumulator: AccumulatorSection,
+    pub motor: MotorSection,
+    pub lines: LinesSection,
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct InputSection {
+    pub pinion_radius_mm: f64,
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct OilSection {
+    pub density_kg_m3: f64,
+    pub kinematic_viscosity_cst: f64,
+    pub liquid_bulk_modulus_mpa: f64,
+    pub trapped_air_fraction: f64,
+    pub air_polytropic_index: f64,
+    pub critical_reynolds: f64,
+    pub leakage_area_mm2: f64,
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MountingSection {
+    pub dead_volume_cm3: f64,
+    pub hose_length_m: f64,
+    pub hose_inner_diameter_mm: f64,
+    pub free_play_mm: f64,
+    pub hard_stop_stiffness_n_per_m: f64,
+    pub hard_stop_damping_n_s_per_m: f64,
+    pub seal_friction_n_s_per_m: f64,
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct CylinderSection {
+    pub name: String,
+    pub bore_mm: f64,
+    pub rod_mm: f64,
+    pub stroke_mm: f64,
+    pub side: i32,
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ConfigSection {
+    pub name: String,
+    pub ob_mm: f64,
+    pub ac_mm: f64,
+    pub oc_mm: f64,
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ValveSection {
+    pub cracking_bar: f64,
+    pub full_open_bar: f64,
+    pub max_area_mm2: f64,
+    pub discharge_coefficient: f64,
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ReliefSection {
+    pub setting_bar: f64,
+    pub regulation_range_bar: f64,
+    pub max_area_mm2: f64,
+    pub discharge_coefficient: f64,
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ControlValveSection {
+    pub discharge_coefficient: f64,
+    /// Pressure-dependent characteristic: Cd(Δp) = Cd·(1 + slope·(Δp − 50 bar)/100 bar).
+    /// Optional (0: the paper's constant Cd); `pto fit --params cd_slope` fits it.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub cd_slope_per_100bar: f64,
+    pub aperture_pct: Vec<f64>,
+    pub area_mm2: Vec<f64>,
+    pub spool_time_constant_ms: f64,
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct AccumulatorSection {
+    pub volume_l: f64,
+    pub precharge_bar: f64,
+    pub polytropic_index: f64,
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MotorSection {
+    pub displacement_cm3_per_rev: f64,
+    pub volumetric_efficiency: f64,
+    pub total_efficiency: f64,
+    pub nominal_pressure_bar: f64,
+    pub nominal_speed_rpm: f64,
+    pub inertia_kg_m2: f64,
+    pub load: LoadSection,
+}
+
+/// Generator load on the motor shaft.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum LoadSection {
+    /// Torque proportional to speed.
+    Viscous {
+        /// N·m per rpm.
+        torque_per_speed_nm_per_rpm: f64,
+    },
+    /// Constant torque opposing rotation (smoothed over ±1 rpm around standstill).
+    Constant {
+        /// N·m.
+        torque_nm: f64,
+    },
+}
+
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LinesSection {
+    pub hp_length_m: f64,
+    pub hp_inner_diameter_mm: f64,
+    pub valve_to_motor_length_m: f64,
+    pub valve_to_motor_inner_diameter_mm: f64,
+    pub motor_to_lp_length_m: f64,
+    pub motor_to_lp_inner_diameter_mm: f64,
+    pub lp_to_manifold_length_m: f64,
+    pub lp_to_manifold_inner_diameter_mm: f64,
+    /// Laminar resistance of the HP line between the check-valve manifold and the accumulator
+    /// block; 0 (the default) lumps manifold, line and accumulator into one node.
+    #[serde(default)]
+    pub hp_line_resistance_bar_per_lpm: f64,
+    /// Same for the LP line between the LP accumulator and the manifold.
+    #[serde(default)]
+    pub lp_line_resistance_bar_per_lpm: f64,
+}
+
+impl BenchFile {
+    /// Sets the field at a dotted path (`hp_accumulator.precharge_bar`, `cylinder[1].bore_mm`,
+    /// `control_valve.area_mm2[3]`) to `value` (TOML: a number, a boolean, a quoted string or
+    /// an array), keeping its type. Errors name the path and, for an unknown key, the keys
+    /// there. The result is validated when it becomes a [`Bench`](super::Bench).
+    pub fn set_field(&mut self, path: &str, value: &str) -> Result<(), String> {
+        let mut root = toml::Value::try_from(&*self).map_err(|e| e.to_string())?;
+        let mut at = &mut root;
+        for part in path.split('.') {
+            let (key, index) = match part.split_once('[') {
+                Some((k, rest)) => {
+                    let i = rest
+                        .strip_suffix(']')
+                        .and_then(|i| i.parse::<usize>().ok())
+                        .ok_or_else(|| format!("{path}: bad index in `{part}`"))?;
+                    (k, Some(i))
+                }
+                None => (part, None),
+            };
+            let table = at
+                .as_table_mut()
+                .ok_or_else(|| format!("{path}: `{key}` is inside a value, not a table"))?;
+            let known: Vec<String> = table.keys().cloned().collect();
+            at = table.get_mut(key).ok_or_else(|| {
+                format!(
+                    "{path}: unknown field `{key}` (fields here: {})",
+                    known.join(", ")
+                )
+            })?;
+            if let Some(i) = index {
+                let arr = at
+                    .as_array_mut()
+                    .ok_or_else(|| format!("{path}: `{key}` is not a list"))?;
+                let n = arr.len();
+                at = arr
+                    .get_mut(i)
+                    .ok_or_else(|| format!("{path}: index {i} outside `{key}`'s 0..{n}"))?;
+            }
+        }
+        let parsed: toml::Table = toml::from_str(&format!("v = {value}"))
+            .or_else(|_| toml::from_str(&format!("v = {value:?}")))
+            .map_err(|e| format!("{path}: `{value}` is not a value: {e}"))?;
+        let mut new = parsed["v"].clone();
+        new = match (&*at, new) {
+            (toml::Value::Float(_), toml::Value::Integer(i)) => toml::Value::Float(i as f64),
+            (old, new) if old.type_str() == new.type_str() => new,
+            (old, new) => {
+                return Err(format!(
+                    "{path}: `{value}` is a {}, the field holds a {}",
+                    new.type_str(),
+                    old.type_str()
+                ));
+            }
+        };
+        *at = new;
+        *self = root
+            .try_into()
+            .map_err(|e: toml::de::Error| format!("{path}: {e}"))?;
+        Ok(())
+    }
+
+    /// Parses TOML text; `file` names the source in error messages.
+    pub fn parse(text: &str, file: &str) -> Result<Self, BenchError> {
+        toml::from_str(text).map_err(|e| BenchError::Parse {
+            file: file.to_string(),
+            message: e.to_string(),
+        })
+    }
+}

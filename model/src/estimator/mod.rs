@@ -1,0 +1,522 @@
+//! The HP-pressure / restraining-torque estimator: the reduced-order node model of `docs/physics.md` §2
+//! as the prediction, corrected by the pressure transducers when they are valid.
+//!
+//! Per step: shaft angle and speed from the encoder (α–β–γ tracker) → per cylinder on duty, rod
+//! speed from the lever-arm table and the stroke-reversal phases (both chambers follow the oil's
+//! strain law from their pressures at the reversal until their forces balance, the eye crosses
+//! the free play — all of it, none or a quarter, by the rod's net force when the lever turned,
+//! see `play_to_cross` — the new chamber compresses to P2 and delivers; a reversal's set-up and
+//! force-balance bisection run as small work units over the following steps, see
+//! [`REVERSAL_UNITS_PER_STEP`]) → valve/motor flow from the
+//! steady valve table, relief flow → P2 and LP predicted through the nodes' capacitance tables →
+//! scalar Kalman correction of P2 (gain from a table of the prior variance, innovation gating,
+//! reset after a run of rejections) or, without the HP transducer, a correction of P2 by the
+//! motor speed read as a pressure (`motor_reading`) → a fixed-gain correction of LP → torque
+//! from the chamber pressures and the rods' seal friction → motor speed (Eq. 9 on the load line)
+//! and autonomy (table).
+//!
+//! The stages live in files of their own: `tracker` (the shaft), `cylinder` (strokes,
+//! reversals, play, flows and torque), `motor` (the motor speed read as a pressure), `observer`
+//! (the Kalman update of P2), `fine` (values kept below the Q16.16 LSB); [`step`] here runs them
+//! in order.
+
+use crate::coeffs::{
+    Coefficients, CylinderCoeffs, N_ARM, TRACKER_STARTUP, TRACKER_STARTUP_MAX,
+    tracker_startup_gains,
+};
+use crate::fx::{
+    Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, PressureVariance, QMul, Rpm, Seconds,
+    Torque, ZERO, clamp, mul_bounded, mul_dt, mul_frac, mul_q24, recip, shr64, sqrt0,
+};
+use crate::table::Table1;
+
+/// Fault flags (bit set).
+pub mod fault {
+    /// HP transducer reading missing or outside its range (wire break reads below range).
+    pub const HP_SENSOR: u16 = 1 << 0;
+    /// LP transducer reading missing or outside its range.
+    pub const LP_SENSOR: u16 = 1 << 1;
+    /// Encoder reading missing.
+    pub const ENCODER: u16 = 1 << 2;
+    /// Motor speed reading missing or outside its range.
+    pub const MOTOR_SENSOR: u16 = 1 << 3;
+    /// HP innovation outside the gate (reading rejected this step).
+    pub const INNOVATION: u16 = 1 << 4;
+    /// HP innovation rejected for the whole reset window: estimate reset to the reading.
+    pub const INNOVATION_RESET: u16 = 1 << 5;
+    /// P2 (estimated or measured) above the trip pressure.
+    pub const OVERPRESSURE: u16 = 1 << 6;
+    /// Encoder static for 2 s while the HP reading rises by more than 1 bar: shaft moving.
+    pub const ENCODER_STUCK: u16 = 1 << 7;
+    /// Configuration index out of range (step ignored the duty mask).
+    pub const BAD_CONFIG: u16 = 1 << 8;
+    /// The motor speed contradicts the model: it turns behind a valve that has been closed for
+    /// longer than the rotor takes to spin down, or, without the HP transducer, it reads a flow
+    /// the valve could not pass at the modelled aperture with P2 at the relief (P2 is then not
+    /// moved by it).
+    pub const MOTOR_IMPLAUSIBLE: u16 = 1 << 9;
+}
+
+/// Sensor readings of one step. `None` = missing (the firmware also maps out-of-range raw
+/// readings to `None`; the estimator range-checks what it gets as well).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "protocol", derive(postcard_schema::Schema))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Inputs {
+    /// Shaft encoder count (quadrature-decoded, 0 at the neutral angle).
+    pub encoder: Option<i32>,
+    /// HP transducer.
+    pub hp: Option<Pressure>,
+    /// LP transducer.
+    pub lp: Option<Pressure>,
+    /// Motor speed sensor.
+    pub motor: Option<Rpm>,
+    /// Aperture commanded to the valve this step.
+    pub aperture_cmd: Aperture,
+    /// Cylinders on duty, bit i = HC3.(i+1).
+    pub on_duty: u8,
+    /// Geometry, 0..=3 = Config 1..4.
+    pub config: u8,
+}
+
+/// What the estimator reports each step.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "protocol", derive(postcard_schema::Schema))]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Estimate {
+    /// Estimated P2.
+    pub p2: Pressure,
+    /// Its variance (the filter's own uncertainty figure; [`Estimate::p2_sigma`] is the standard
+    /// deviation, taken on demand so that the step needs no square root).
+    pub p2_var: PressureVariance,
+    /// Estimated LP.
+    pub lp: Pressure,
+    /// Shaft angle.
+    pub theta: Angle,
+    /// Shaft speed.
+    pub omega: AngularSpeed,
+    /// Flow delivered into HP by the pump.
+    pub q_pump: Flow,
+    /// Pump flow averaged over ≈ one wave period.
+    pub q_pump_mean: Flow,
+    /// Control valve (= motor) flow.
+    pub q_valve: Flow,
+    /// Relief flow.
+    pub q_relief: Flow,
+    /// Restraining torque at the shaft.
+    pub torque: Torque,
+    /// Per cylinder.
+    pub torque_cyl: [Torque; 4],
+    /// Predicted motor speed (Eq. 9).
+    pub motor_rpm: Rpm,
+    /// Time the motor stays above the minimum speed if the input stops now.
+    pub autonomy: Seconds,
+    /// Effective spool aperture.
+    pub aperture: Aperture,
+    /// [`fault`] bits.
+    pub faults: u16,
+    /// Background work units the estimator spent this step: stroke-reversal units (up to
+    /// [`REVERSAL_UNITS_PER_STEP`]) or, in a step without them, one for the autonomy refresh
+    /// (every [`AUTONOMY_EVERY`]th step). The step's background slot: the scheduler refreshes
+    /// its feed-forward only in a step that spent none, so no two of them add up in one step.
+    pub background_units: u8,
+    /// The HP accumulator is empty: the P2 estimate is below its precharge plus
+    /// `ModelConfig::hp_empty_margin_bar` (the node is then the stiff oil of the lines alone,
+    /// or about to be, where a small flow error moves P2 by bars).
+    pub hp_empty: bool,
+}
+
+impl Estimate {
+    /// Standard deviation of P2 (a square root: for display and telemetry, not the step).
+    pub fn p2_sigma(&self) -> Pressure {
+        Pressure(sqrt0(self.p2_var.0))
+    }
+}
+
+/// Per-cylinder state.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct CylState {
+    /// Direction of the rod: 1 extending, −1 retracting, 0 unknown.
+    pub dir: i8,
+    /// The last reversal started from rest (both chambers at LP).
+    pub from_rest: bool,
+    /// The free play this stroke crosses, mm: the configured play, 0 when the rod stays on one
+    /// end of it, a quarter of it when the rod floated (see `play_to_cross`).
+    pub play: Fx,
+    /// Reversal set-up units still to run ([`SETUP_UNITS`] after a reversal, then 0).
+    pub setup_left: u8,
+    /// Force-balance bisection iterations still to run.
+    pub bisect_left: u8,
+    /// Eye travel since the last reversal, mm (stops counting once delivering).
+    pub travel: Fx,
+    /// Length of the new delivering chamber (dead volume + chamber at the reversal), mm.
+    pub len_n: Fx,
+    /// Length of the old (now sucking) chamber, mm.
+    pub len_o: Fx,
+    /// This stroke's milli-strain per mm of rod travel, new delivering chamber.
+    pub ms_per_mm_n: Fx,
+    /// Same for the old (now sucking) chamber.
+    pub ms_per_mm_o: Fx,
+    /// Milli-strain of the new chamber at the reversal (LP − drop).
+    pub ms_new0: Fx,
+    /// Milli-strain of the old chamber at the reversal (P2 + drop).
+    pub ms_old0: Fx,
+    /// Rod travel at which the chamber forces balance, mm (the bisection's lower bracket while
+    /// it runs).
+    pub u_bal: Fx,
+    /// Upper bracket of the force balance while the bisection runs, mm.
+    pub u_bal_hi: Fx,
+    /// Rod travel at which the new chamber reaches P2 and delivers, mm.
+    pub u_end: Fx,
+    /// Rod travel at which the old chamber reaches LP and sucks, mm.
+    pub u_suc: Fx,
+    /// Cap-chamber pressure of the last step, bar.
+    pub p_cap: Fx,
+    /// Rod-chamber pressure of the last step, bar.
+    pub p_rod: Fx,
+}
+
+/// Set-up units of a stroke reversal: (1) the chamber lengths and the new chamber's strain rate,
+/// (2) the old chamber's, (3) the start strains, (4) the travels to delivery and suction and the
+/// bisection bracket — each at most two table lookups or one reciprocal.
+pub const SETUP_UNITS: u8 = 4;
+/// Iterations of the force-balance bisection (its bracket shrinks 4096-fold: ≈ 2 µm on a 10 mm
+/// stroke build-up).
+pub const BISECT_ITERATIONS: u8 = 12;
+/// Reversal work units per step, shared by all cylinders in order (HC3.1 first). A reversal
+/// needs [`SETUP_UNITS`] + [`BISECT_ITERATIONS`] = 16 units (one bisection iteration each), so
+/// with all four cylinders reversing in one step the last one is done 64 steps (63 ms at
+/// 2^−10 s) later; the rod has then moved ≈ 0.04 mm of a several-mm build-up (a 0.1 Hz, ±24°
+/// swing). While a set-up waits, its chambers hold their pressures and pass no flow; while the
+/// bisection runs, the rod follows the lever up to the bracket's upper end. Spreading the work
+/// keeps every step's cost flat: a reversal on all cylinders at once cost ≈ 7 000 instructions
+/// in one step.
+pub const REVERSAL_UNITS_PER_STEP: u8 = 1;
+
+/// Steps between autonomy refreshes (8 ms at 2^−10 s; more while reversals hold the slot).
+pub const AUTONOMY_EVERY: u8 = 8;
+
+/// Estimator state (352 bytes together with the scheduler's; `pto model-cost` prints it).
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct State {
+    /// Shaft angle estimate, rad, Q32.32.
+    pub theta_q32: i64,
+    /// Shaft speed estimate, rad/s, Q32.32.
+    pub omega_q32: i64,
+    /// Shaft acceleration estimate, rad/s², Q32.32.
+    pub accel_q32: i64,
+    /// The tracker's phase: 0 before its first encoder reading (and after a drop-out), 1
+    /// tracking with the fading-memory gains, n + 1 with n start-up steps left
+    /// ([`Coefficients::tracker_startup_len`], the expanding-memory gains [`TRACKER_STARTUP`]).
+    /// One byte, so that the steady step tests one value.
+    pub enc_phase: u8,
+    /// Last encoder count.
+    pub enc_last: i32,
+    /// Steps since the encoder last changed.
+    pub enc_still: u16,
+    /// HP reading when the encoder last changed, bar.
+    pub hp_at_enc_change: Fx,
+    /// P2, bar.
+    pub p2: Fx,
+    /// The 16 bits of P2 below its Q16.16 LSB (units of 2^−32 bar): see `node_step`.
+    pub p2_lo: u16,
+    /// P2 variance, bar².
+    pub var: Fx,
+    /// The 16 bits of the P2 variance below its Q16.16 LSB (units of 2^−32 bar²). Near its
+    /// steady value (≈ 0.002 bar², 130 LSBs) the Kalman update's shrink (1 − g)·var is ≈ 1 LSB
+    /// per step: floored to the LSB, the variance ran 20 % below the f64 model's, its gain with
+    /// it, and P2 up to 0.15 bar away from the f64 model where it crosses the precharge.
+    pub var_lo: u16,
+    /// LP, bar.
+    pub lp: Fx,
+    /// The 16 bits of LP below its Q16.16 LSB (units of 2^−32 bar).
+    pub lp_lo: u16,
+    /// Effective spool aperture, %.
+    pub aperture: Fx,
+    /// Valve/motor flow, L/min: the rotor's speed as the flow it passes (it lags the steady
+    /// flow of the pressure across the branch by the rotor's inertia).
+    pub q_motor: Fx,
+    /// The 16 bits of the valve/motor flow below its Q16.16 LSB.
+    pub q_motor_lo: u16,
+    /// The first step has run: it set the spool to the command and the valve/motor flow to its
+    /// steady value.
+    pub started: bool,
+    /// Autonomy at the last refresh, s.
+    pub autonomy: Fx,
+    /// Steps since the last autonomy refresh (wraps).
+    pub autonomy_tick: u8,
+    /// Averaged pump flow, L/min.
+    pub q_mean: Fx,
+    /// Cylinders.
+    pub cyl: [CylState; 4],
+    /// Consecutive rejected HP readings.
+    pub rejected: u16,
+    /// Measured motor flow (speed / rpm per L/min), low-passed, L/min (the motor reading, used
+    /// without the HP transducer: see `estimator::motor_reading`).
+    pub q_meas: Fx,
+    /// LP + F(measured motor flow), low-passed, bar.
+    pub f_meas: Fx,
+    /// The motor reading's step: odd (the guards, F and both filters) or even (P2's
+    /// correction).
+    pub meas_odd: bool,
+    /// The reading's dead band as of the last odd step, bar.
+    pub meas_band: Fx,
+    /// `q_meas` and `f_meas` follow the motor sensor. They run while the HP reading is missing,
+    /// the spool stands at its command and the valve is open enough, and restart from the
+    /// sensor after any of these changes.
+    pub meas_live: bool,
+    /// Correction steps the reading still waits before P2 takes it: set to
+    /// [`Coefficients::motor_reading_warm_steps`] while the spool moves or the valve is near
+    /// closed (the rotor may then be accelerating, which filters started from one sample do not
+    /// know yet).
+    pub meas_wait: u16,
+    /// Variance of the motor reading as of the last odd step, bar²: its noise and its dead
+    /// band (an error spread evenly over ±band: band²/3). P2's variance relaxes toward it as
+    /// the reading corrects P2.
+    pub meas_var: Fx,
+    /// Consecutive steps with the valve closed (commanded or modelled aperture below
+    /// `Coefficients::motor_reading_min_aperture`).
+    pub closed_steps: u16,
+}
+
+impl State {
+    /// A state starting from known pressures (bar, held to [`P_MIN`, `P_MAX`] like every
+    /// pressure state) with the given P2 standard deviation.
+    pub fn new(p2: Pressure, lp: Pressure, sigma: Pressure) -> Self {
+        State {
+            p2: clamp(p2.0, P_MIN, P_MAX),
+            lp: clamp(lp.0, P_MIN, P_MAX),
+            var: sigma.0.qmul(sigma.0),
+            ..State::default()
+        }
+    }
+}
+
+/// [`State::enc_phase`] before the tracker's first encoder reading.
+const ENC_UNSEEN: u8 = 0;
+/// [`State::enc_phase`] once the fading-memory gains track the shaft.
+const ENC_TRACKING: u8 = 1;
+
+/// Lower end of the pressure states' range (P2, LP), bar: vacuum.
+pub const P_MIN: Fx = Fx::from_bits(-65_536);
+/// Upper end of the pressure states' range (P2, LP), bar.
+pub const P_MAX: Fx = Fx::from_bits(400 << 16);
+const FLOW_LIM: Fx = Fx::from_bits(1000 << 16);
+const THETA_LIM_Q32: i64 = 1 << 61;
+const OMEGA_LIM_Q32: i64 = 100 << 32;
+const ACCEL_LIM_Q32: i64 = 1000 << 32;
+
+mod cylinder;
+mod fine;
+mod motor;
+mod observer;
+#[cfg(test)]
+mod tests;
+mod tracker;
+
+use cylinder::*;
+pub use cylinder::{FLOAT_BAND, FLOAT_RAMP};
+use fine::*;
+use motor::*;
+use observer::*;
+use tracker::*;
+
+/// Advances the estimator by one step. Cannot fail; every reading may be missing or wrong.
+pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
+    let dtl = k.dt_log2;
+    let mut faults = 0u16;
+    // --- Shaft: α–β–γ tracker on the encoder angle.
+    let (theta, omega) = track(k, s, inp, &mut faults);
+    // --- Spool lag.
+    // The first step takes the spool as settled at the command and the valve/motor flow at its
+    // steady value (a state started from known pressures is a bench at rest or in steady
+    // running, not a valve or a rotor half way through a change).
+    let first = !s.started;
+    s.started = true;
+    let cmd = clamp(inp.aperture_cmd.0, ZERO, Fx::from_num(100));
+    if first {
+        s.aperture = cmd;
+    } else {
+        s.aperture = s
+            .aperture
+            .saturating_add(mul_frac(k.spool_gain, cmd.saturating_sub(s.aperture)));
+    }
+    // --- Cylinders: delivered flow, suction flow, torque.
+    let config = usize::from(inp.config);
+    let (arm_table, ext_table, duty) = match (k.arm.get(config), k.ext.get(config)) {
+        (Some(a), Some(e)) => (a, e, inp.on_duty),
+        _ => {
+            faults |= fault::BAD_CONFIG;
+            (&k.arm[0], &k.ext[0], 0)
+        }
+    };
+    let mut torque_cyl = [Torque::ZERO; 4];
+    let mut torque = ZERO;
+    let mut sh = Shared {
+        k,
+        ext: ext_table,
+        lp: s.lp,
+        lo: s.lp.saturating_sub(k.check_drop),
+        hi: s.p2.saturating_add(k.check_drop),
+        budget: REVERSAL_UNITS_PER_STEP,
+        q_pump: ZERO,
+        q_lp: ZERO,
+    };
+    // The lever on each side of the shaft (s = ±1): the arm tables are per geometry, so every
+    // cylinder on one side shares s·θ, the signed arm s·d and the rod speed v = s·d·θ̇ (mm/s).
+    // The shaft speed to 2^−24 rad/s for the rod speed: in Q16.16 its LSB is 6·10^−5 of a
+    // 0.26 rad/s swing, and the pump flow on the empty HP node (≈ 0.18 bar per L/min a step)
+    // took that as a P2 LSB a step. |ω| ≤ 100 rad/s (`OMEGA_LIM_Q32`) is < 2^31 in Q8.24, so
+    // it is one word; times an arm (< 2^31 bits) < 2^62; the rod speed is held to the Q16.16
+    // range.
+    let omega24 = ((s.omega_q32 + (1 << 7)) >> 8) as i32;
+    let lever = |th: Fx, negative: bool| {
+        let d = arm_table.at(th);
+        let sd = if negative { d.saturating_neg() } else { d };
+        let v = mul_q24(sd, omega24);
+        Lever {
+            th,
+            sd,
+            v,
+            seal: sd.qmul(v.qmul(k.seal_kn_per_mm_s)),
+        }
+    };
+    let levers = [lever(theta, false), lever(theta.saturating_neg(), true)];
+    for (i, (c, cs)) in k.cyl.iter().zip(s.cyl.iter_mut()).enumerate() {
+        let on = duty & (1 << i) != 0;
+        let lv = &levers[usize::from(c.side < ZERO)];
+        let t = cylinder(&mut sh, c, cs, lv, on);
+        torque_cyl[i] = Torque(t);
+        torque = torque.saturating_add(t);
+    }
+    let (q_pump, q_lp_net) = (sh.q_pump, sh.q_lp);
+    let mut background_units = REVERSAL_UNITS_PER_STEP - sh.budget;
+    // --- Valve, relief, motor.
+    // The rotor's inertia: L·dQ/dt = ΔP − F(Q) with F the branch's steady pressure drop
+    // (`ModelConfig::motor_inductance`). F(Q_ss) = ΔP, and F(Q_ss) − F(Q) = (Q_ss − Q)·(β +
+    // (Q_ss + Q)/K²) exactly for the turbulent valve, so one explicit step is a relaxation
+    // toward the steady flow with gain dt/L·(β + (Q_ss + Q)/K²). Held to 1 (where the valve's
+    // resistance makes the branch faster than a step, e.g. near closed), the flow takes its
+    // steady value: it never overshoots, so the step is stable at every aperture.
+    let dp = s.p2.saturating_sub(s.lp).max(ZERO);
+    let lp_dp = s.lp.saturating_add(dp);
+    let (q_ss, gain_valve) = k.valve_flow.at_with(s.aperture, dp, &k.motor_gain_valve);
+    if first {
+        (s.q_motor, s.q_motor_lo) = (q_ss, 0);
+    }
+    let g = k
+        .motor_gain0
+        .saturating_add(q_ss.saturating_add(s.q_motor).qmul(gain_valve))
+        .min(ONE);
+    relax(&mut s.q_motor, &mut s.q_motor_lo, g, q_ss);
+    let motor_rpm = s.q_motor.qmul(k.rpm_per_lpm);
+    // A coasting rotor that outruns the pressure across it (P2 down to LP: an empty HP node
+    // when the pump stops) draws the rest through the make-up valve from LP, not from HP.
+    let q_valve = if dp > ZERO { s.q_motor } else { ZERO };
+    let q_relief =
+        s.p2.saturating_sub(k.relief_setting)
+            .max(ZERO)
+            .qmul(k.relief_gain);
+    // --- Predict.
+    let net_hp = q_pump.saturating_sub(q_valve).saturating_sub(q_relief);
+    let dp_per_flow = k.inv_c_hp.at(s.p2);
+    node_step(&mut s.p2, &mut s.p2_lo, net_hp, dp_per_flow, dtl);
+    let net_lp = q_valve.saturating_add(q_relief).saturating_sub(q_lp_net);
+    let dp_per_flow = k.inv_c_lp.at(s.lp);
+    node_step(&mut s.lp, &mut s.lp_lo, net_lp, dp_per_flow, dtl);
+    // The process noise to 2^−32 bar² (`Table1::at_ext`): on the empty node it is ≈ 0.08 bar²
+    // a step, and its Q16.16 rounding moved the Kalman gain by 3·10^−5 — a few P2 LSBs per
+    // bar of innovation. Held below the variance's Q16.16 top.
+    (s.var, s.var_lo) = split((ext(s.var, s.var_lo) + k.q_step.at_ext(s.p2)).min(ext(Fx::MAX, 0)));
+    s.q_mean = s
+        .q_mean
+        .saturating_add(mul_frac(k.mean_gain, q_pump.saturating_sub(s.q_mean)));
+    // --- Correct P2 with the HP transducer.
+    let hp = inp
+        .hp
+        .map(|p| p.0)
+        .filter(|p| *p >= k.hp_range.0 && *p <= k.hp_range.1);
+    let motor = inp.motor.filter(|m| m.0 >= ZERO && m.0 <= k.motor_max);
+    // The valve closed (commanded or modelled): the branch's flow says nothing of P2, and once
+    // the rotor has had the time to spin down a turning motor contradicts the model.
+    let closed = cmd < k.motor_reading_min_aperture || s.aperture < k.motor_reading_min_aperture;
+    if closed {
+        s.closed_steps = s.closed_steps.saturating_add(1);
+        if s.closed_steps >= k.spin_down_steps
+            && motor.is_some_and(|m| m.0 > k.motor_reading_min_rpm)
+        {
+            faults |= fault::MOTOR_IMPLAUSIBLE;
+        }
+    } else {
+        s.closed_steps = 0;
+    }
+    match hp {
+        Some(z) => kalman(k, s, z, &mut faults),
+        None => {
+            faults |= fault::HP_SENSOR;
+            // Without it, correct P2 with the motor speed.
+            match motor {
+                Some(m) if !closed => faults |= motor_reading(k, s, m.0, cmd, lp_dp, dp, q_ss, g),
+                // Closed: no reading; the filters restart once it opens, P2 waiting for them.
+                Some(_) => (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps),
+                None => (s.meas_live, s.meas_wait) = (false, 0),
+            }
+            // Within the band above the precharge the accumulator's last cm³ decide when it
+            // runs empty, and P2 then falls to the empty node's level (5–15 bar lower) within
+            // tens of ms, faster than any reading of the motor follows; on the empty node P2
+            // follows the pump flow, and rises back as fast when it refills. P2's standard
+            // deviation is at least `ModelConfig::precharge_sigma_bar` in both, after the
+            // motor reading has had its say.
+            if s.p2 <= k.precharge_band_top && s.var < k.var_precharge {
+                (s.var, s.var_lo) = (k.var_precharge, 0);
+            }
+        }
+    }
+    // --- Correct LP with a fixed gain.
+    match inp
+        .lp
+        .map(|p| p.0)
+        .filter(|p| *p >= k.lp_range.0 && *p <= k.lp_range.1)
+    {
+        Some(z) => correct(&mut s.lp, &mut s.lp_lo, k.gain_lp, z),
+        None => faults |= fault::LP_SENSOR,
+    }
+    if motor.is_none() {
+        faults |= fault::MOTOR_SENSOR;
+    }
+    if s.p2 > k.trip || hp.is_some_and(|z| z > k.trip) {
+        faults |= fault::OVERPRESSURE;
+    }
+    // Autonomy changes over seconds: it is refreshed in the background slot, every
+    // AUTONOMY_EVERY-th step unless a reversal holds the slot (then in the next free step), so
+    // its table lookup adds to neither a reversal's work nor the scheduler's feed-forward.
+    s.autonomy_tick = s.autonomy_tick.wrapping_add(1);
+    if background_units == 0 && s.autonomy_tick >= AUTONOMY_EVERY {
+        s.autonomy = k.autonomy.at(s.aperture, s.p2);
+        s.autonomy_tick = 0;
+        background_units = 1;
+    }
+    Estimate {
+        p2: Pressure(s.p2),
+        p2_var: PressureVariance(s.var),
+        lp: Pressure(s.lp),
+        theta: Angle(theta),
+        omega: AngularSpeed(omega),
+        q_pump: Flow(q_pump),
+        q_pump_mean: Flow(s.q_mean),
+        q_valve: Flow(q_valve),
+        q_relief: Flow(q_relief),
+        torque: Torque(torque),
+        torque_cyl,
+        motor_rpm: Rpm(motor_rpm),
+        autonomy: Seconds(s.autonomy),
+        aperture: Aperture(s.aperture),
+        faults,
+        background_units,
+        hp_empty: s.p2 < k.hp_empty_below,
+    }
+}

@@ -1,0 +1,162 @@
+//! The motor speed read as a pressure, to correct P2 without the HP transducer.
+
+use super::*;
+
+/// P2 read from the motor speed, for a step without the HP transducer.
+///
+/// The rotor's equation L·dQ/dt = P2 − LP − F(Q) (see the valve/motor step in [`step`]) read
+/// backwards: the measured flow Q_m (speed / rpm per L/min) and its rate give
+/// P2 = LP + F(Q_m) + L·dQ_m/dt. Both terms are low-passed with the same first-order filter
+/// (τ = `ModelConfig::motor_reading_filter_ms`): the rate is that filter's own derivative
+/// (Q_m − Q̄)/τ, so the reading is P2 itself low-passed, not a noisy difference of two samples,
+/// and F is taken at each step's own aperture and flow before the filter, so the valve's
+/// square law and a moving aperture do not bias it. F(Q_m) needs no inverse table: the step's
+/// steady flow Q_ss at the model's ΔP satisfies F(Q_ss) = ΔP, and for F(Q) = β·Q + Q²/K²,
+/// F(Q_ss) − F(Q_m) = (Q_ss − Q_m)·(β + (Q_ss + Q_m)/K²) ≈ (Q_ss − Q_m)·g·L/dt with g the
+/// step's relaxation gain of the valve/motor flow. P2 then moves toward the reading (time
+/// constant T = `motor_reading_time_constant_ms`) less a band of `motor_reading_band_pct` of
+/// ΔP: the reduced model's motor (Eq. 9 on the load line)
+/// is good to 1–2 % of ΔP (its speed's RMS error against the full simulation), so a reading
+/// that close is no evidence against the model — at 100 bar, where the model alone drifts by
+/// 0.02 bar in a minute, the reading's ≈ 1 bar bias would otherwise set the error.
+///
+/// Where the accumulator is empty, P2 follows the pump flow within a fraction of a second and
+/// a pump-flow error of 1 L/min is ≈ 8 bar of P2; the motor speed is then the best P2 sensor
+/// left (Test I with one cylinder: model-only P2 3.2–4.4 → 1.2–1.3 bar). The reading is
+/// skipped where it says little: the valve near closed (dF/dQ above
+/// `motor_reading_max_slope_bar_per_lpm`), the motor below `motor_reading_min_rpm`; and the
+/// filters restart after the spool has moved (the plant's valve and the model's need not open
+/// at the same instant, and 1 % of aperture is several bar of valve drop at 100 bar), P2 taking
+/// the reading only after three filter time constants. (When the HP reading goes missing the
+/// filters start at once: a state started from known pressures has its rotor at steady speed.)
+/// The work alternates between two steps (the guards, F and both filters at half rate in one,
+/// the correction in the other), so that a step costs about what one with the transducer's
+/// Kalman update does.
+// The step's own values, passed as they are (inlined into the step: its only caller).
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+pub(super) fn motor_reading(
+    k: &Coefficients,
+    s: &mut State,
+    rpm: Fx,
+    cmd: Fx,
+    lp_dp: Fx,
+    dp: Fx,
+    q_ss: Fx,
+    g: Fx,
+) -> u16 {
+    // 0 ≤ rpm ≤ 10 000 (< 2^30 bits; the caller range-checks it) × L/min per rpm (< 2^31
+    // bits): < 2^61; held to the flow range like every flow the nodes take.
+    let q_m = Fx::from_bits(
+        ((i64::from(rpm.to_bits()) * i64::from(k.lpm_per_rpm_q24) + (1 << 23)) >> 24)
+            .min(i64::from(FLOW_LIM.to_bits())) as i32,
+    );
+    if !s.meas_live {
+        s.q_meas = q_m;
+        s.f_meas = lp_plus_f(lp_dp, q_ss, q_m, mul_bounded(g, k.motor_reading_ldt));
+        (s.meas_live, s.meas_odd) = (true, false);
+        return 0;
+    }
+    // The work alternates between two steps, each filter running at half rate, so that a
+    // step costs about what the HP transducer's Kalman update it replaces does: the guards, F
+    // and both filters in one, P2's correction in the other.
+    s.meas_odd = !s.meas_odd;
+    if s.meas_odd {
+        // dF/dQ = g·L/dt: g ≤ 1 and L/dt < 2^15 bar per L/min (a saturated coefficient), so
+        // the product fits.
+        // Plausibility: the flow read must be one the valve can pass at the modelled aperture
+        // and LP with P2 at most at the relief (plus the gate's worth of the reading's noise)
+        // — the valve table at that ΔP, plus the reading's band and the sensor's floor. A
+        // faster motor contradicts the model (or the sensor is wrong): flagged, and the
+        // reading restarts, so P2 never takes it.
+        let q_cap = k
+            .valve_flow
+            .at(s.aperture, k.motor_reading_p2_max.saturating_sub(s.lp));
+        let q_cap = q_cap
+            .saturating_add(mul_bounded(q_cap, k.motor_reading_band))
+            .saturating_add(k.motor_reading_min_lpm);
+        if q_m > q_cap {
+            (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps);
+            return fault::MOTOR_IMPLAUSIBLE;
+        }
+        let slope = mul_bounded(g, k.motor_reading_ldt);
+        if slope > k.motor_reading_max_slope
+            || cmd.saturating_sub(s.aperture).abs() > k.motor_reading_spool_tol
+        {
+            // The valve near closed, or the spool moving: no reading; the filters restart
+            // once both end, and P2 takes the reading after they have run a while.
+            (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps);
+            return 0;
+        }
+        let f = lp_plus_f(lp_dp, q_ss, q_m, slope);
+        s.f_meas = filter(s.f_meas, k.motor_reading_filter, f);
+        // The derivative L·(Q_m − Q̄)/τ of the next step takes Q̄ as of this one.
+        s.q_meas = filter(s.q_meas, k.motor_reading_filter, q_m);
+        // ΔP ≤ 400 bar × a band ≤ 0.5: fits.
+        s.meas_band = mul_bounded(dp, k.motor_reading_band);
+        // band²/3 saturates above a 181 bar band: far beyond any P2 gate.
+        s.meas_var = s
+            .meas_band
+            .qmul(s.meas_band)
+            .qmul(ONE_THIRD)
+            .saturating_add(k.motor_reading_r);
+        return 0;
+    }
+    if s.meas_wait > 0 {
+        s.meas_wait -= 1;
+    } else if q_m >= k.motor_reading_min_lpm {
+        let z = s
+            .f_meas
+            .saturating_add(q_m.saturating_sub(s.q_meas).qmul(k.motor_reading_lt));
+        // Only the part of the innovation beyond the band counts: inside it the reading does
+        // not know P2 better than the model does.
+        let e = z.saturating_sub(s.p2);
+        let e = e - clamp(e, -s.meas_band, s.meas_band);
+        // Plausibility: the flow read must be one the valve can pass at a P2 the relief allows,
+        // i.e. the P2 it implies, less its band, at most the relief setting plus the gate's
+        // worth of the reading's noise (F is monotone in the flow, so this is the valve's
+        // capacity at the modelled aperture and LP without a table lookup). Beyond it the
+        // speed sensor or the model is wrong: flagged, P2 not moved. (A gate on the distance
+        // to P2 itself would refuse the readings the empty HP node needs most: there the
+        // model can run empty 0.1 s before the bench, 17 bar below it.)
+        if z.saturating_sub(s.meas_band) > k.motor_reading_p2_max {
+            return fault::MOTOR_IMPLAUSIBLE;
+        }
+        // P2 += gain·e, exact in Q32.32 (|e| < 2^31 bits × gain ≤ 2^16 bits: < 2^47) and kept
+        // to 2^−32 like the node's prediction (rounded to the LSB it was half an LSB a step
+        // from its f64 form), held to the pressure range.
+        (s.p2, s.p2_lo) = split(
+            (ext(s.p2, s.p2_lo)
+                + i64::from(k.motor_reading_gain.to_bits()) * i64::from(e.to_bits()))
+            .clamp(ext(P_MIN, 0), ext(P_MAX, 0)),
+        );
+        // The reading brings P2's variance toward its own (never up to it).
+        if s.var > s.meas_var {
+            relax(&mut s.var, &mut s.var_lo, k.motor_reading_gain, s.meas_var);
+        }
+    }
+    0
+}
+
+/// 1/3 in Q16.16.
+pub(super) const ONE_THIRD: Fx = Fx::from_bits(21_845);
+
+/// LP + F(Q_m), bar, from F(Q_ss) = ΔP: F(Q_ss) − F(Q_m) = (Q_ss − Q_m)·dF/dQ.
+#[inline(always)]
+pub(super) fn lp_plus_f(lp_dp: Fx, q_ss: Fx, q_m: Fx, slope: Fx) -> Fx {
+    clamp(
+        lp_dp.saturating_sub(slope.qmul(q_ss.saturating_sub(q_m))),
+        P_MIN,
+        P_MAX,
+    )
+}
+
+/// One step of a first-order filter x += a·(target − x), the product rounded to the nearest
+/// LSB (unbiased on a noisy input, where flooring it would offset x by half an LSB per step
+/// over the filter's 1/a steps; the filters follow noisy readings, so no bits below the LSB
+/// are kept). Both values lie in a physical range well inside ±2^15, a ∈ [0, 1].
+#[inline(always)]
+pub(super) fn filter(x: Fx, a: Fx, target: Fx) -> Fx {
+    let d = (i64::from(a.to_bits()) * i64::from((target - x).to_bits()) + (1 << 15)) >> 16;
+    x + Fx::from_bits(d as i32)
+}
