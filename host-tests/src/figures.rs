@@ -23,8 +23,8 @@ enum Col {
 impl Col {
     fn get(self, t: &Trace, k: usize) -> f64 {
         match self {
-            Col::P2 => t.p2[k] / BAR,
-            Col::Lp => t.lp[k] / BAR,
+            Col::P2 => t.p2_pa[k] / BAR,
+            Col::Lp => t.lp_pa[k] / BAR,
             Col::Inj => t.q_inj[k] * LPM,
             Col::Motor => t.q_motor[k] * LPM,
             Col::Speed => t.omega[k] * RPM,

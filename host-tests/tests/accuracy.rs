@@ -16,7 +16,7 @@ fn test3_default_tolerance_tracks_a_tight_run_within_0_05_bar() {
     let fast = p.run(SolverOptions::default(), None).unwrap();
     let tight = p.run(SolverOptions::tight(), None).unwrap();
     let (mut max, mut sq) = (0.0f64, 0.0);
-    for (a, b) in fast.trace.p2.iter().zip(&tight.trace.p2) {
+    for (a, b) in fast.trace.p2_pa.iter().zip(&tight.trace.p2_pa) {
         let e = (a - b).abs() / BAR;
         max = max.max(e);
         sq += e * e;
@@ -67,7 +67,7 @@ fn line_resistances_conserve_oil_and_energy_and_vanish_when_small() {
     let peak = |r: &pto_host::sim::solver::SimResult| {
         r.trace.p_cap[0].iter().fold(0.0f64, |m, v| m.max(*v)) / BAR
     };
-    let d_tiny = max_diff(&lumped.trace.p2, &tiny.trace.p2);
+    let d_tiny = max_diff(&lumped.trace.p2_pa, &tiny.trace.p2_pa);
     let (pk_l, pk_r) = (peak(&lumped), peak(&resistive));
     println!(
         "balances: resistive {:.1e}, tiny {:.1e}; HC3.1 cap peak lumped {pk_l:.2} bar, resistive {pk_r:.2} bar; \

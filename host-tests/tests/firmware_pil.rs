@@ -116,12 +116,18 @@ fn pil_survives_injected_faults() {
         .collect();
     let wb_err = wb
         .iter()
-        .filter_map(|r| r.estimate.map(|e| (f64::from(e.p2.to_f32()) - r.p2).abs()))
+        .filter_map(|r| {
+            r.estimate
+                .map(|e| (f64::from(e.p2.to_f32()) - r.p2_bar).abs())
+        })
         .fold(0.0, f64::max);
     let noise_err = rows
         .iter()
         .filter(|r| matches!(r.injection, Injection::HpNoise(_)))
-        .filter_map(|r| r.estimate.map(|e| (f64::from(e.p2.to_f32()) - r.p2).abs()))
+        .filter_map(|r| {
+            r.estimate
+                .map(|e| (f64::from(e.p2.to_f32()) - r.p2_bar).abs())
+        })
         .fold(0.0, f64::max);
     let damaged = rows
         .iter()
@@ -134,7 +140,10 @@ fn pil_survives_injected_faults() {
     let err_in = |keep: &dyn Fn(f64) -> bool| {
         window(&rows, 1.0)
             .filter(|r| keep(r.t))
-            .filter_map(|r| r.estimate.map(|e| (f64::from(e.p2.to_f32()) - r.p2).abs()))
+            .filter_map(|r| {
+                r.estimate
+                    .map(|e| (f64::from(e.p2.to_f32()) - r.p2_bar).abs())
+            })
             .fold(0.0, f64::max)
     };
     // While the encoder is stuck (and for 1 s after) the pump model sees a still shaft: the

@@ -144,7 +144,7 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
             tr.t.iter()
                 .map(|&t| {
                     let v = pto_host::sim::trace::truth_at(tr, t);
-                    (v.p2, v.motor_rpm)
+                    (v.p2_bar, v.motor_rpm)
                 })
                 .unzip();
         let fit = 40;
@@ -280,8 +280,8 @@ fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
         for with_hp in [true, false] {
             let t0 = truth_at(&res.trace, t_from);
             let mut st = State::new(
-                Pressure::from_num(t0.p2 as f32),
-                Pressure::from_num(t0.lp as f32),
+                Pressure::from_num(t0.p2_bar as f32),
+                Pressure::from_num(t0.lp_bar as f32),
                 Pressure::from_num(1.0),
             );
             let mut synth = SensorSynth::new(SensorSpec::default(), 5);
@@ -303,7 +303,7 @@ fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
                 let mut rf = Reference::from_state(&mcfg, &k, &st);
                 let e = estimator::step(&k, &mut st, &inp);
                 let r = rf.step(&inp);
-                let d = (f64::from(e.p2.to_f32()) - r.p2).abs();
+                let d = (f64::from(e.p2.to_f32()) - r.p2_bar).abs();
                 if d > worst {
                     (worst, worst_t) = (d, t);
                 }

@@ -3,6 +3,9 @@
 //!
 //! Everything here is computed in f32 at configuration time (libm for the transcendental
 //! functions, so it is the same on host and target), then rounded to Q16.16.
+//!
+//! Over 600 lines: the builder and the reduced laws it tabulates (f32, configuration time),
+//! with their tests.
 
 use crate::config::{AccumulatorConfig, ConfigError, ModelConfig};
 use crate::fx::Fx;

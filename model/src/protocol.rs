@@ -49,6 +49,9 @@
 //! `WireTx`/`WireRx`/`WireSpawn` implementations), its serial transport carries no CRC, and
 //! the link is a lockstep of a few message kinds. The frame keeps postcard-rpc's ingredients —
 //! a sequence number and a schema key — so that a switch stays cheap.
+//!
+//! Over 600 lines: the messages, the framing and the `Receiver` belong to one wire format (the
+//! long fuzzing is in `tests/link_fuzz.rs`).
 
 use crate::estimator::{Estimate, Inputs};
 use crate::fx::{Aperture, Pressure, Rpm};

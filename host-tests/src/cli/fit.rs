@@ -230,7 +230,10 @@ pub(crate) fn fit_figures(
                 .map(|(s, m)| (100.0 * (s - m) / m.abs().max(floor)).clamp(-30.0, 30.0))
                 .collect()
         };
-        let (p2b, p2a) = (col(&o.before[k], |x| x.p2), col(&o.after[k], |x| x.p2));
+        let (p2b, p2a) = (
+            col(&o.before[k], |x| x.p2_bar),
+            col(&o.after[k], |x| x.p2_bar),
+        );
         let (rb, ra) = (
             col(&o.before[k], |x| x.motor_rpm),
             col(&o.after[k], |x| x.motor_rpm),
@@ -249,7 +252,7 @@ pub(crate) fn fit_figures(
                     x_label: "time (s)".into(),
                     y_label: "P2 (bar)".into(),
                     series: vec![
-                        s("measured", l.p2.clone()),
+                        s("measured", l.p2_bar.clone()),
                         s("simulated, start", p2b),
                         s("simulated, fitted", p2a.clone()),
                     ],
@@ -269,7 +272,7 @@ pub(crate) fn fit_figures(
                     x_label: "time (s)".into(),
                     y_label: "difference (%)".into(),
                     series: vec![
-                        s("P2", rel(&p2a, &l.p2, 1.0)),
+                        s("P2", rel(&p2a, &l.p2_bar, 1.0)),
                         s(
                             "motor speed (of max(speed, 50 rpm))",
                             rel(&ra, &l.rpm, 50.0),

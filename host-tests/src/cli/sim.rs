@@ -58,11 +58,11 @@ pub(crate) fn summarize(name: &str, r: &SimResult, csv: &Path, fig: &Path) -> Ru
         simulated_s: *t.t.last().unwrap_or(&0.0),
         wall_s: r.stats.wall_s,
         steps: r.stats.steps,
-        p2_start_bar: t.p2[0] / BAR,
-        p2_end_bar: t.p2[t.len() - 1] / BAR,
-        p2_min_bar: t.p2.iter().copied().fold(f64::INFINITY, f64::min) / BAR,
-        p2_max_bar: t.p2.iter().copied().fold(f64::NEG_INFINITY, f64::max) / BAR,
-        lp_end_bar: t.lp[t.len() - 1] / BAR,
+        p2_start_bar: t.p2_pa[0] / BAR,
+        p2_end_bar: t.p2_pa[t.len() - 1] / BAR,
+        p2_min_bar: t.p2_pa.iter().copied().fold(f64::INFINITY, f64::min) / BAR,
+        p2_max_bar: t.p2_pa.iter().copied().fold(f64::NEG_INFINITY, f64::max) / BAR,
+        lp_end_bar: t.lp_pa[t.len() - 1] / BAR,
         mean_injected_lpm: mean(&t.q_inj) * 6e4,
         mean_motor_flow_lpm: mean(&t.q_motor) * 6e4,
         mean_motor_speed_rpm: mean(&t.omega) * 30.0 / std::f64::consts::PI,
@@ -274,8 +274,8 @@ pub(crate) fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
                     o.scenario.name,
                     res.stats.wall_s,
                     res.stats.steps,
-                    t.p2[0] / BAR,
-                    t.p2[t.len() - 1] / BAR,
+                    t.p2_pa[0] / BAR,
+                    t.p2_pa[t.len() - 1] / BAR,
                     res.balance.worst()
                 ));
             }

@@ -2,6 +2,9 @@
 //! processor-in-the-loop run where the full simulation is the plant and the firmware, in
 //! lockstep over USART1, is its valve controller (sensor frame out, command back, virtual time =
 //! the tick in the frame).
+//!
+//! Over 600 lines: the firmware as a valve controller (frames, faults injected) and the
+//! checks of each processor-in-the-loop run, which read its rows.
 
 use crate::hil::qemu::Qemu;
 use crate::model::sensors::{SensorSpec, SensorSynth};
@@ -120,7 +123,7 @@ pub struct PilRow {
     /// Time, s.
     pub t: f64,
     /// Plant P2, bar.
-    pub p2: f64,
+    pub p2_bar: f64,
     /// Plant motor speed, rpm.
     pub rpm: f64,
     /// Firmware estimate (when an output came back).
@@ -271,7 +274,7 @@ impl ValveController for FirmwareController {
         let f = self.frame(p.theta, &truth, inj);
         let mut row = PilRow {
             t,
-            p2: truth.p2,
+            p2_bar: truth.p2_bar,
             rpm: truth.motor_rpm,
             estimate: None,
             command: None,
@@ -395,9 +398,11 @@ pub fn check_hold_p2(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
     )?;
     let from = 40.0;
     let late = || rows.iter().filter(move |r| r.t >= from);
-    let worst = max_of(late().map(|r| (r.p2 - 100.0).abs()));
-    let est =
-        max_of(late().filter_map(|r| r.estimate.map(|e| (f64::from(e.p2.to_f32()) - r.p2).abs())));
+    let worst = max_of(late().map(|r| (r.p2_bar - 100.0).abs()));
+    let est = max_of(late().filter_map(|r| {
+        r.estimate
+            .map(|e| (f64::from(e.p2.to_f32()) - r.p2_bar).abs())
+    }));
     Ok((
         q,
         Check {
@@ -466,17 +471,17 @@ pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
         .iter()
         .position(|r| r.dump)
         .ok_or("the firmware never tripped")?;
-    let crossed = rows.iter().position(|r| r.p2 > trip);
+    let crossed = rows.iter().position(|r| r.p2_bar > trip);
     let onset = crossed.map_or(tripped, |k| k.min(tripped));
     // Safe state: valve fully open and dump valve on, from the onset step to the end while P2
     // is above the release threshold.
     let late = tripped.saturating_sub(onset);
     let held = rows[tripped..]
         .iter()
-        .filter(|r| r.p2 > trip - 10.0)
+        .filter(|r| r.p2_bar > trip - 10.0)
         .all(|r| r.dump && r.applied == 100.0);
-    let near = rows[tripped].p2 > trip - 0.2;
-    let peak = max_of(rows.iter().map(|r| r.p2));
+    let near = rows[tripped].p2_bar > trip - 0.2;
+    let peak = max_of(rows.iter().map(|r| r.p2_bar));
     let safety = rows[tripped].command.map(|c| c.safety);
     Ok((
         q,
@@ -490,7 +495,7 @@ pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
                  valve 100 % and dump on in that step's output ({safety:?}), held while P2 > {} \
                  bar: {held}; peak {peak:.2} bar",
                 rows[tripped].t,
-                rows[tripped].p2,
+                rows[tripped].p2_bar,
                 crossed.map_or("never".into(), |k| format!("step {k}")),
                 trip - 10.0
             ),
@@ -620,10 +625,10 @@ pub fn check_motor_behind_closed_valve(q: Qemu, bench: &Bench) -> Result<(Qemu, 
         r.estimate
             .is_some_and(|e| e.faults & pto_model::estimator::fault::MOTOR_IMPLAUSIBLE != 0)
     });
-    let err = max_of(
-        rows.iter()
-            .filter_map(|r| r.estimate.map(|e| (f64::from(e.p2.to_f32()) - r.p2).abs())),
-    );
+    let err = max_of(rows.iter().filter_map(|r| {
+        r.estimate
+            .map(|e| (f64::from(e.p2.to_f32()) - r.p2_bar).abs())
+    }));
     let flagged_s = flagged.map(|k| rows[k].t);
     Ok((
         q,

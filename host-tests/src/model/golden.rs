@@ -87,7 +87,7 @@ pub fn scenario_inputs(
             prep.config as u8,
         ));
     }
-    Ok((v, start.p2 as f32, start.lp as f32))
+    Ok((v, start.p2_bar as f32, start.lp_bar as f32))
 }
 
 /// Makes the 2048 golden input steps (Test III at 10 %, faults injected).

@@ -23,10 +23,10 @@ pub struct Reference {
     accel: f64,
     init: bool,
     /// P2, bar.
-    pub p2: f64,
+    pub p2_bar: f64,
     var: f64,
     /// LP, bar.
-    pub lp: f64,
+    pub lp_bar: f64,
     aperture: f64,
     /// Valve/motor flow, L/min (`None` before the first step).
     q_motor: Option<f64>,
@@ -80,7 +80,7 @@ struct RefCyl {
 #[derive(Debug, Clone, Copy, Default)]
 pub struct RefOut {
     /// P2, bar.
-    pub p2: f64,
+    pub p2_bar: f64,
     /// Torque, N·m.
     pub torque: f64,
     /// Motor speed, rpm.
@@ -102,9 +102,9 @@ impl Reference {
             omega: 0.0,
             accel: 0.0,
             init: false,
-            p2,
+            p2_bar: p2,
             var: sigma * sigma,
-            lp,
+            lp_bar: lp,
             aperture: 0.0,
             q_motor: None,
             rejected: 0,
@@ -198,7 +198,7 @@ impl Reference {
         if m.odd {
             let q_cap = k
                 .valve_flow
-                .at_f64(self.aperture, f(k.motor_reading_p2_max) - self.lp);
+                .at_f64(self.aperture, f(k.motor_reading_p2_max) - self.lp_bar);
             if q_m > q_cap * (1.0 + f(k.motor_reading_band)) + f(k.motor_reading_min_lpm) {
                 self.meas = None;
                 self.meas_wait = u32::from(k.motor_reading_warm_steps);
@@ -221,13 +221,13 @@ impl Reference {
             self.meas_wait -= 1;
         } else if q_m >= f(k.motor_reading_min_lpm) {
             let z = m.f + (q_m - m.q) * f(k.motor_reading_lt);
-            let e = z - self.p2;
+            let e = z - self.p2_bar;
             let e = e - e.clamp(-m.band, m.band);
             if z - m.band > f(k.motor_reading_p2_max) {
                 return;
             }
             let gain = f(k.motor_reading_gain);
-            self.p2 = (self.p2 + gain * e).clamp(P_MIN_BAR, P_MAX_BAR);
+            self.p2_bar = (self.p2_bar + gain * e).clamp(P_MIN_BAR, P_MAX_BAR);
             if self.var > m.var {
                 self.var += gain * (m.var - self.var);
             }
@@ -311,7 +311,7 @@ impl Reference {
                 };
                 let seal = v * f(k.seal_kn_per_mm_s);
                 let drop = f(k.check_drop);
-                let (lo, hi) = (self.lp - drop, self.p2 + drop);
+                let (lo, hi) = (self.lp_bar - drop, self.p2_bar + drop);
                 let pressures = |st: &(f64, f64, f64, f64), u: f64| {
                     let (ms_n0, ms_o0, kn, ko) = *st;
                     let pn = k.p_of_ms.at_f64(ms_n0 + u * kn).max(lo).min(hi);
@@ -460,28 +460,29 @@ impl Reference {
                 torque -= side * d * (cs.p.0 * f(cc.f_cap) - cs.p.1 * f(cc.f_ann) - seal);
             } else {
                 q_lp += (f(cc.q_cap) - f(cc.q_ann)) * v;
-                torque -= side * d * self.lp * (f(cc.f_cap) - f(cc.f_ann));
+                torque -= side * d * self.lp_bar * (f(cc.f_cap) - f(cc.f_ann));
             }
         }
-        let dp = (self.p2 - self.lp).max(0.0);
+        let dp = (self.p2_bar - self.lp_bar).max(0.0);
         let q_ss = k.valve_flow.at_f64(self.aperture, dp);
         let q = self.q_motor.unwrap_or(q_ss);
         let gain_valve = Self::row_lerp(&k.valve_flow, &k.motor_gain_valve, self.aperture);
         let g = (k.motor_gain0.to_num::<f64>() + (q_ss + q) * gain_valve).min(1.0);
-        let lp_dp = self.lp + dp;
+        let lp_dp = self.lp_bar + dp;
         let q = q + g * (q_ss - q);
         self.q_motor = Some(q);
         let motor_rpm = q * k.rpm_per_lpm.to_num::<f64>();
         let q_valve = if dp > 0.0 { q } else { 0.0 };
-        let q_relief =
-            (self.p2 - k.relief_setting.to_num::<f64>()).max(0.0) * k.relief_gain.to_num::<f64>();
-        let inv_c_hp = k.inv_c_hp.at_f64(self.p2);
-        self.p2 =
-            (self.p2 + (q_pump - q_valve - q_relief) * inv_c_hp * dt).clamp(P_MIN_BAR, P_MAX_BAR);
-        self.lp = (self.lp + (q_valve + q_relief - q_lp) * k.inv_c_lp.at_f64(self.lp) * dt)
+        let q_relief = (self.p2_bar - k.relief_setting.to_num::<f64>()).max(0.0)
+            * k.relief_gain.to_num::<f64>();
+        let inv_c_hp = k.inv_c_hp.at_f64(self.p2_bar);
+        self.p2_bar = (self.p2_bar + (q_pump - q_valve - q_relief) * inv_c_hp * dt)
+            .clamp(P_MIN_BAR, P_MAX_BAR);
+        self.lp_bar = (self.lp_bar
+            + (q_valve + q_relief - q_lp) * k.inv_c_lp.at_f64(self.lp_bar) * dt)
             .clamp(P_MIN_BAR, P_MAX_BAR);
         let r = f64::from(c.pressure_noise_bar).powi(2);
-        self.var += k.q_step.at_f64(self.p2);
+        self.var += k.q_step.at_f64(self.p2_bar);
         let hp = inp.hp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.hp_sensor_range_bar.0) && *p <= f64::from(c.hp_sensor_range_bar.1)
         });
@@ -489,10 +490,10 @@ impl Reference {
         let closed = cmd < f(k.motor_reading_min_aperture)
             || self.aperture < f(k.motor_reading_min_aperture);
         if let Some(z) = hp {
-            if self.p2 >= f(k.relief_setting) {
+            if self.p2_bar >= f(k.relief_setting) {
                 self.var += f(k.q_relief);
             }
-            let innov = z - self.p2;
+            let innov = z - self.p2_bar;
             if innov * innov <= f64::from(c.gate_sigma).powi(2) * (self.var + r) {
                 let g = if self.var < k.r.to_num::<f64>() {
                     k.gain_fine.at_f64(self.var)
@@ -500,7 +501,7 @@ impl Reference {
                     k.gain_coarse.at_f64(self.var).clamp(0.0, 1.0)
                 };
                 // The reading held to the model's pressure range, as in the fixed-point model.
-                self.p2 += g * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.p2);
+                self.p2_bar += g * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.p2_bar);
                 self.var *= 1.0 - g;
                 self.rejected = 0;
             } else {
@@ -510,7 +511,7 @@ impl Reference {
                 }
                 self.rejected += 1;
                 if f64::from(self.rejected) * dt * 1e3 >= f64::from(c.gate_reset_ms) {
-                    self.p2 = z;
+                    self.p2_bar = z;
                     self.var = r;
                     self.rejected = 0;
                 }
@@ -532,16 +533,17 @@ impl Reference {
                 self.meas_wait = 0;
             }
         }
-        if hp.is_none() && self.p2 <= f(k.precharge_band_top) {
+        if hp.is_none() && self.p2_bar <= f(k.precharge_band_top) {
             self.var = self.var.max(f(k.var_precharge));
         }
         if let Some(z) = inp.lp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.lp_sensor_range_bar.0) && *p <= f64::from(c.lp_sensor_range_bar.1)
         }) {
-            self.lp += k.gain_lp.to_num::<f64>() * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.lp);
+            self.lp_bar +=
+                k.gain_lp.to_num::<f64>() * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.lp_bar);
         }
         RefOut {
-            p2: self.p2,
+            p2_bar: self.p2_bar,
             torque,
             motor_rpm,
             q_pump,

@@ -101,6 +101,11 @@ impl SensorSynth {
         let n_hp = self.hp_noise.sample(&mut self.rng);
         let n_lp = self.lp_noise.sample(&mut self.rng);
         let motor = (truth.motor_rpm + self.motor_noise.sample(&mut self.rng)).max(0.0);
-        (self.encoder(theta), truth.p2 + n_hp, truth.lp + n_lp, motor)
+        (
+            self.encoder(theta),
+            truth.p2_bar + n_hp,
+            truth.lp_bar + n_lp,
+            motor,
+        )
     }
 }

@@ -1,5 +1,8 @@
 //! `pto validate`: the fixed-point model against the full simulation, per scenario, and the
 //! scheduler in closed loop with the full simulation.
+//!
+//! Over 600 lines: one row per scenario (both modes, coverage, the empty flag, the f64 mirror)
+//! and the closed-loop harness the processor-in-the-loop run shares.
 
 use crate::model::reference::Reference;
 use crate::model::sensors::{SensorSpec, SensorSynth};
@@ -163,11 +166,11 @@ fn validate_scenario(
     // With the HP transducer: fixed point and f64 side by side.
     let mut synth = SensorSynth::new(SensorSpec::default(), seed);
     let mut st = State::new(
-        Pressure::from_num(t0.p2 as f32),
-        Pressure::from_num(t0.lp as f32),
+        Pressure::from_num(t0.p2_bar as f32),
+        Pressure::from_num(t0.lp_bar as f32),
         Pressure::from_num(1.0),
     );
-    let mut rf = Reference::new(mcfg, k, t0.p2, t0.lp, 1.0);
+    let mut rf = Reference::new(mcfg, k, t0.p2_bar, t0.lp_bar, 1.0);
     let (mut se_p2, mut se_tq, mut se_w, mut ss_w, mut peak_tq) = (0.0, 0.0, 0.0, 0.0, 0.0f64);
     let (mut d_p2, mut d_tq, mut se_d_tq) = (0.0f64, 0.0f64, 0.0f64);
     let mut count = 0.0f64;
@@ -192,38 +195,38 @@ fn validate_scenario(
         let inp = estimation::inputs(Some(enc), Some(hp), Some(lp), Some(motor), ap, duty, config);
         let e = estimator::step(k, &mut st, &inp);
         let r = rf.step(&inp);
-        crosses_cell |= in_cell(r.p2);
+        crosses_cell |= in_cell(r.p2_bar);
         let (p2, tq, w) = (
             f64::from(e.p2.to_f32()),
             f64::from(e.torque.to_f32()),
             f64::from(e.motor_rpm.to_f32()),
         );
-        d_p2 = d_p2.max((p2 - r.p2).abs());
+        d_p2 = d_p2.max((p2 - r.p2_bar).abs());
         d_tq = d_tq.max((tq - r.torque).abs());
         se_d_tq += (tq - r.torque).powi(2);
         // Judge after the first wave period's start-up transient of the tracker (1 s).
         if t >= 1.0 {
-            max_p2 = max_p2.max((p2 - truth.p2).abs());
-            se_p2 += (p2 - truth.p2).powi(2);
+            max_p2 = max_p2.max((p2 - truth.p2_bar).abs());
+            se_p2 += (p2 - truth.p2_bar).powi(2);
             se_tq += (tq - truth.torque).powi(2);
             se_w += (w - truth.motor_rpm).powi(2);
             ss_w += truth.motor_rpm.powi(2);
             peak_tq = peak_tq.max(truth.torque.abs());
             count += 1.0;
-            cover.add(p2 - truth.p2, &e);
+            cover.add(p2 - truth.p2_bar, &e);
         }
     }
     // Without the HP transducer, from the known start, for 60 s (the f64 model alongside).
     let mut synth = SensorSynth::new(SensorSpec::default(), seed + 1);
     let mut st = State::new(
-        Pressure::from_num(t0.p2 as f32),
-        Pressure::from_num(t0.lp as f32),
+        Pressure::from_num(t0.p2_bar as f32),
+        Pressure::from_num(t0.lp_bar as f32),
         Pressure::from_num(0.0),
     );
     let m = ((target::MODEL_ONLY_WINDOW_S.min(s.duration_s)) / dt) as usize;
     let mut max_mo = 0.0f64;
     let mut min_p2_mo = f64::INFINITY;
-    let mut rf_mo = Reference::new(mcfg, k, t0.p2, t0.lp, 0.0);
+    let mut rf_mo = Reference::new(mcfg, k, t0.p2_bar, t0.lp_bar, 0.0);
     let mut d_p2_mo = 0.0f64;
     let mut cover_mo = Coverage::default();
     let mut empty = EmptyWatch::new(bench.hp_acc.precharge / BAR, target::EMPTY_FLAG_MS * 1e-3);
@@ -235,13 +238,13 @@ fn validate_scenario(
         let inp = estimation::inputs(Some(enc), None, Some(lp), Some(motor), ap, duty, config);
         let e = estimator::step(k, &mut st, &inp);
         let p2 = f64::from(e.p2.to_f32());
-        max_mo = max_mo.max((p2 - truth.p2).abs());
+        max_mo = max_mo.max((p2 - truth.p2_bar).abs());
         min_p2_mo = min_p2_mo.min(p2);
-        cover_mo.add(p2 - truth.p2, &e);
-        empty.step(t, truth.p2, e.hp_empty);
+        cover_mo.add(p2 - truth.p2_bar, &e);
+        empty.step(t, truth.p2_bar, e.hp_empty);
         let r = rf_mo.step(&inp);
-        crosses_cell |= in_cell(r.p2);
-        d_p2_mo = d_p2_mo.max((p2 - r.p2).abs());
+        crosses_cell |= in_cell(r.p2_bar);
+        d_p2_mo = d_p2_mo.max((p2 - r.p2_bar).abs());
     }
     let (emptyings, empty_flag_delay_ms, empty_flag_early) = empty.finish(m as f64 * dt);
     let rms = |se: f64| (se / count.max(1.0)).sqrt();
@@ -569,8 +572,8 @@ pub fn test3_like_loop<C: ValveController + 'static>(
             plant: &prep.plant,
             valve: ValveSchedule::Constant(0.0),
             initial: Initial {
-                p2: p2_start * BAR,
-                lp: LOOP_LP_START_BAR * BAR,
+                p2_pa: p2_start * BAR,
+                lp_pa: LOOP_LP_START_BAR * BAR,
             },
             duration,
             sample_dt: 0.05,
@@ -656,7 +659,7 @@ pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
                 Mode::HoldPressure(p) => {
                     let sp = f64::from(p.to_f32());
                     // Judge from 60 s after P2 first reaches the setpoint.
-                    let reach = crate::paper::time_to_reach(&tr.t, &tr.p2, sp * BAR)
+                    let reach = crate::paper::time_to_reach(&tr.t, &tr.p2_pa, sp * BAR)
                         .unwrap_or(f64::INFINITY);
                     judge_loop(
                         name,
@@ -665,7 +668,7 @@ pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
                         reach + 60.0,
                         false,
                         target::HOLD_P2_BAR,
-                        |k| tr.p2[k] / BAR,
+                        |k| tr.p2_pa[k] / BAR,
                     )
                 }
                 Mode::HoldSpeed(r) => {

@@ -195,8 +195,8 @@ fn fact2(bench: &Bench, r: &Results) -> Fact {
             let t = need!(r, name, 2, st);
             let end = *t.t.last().unwrap_or(&0.0);
             let w = t.window(end - 100.0, end);
-            let (a, b) = (min(&t.p2[w.clone()]) / BAR, max(&t.p2[w]) / BAR);
-            let lp_drop = (t.lp[t.len() - 1] - t.lp[0]) / BAR;
+            let (a, b) = (min(&t.p2_pa[w.clone()]) / BAR, max(&t.p2_pa[w]) / BAR);
+            let lp_drop = (t.lp_pa[t.len() - 1] - t.lp_pa[0]) / BAR;
             lo = lo.min(a);
             hi = hi.max(b);
             worst_lp = worst_lp.max(lp_drop);
@@ -223,7 +223,8 @@ fn fact3(r: &Results) -> Fact {
         for (j, (tag, _)) in SETS.iter().enumerate() {
             let name = format!("test2-cfg{config}-{tag}");
             let t = need!(r, name, 3, st);
-            times[config - 1][j] = time_to_reach(&t.t, &t.p2, 100.0 * BAR).unwrap_or(f64::INFINITY);
+            times[config - 1][j] =
+                time_to_reach(&t.t, &t.p2_pa, 100.0 * BAR).unwrap_or(f64::INFINITY);
         }
         table.push(format!(
             "cfg{config}: {}",
@@ -269,8 +270,8 @@ fn fact4(r: &Results) -> Fact {
         let a = t.window(t_open, t_open + 10.0);
         let end = *t.t.last().unwrap_or(&0.0);
         let b = t.window(end - 10.0, end);
-        let dp2 = (mean(&t.p2[b.clone()]) - mean(&t.p2[a.clone()])) / BAR;
-        let dlp = (mean(&t.lp[b]) - mean(&t.lp[a])) / BAR;
+        let dp2 = (mean(&t.p2_pa[b.clone()]) - mean(&t.p2_pa[a.clone()])) / BAR;
+        let dlp = (mean(&t.lp_pa[b]) - mean(&t.lp_pa[a])) / BAR;
         parts.push(format!("{ap}%: ΔP2 {dp2:+.1}, ΔLP {dlp:+.2}"));
         if ap <= 10.0 {
             ok &= dp2 > 0.0;
@@ -296,8 +297,8 @@ fn fact5(bench: &Bench, r: &Results) -> Fact {
         let mut se = 0.0;
         let mut n = 0.0;
         for k in w {
-            let pred =
-                (t.q_valve[k] - bench.motor_leak * (t.p_motor[k] - t.lp[k])) / bench.motor_disp;
+            let pred = (t.q_valve[k] - bench.motor_leak * (t.p_motor_pa[k] - t.lp_pa[k]))
+                / bench.motor_disp;
             se += ((pred - t.omega[k]) / t.omega[k]).powi(2);
             n += 1.0;
         }

@@ -18,9 +18,9 @@ pub struct BenchLog {
     /// Shaft angle, deg.
     pub theta_deg: Vec<f64>,
     /// HP pressure, bar.
-    pub p2: Vec<f64>,
+    pub p2_bar: Vec<f64>,
     /// LP pressure, bar.
-    pub lp: Vec<f64>,
+    pub lp_bar: Vec<f64>,
     /// Motor speed, rpm.
     pub rpm: Vec<f64>,
     /// Commanded valve aperture, %.
@@ -176,8 +176,8 @@ impl BenchLog {
             path: path.to_path_buf(),
             t,
             theta_deg,
-            p2,
-            lp,
+            p2_bar: p2,
+            lp_bar: lp,
             rpm,
             aperture,
             on_duty,
@@ -201,8 +201,8 @@ impl BenchLog {
                 "{:.4},{:.4},{:.3},{:.3},{:.1},{:.2},{duty},{}",
                 self.t[i],
                 self.theta_deg[i],
-                self.p2[i],
-                self.lp[i],
+                self.p2_bar[i],
+                self.lp_bar[i],
                 self.rpm[i],
                 self.aperture[i],
                 self.config

@@ -67,9 +67,9 @@ fn timed(bench: &Bench, name: &str, repeats: usize, compare: bool) -> Result<Ben
         let tight = run(bench, name, SolverOptions::tight())?;
         let err = r
             .trace
-            .p2
+            .p2_pa
             .iter()
-            .zip(&tight.trace.p2)
+            .zip(&tight.trace.p2_pa)
             .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()));
         Some(err / BAR)
     } else {

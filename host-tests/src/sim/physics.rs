@@ -29,8 +29,8 @@ impl Fluid {
     pub fn new(oil: &Oil) -> Self {
         Fluid {
             el: oil.liquid_modulus,
-            alpha: oil.air_fraction,
-            n: oil.air_index,
+            alpha: oil.trapped_air_fraction,
+            n: oil.air_polytropic_index,
         }
     }
 
@@ -87,8 +87,8 @@ pub fn bulk_modulus(oil: &Oil, p: f64) -> f64 {
 /// `E_l·[1 + α·(p_a/(p_a+p))^(1/n)] / [1 + α·p_a^(1/n)/(n·(p_a+p)^((n+1)/n))·E_l]`.
 pub fn bulk_modulus_simhydraulics(oil: &Oil, p: f64) -> f64 {
     let pabs = (P_ATM + p).max(1.0);
-    let n = oil.air_index;
-    let a = oil.air_fraction;
+    let n = oil.air_polytropic_index;
+    let a = oil.trapped_air_fraction;
     let ratio = (P_ATM / pabs).powf(1.0 / n);
     oil.liquid_modulus * (1.0 + a * ratio) / (1.0 + a * ratio / (n * pabs) * oil.liquid_modulus)
 }
@@ -299,7 +299,7 @@ mod tests {
         let b = Bench::reference();
         // With no air the modulus is the liquid's.
         let mut pure = b.oil.clone();
-        pure.air_fraction = 0.0;
+        pure.trapped_air_fraction = 0.0;
         assert!((bulk_modulus(&pure, 100.0 * BAR) / 1.6e9 - 1.0).abs() < 1e-12);
         // 6 % air: ≈1.28 GPa at 100 bar, a few MPa near 0 bar gauge.
         let e100 = bulk_modulus_simhydraulics(&b.oil, 100.0 * BAR);

@@ -3,6 +3,9 @@
 //! States are scaled so one absolute tolerance means the same everywhere: pressures in bar, rod
 //! positions in mm, motor speed in rad/s, spool aperture in %. Chambers of idle cylinders are
 //! bypassed to LP and carry no state.
+//!
+//! Over 600 lines on purpose: the state layout and the right-hand side that indexes it
+//! (`Plant::evaluate`) are read together; split, every index would cross a file.
 
 use crate::sim::bench::{BAR, Bench, Load};
 use crate::sim::motion::Motion;
@@ -78,11 +81,11 @@ pub struct Eval {
     /// Torque the input must supply per cylinder (restraining torque), N·m.
     pub torque: [f64; N_CYL],
     /// HP pressure P2, Pa.
-    pub p2: f64,
+    pub p2_pa: f64,
     /// LP pressure, Pa.
-    pub lp: f64,
+    pub lp_pa: f64,
     /// Motor inlet pressure, Pa.
-    pub p_motor: f64,
+    pub p_motor_pa: f64,
     /// Control valve flow, m³/s.
     pub q_valve: f64,
     /// Relief flow, m³/s.
@@ -337,9 +340,9 @@ impl Plant {
         let mut e = Eval {
             theta,
             theta_dot,
-            p2,
-            lp,
-            p_motor: pm,
+            p2_pa: p2,
+            lp_pa: lp,
+            p_motor_pa: pm,
             omega,
             aperture,
             ..Eval::default()

@@ -1,4 +1,7 @@
 //! Named scenarios: the paper's tests as built-ins, and the same format loadable from TOML.
+//!
+//! Over 600 lines: the format, its feasibility checks, and the paper's 62 runs as data
+//! (`builtin`, a third of the file).
 
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::motion::{Motion, MotionSpec};
@@ -273,7 +276,10 @@ impl Scenario {
             plant: Plant::new(bench, config, on_duty, motion),
             config,
             on_duty,
-            initial: Initial { p2, lp },
+            initial: Initial {
+                p2_pa: p2,
+                lp_pa: lp,
+            },
         })
     }
 

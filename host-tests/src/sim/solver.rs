@@ -1,4 +1,7 @@
 //! The solver driver: diffsol BDF over the plant, valve schedules, sampling and balances.
+//!
+//! Over 600 lines on purpose: one integration loop (segments between valve events, roots,
+//! sampling, balances) whose parts share its state; the trace and balance types sit with it.
 
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::{Eval, N_CYL, N_QUAD, Plant, QUAD_NAMES};
@@ -62,7 +65,7 @@ impl ValveSchedule {
                 threshold,
                 aperture,
             } => {
-                if plant0.p2 >= *threshold {
+                if plant0.p2_pa >= *threshold {
                     *aperture
                 } else {
                     0.0
@@ -132,9 +135,9 @@ impl SolverOptions {
 #[derive(Debug, Clone, Copy)]
 pub struct Initial {
     /// P2, Pa.
-    pub p2: f64,
+    pub p2_pa: f64,
     /// LP, Pa.
-    pub lp: f64,
+    pub lp_pa: f64,
 }
 
 /// Sampled outputs on the user grid (SI units internally; CSV headers carry display units).
@@ -165,11 +168,11 @@ pub struct Trace {
     /// Motor speed, rad/s.
     pub omega: Vec<f64>,
     /// P2, Pa.
-    pub p2: Vec<f64>,
+    pub p2_pa: Vec<f64>,
     /// LP, Pa.
-    pub lp: Vec<f64>,
+    pub lp_pa: Vec<f64>,
     /// Motor inlet, Pa.
-    pub p_motor: Vec<f64>,
+    pub p_motor_pa: Vec<f64>,
     /// Spool aperture, fraction.
     pub aperture: Vec<f64>,
     /// Restraining torque (input must supply it), N·m.
@@ -195,9 +198,9 @@ impl Trace {
         self.q_valve.push(e.q_valve);
         self.q_relief.push(e.q_relief);
         self.omega.push(e.omega);
-        self.p2.push(e.p2);
-        self.lp.push(e.lp);
-        self.p_motor.push(e.p_motor);
+        self.p2_pa.push(e.p2_pa);
+        self.lp_pa.push(e.lp_pa);
+        self.p_motor_pa.push(e.p_motor_pa);
         self.aperture.push(e.aperture);
         self.torque.push(e.torque.iter().sum());
     }
@@ -268,9 +271,9 @@ impl Trace {
                 self.t[k],
                 self.theta[k].to_degrees(),
                 self.theta_dot[k] * rpm,
-                self.p2[k] / BAR,
-                self.lp[k] / BAR,
-                self.p_motor[k] / BAR,
+                self.p2_pa[k] / BAR,
+                self.lp_pa[k] / BAR,
+                self.p_motor_pa[k] / BAR,
                 self.q_inj[k] * 6e4,
                 self.q_motor[k] * 6e4,
                 self.q_valve[k] * 6e4,
@@ -520,13 +523,19 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let start = Instant::now();
     let n = plant.len();
     // Initial state: motor in steady state for the initial command.
-    let probe = plant.initial_state(run.initial.p2, run.initial.lp, run.initial.lp, 0.0, 0.0);
+    let probe = plant.initial_state(
+        run.initial.p2_pa,
+        run.initial.lp_pa,
+        run.initial.lp_pa,
+        0.0,
+        0.0,
+    );
     let a0 = run
         .valve
         .initial(&plant.evaluate(0.0, &probe, None, false))
         .clamp(0.0, 1.0);
-    let (pm0, w0) = steady_motor(bench, run.initial.p2, run.initial.lp, a0);
-    let y0 = plant.initial_state(run.initial.p2, run.initial.lp, pm0, w0, a0);
+    let (pm0, w0) = steady_motor(bench, run.initial.p2_pa, run.initial.lp_pa, a0);
+    let y0 = plant.initial_state(run.initial.p2_pa, run.initial.lp_pa, pm0, w0, a0);
     let threshold = match run.valve {
         ValveSchedule::Threshold { threshold, .. } if a0 == 0.0 => Some(threshold / BAR),
         _ => None,

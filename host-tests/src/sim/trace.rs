@@ -9,9 +9,9 @@ const RPM: f64 = 30.0 / std::f64::consts::PI;
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Truth {
     /// P2, bar.
-    pub p2: f64,
+    pub p2_bar: f64,
     /// LP, bar.
-    pub lp: f64,
+    pub lp_bar: f64,
     /// Restraining torque, N·m.
     pub torque: f64,
     /// Motor speed, rpm.
@@ -22,8 +22,8 @@ impl Truth {
     /// The plant's values as its controller callback sees them.
     pub fn of_eval(p: &crate::sim::plant::Eval) -> Truth {
         Truth {
-            p2: p.p2 / BAR,
-            lp: p.lp / BAR,
+            p2_bar: p.p2_pa / BAR,
+            lp_bar: p.lp_pa / BAR,
             torque: p.torque.iter().sum(),
             motor_rpm: p.omega * RPM,
         }
@@ -38,8 +38,8 @@ pub fn truth_at(tr: &Trace, t: f64) -> Truth {
     let u = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0);
     let l = |v: &[f64]| v[k - 1] + u * (v[k] - v[k - 1]);
     Truth {
-        p2: l(&tr.p2) / BAR,
-        lp: l(&tr.lp) / BAR,
+        p2_bar: l(&tr.p2_pa) / BAR,
+        lp_bar: l(&tr.lp_pa) / BAR,
         torque: l(&tr.torque),
         motor_rpm: l(&tr.omega) * RPM,
     }

@@ -34,9 +34,9 @@ pub struct Oil {
     /// Liquid bulk modulus, Pa.
     pub liquid_modulus: f64,
     /// Relative trapped air at atmospheric pressure.
-    pub air_fraction: f64,
+    pub trapped_air_fraction: f64,
     /// Polytropic index of the trapped air.
-    pub air_index: f64,
+    pub air_polytropic_index: f64,
     /// Critical Reynolds number of the orifices.
     pub re_crit: f64,
     /// Leakage area of closed valves, m².
@@ -227,8 +227,8 @@ impl Bench {
             density: f.oil.density_kg_m3,
             viscosity: f.oil.kinematic_viscosity_cst * 1e-6,
             liquid_modulus: f.oil.liquid_bulk_modulus_mpa * 1e6,
-            air_fraction: f.oil.trapped_air_fraction,
-            air_index: f.oil.air_polytropic_index,
+            trapped_air_fraction: f.oil.trapped_air_fraction,
+            air_polytropic_index: f.oil.air_polytropic_index,
             re_crit: f.oil.critical_reynolds,
             leak_area: f.oil.leakage_area_mm2 * 1e-6,
         };

@@ -1,0 +1,202 @@
+//! Logs prepared for the fit, their simulation, and the weighted, robust residuals.
+
+use super::*;
+
+/// A log prepared for simulation: the samples the residuals use.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    /// The log.
+    pub log: BenchLog,
+    /// Indices of the samples in the residual (≈ `spacing_s` apart).
+    pub idx: Vec<usize>,
+    motion: Motion,
+    valve: Vec<(f64, f64)>,
+    /// Motor speed at the start, rpm.
+    pub rpm0: f64,
+    /// When the logged motor speed falls below [`COLLAPSE_FRACTION`] of `rpm0` (HP accumulator
+    /// empty), s; `None` if it does not.
+    pub collapse: Option<f64>,
+    /// Start pressures, bar (see `start_value`).
+    pub p2_start: f64,
+    /// Same for LP.
+    pub lp_start: f64,
+}
+
+/// Prepares logs: residual samples every `spacing_s` seconds.
+pub fn prepare(logs: Vec<BenchLog>, spacing_s: f64) -> Vec<Prepared> {
+    logs.into_iter()
+        .map(|log| {
+            let t0 = log.t[0];
+            // Where the HP accumulator runs empty, P2 collapses and the motor stops within a
+            // second or two. Pointwise residuals across that cliff would measure its timing
+            // with huge, flat residuals (no gradient once the curves have parted); instead the
+            // pointwise samples stop 1 s before the logged collapse and the collapse time itself
+            // is one more residual, smooth in the parameters (it is what tells the precharge
+            // apart from the accumulator volume).
+            let moving = input_moves(&log);
+            let rpm0 = start_value(&log.t, &log.rpm, moving);
+            let collapse = (rpm0 > 50.0)
+                .then(|| crossing(&log.t, &log.rpm, COLLAPSE_FRACTION * rpm0))
+                .flatten();
+            let end = collapse.map_or(log.t.len(), |tc| {
+                log.t
+                    .iter()
+                    .position(|t| *t > tc - 1.0)
+                    .unwrap_or(log.t.len())
+            });
+            let mut idx = Vec::new();
+            let mut next = t0;
+            for (i, &t) in log.t.iter().enumerate().take(end) {
+                if t >= next {
+                    idx.push(i);
+                    next = t + spacing_s;
+                }
+            }
+            let motion = Motion::from_samples(
+                log.t.iter().map(|t| t - t0).collect(),
+                log.theta_deg.iter().map(|a| a.to_radians()).collect(),
+            );
+            let (ts, ap) = log.valve_steps();
+            let valve = ts
+                .into_iter()
+                .zip(ap)
+                .map(|(t, a)| (t, a / 100.0))
+                .collect();
+            let p2_start = start_value(&log.t, &log.p2_bar, moving);
+            let lp_start = start_value(&log.t, &log.lp_bar, moving);
+            Prepared {
+                log,
+                idx,
+                motion,
+                valve,
+                p2_start,
+                lp_start,
+                rpm0,
+                collapse,
+            }
+        })
+        .collect()
+}
+
+/// Start value of a logged pressure: one noisy sample would shift every later event — such as
+/// the HP accumulator running empty — by its noise. With the input blocked the pressure decays
+/// smoothly: a line through the first second, taken at the first sample. With the input moving,
+/// P2 stays flat until the first chamber has compressed its trapped air and then climbs in
+/// strokes, so a line would be biased: the mean of the first 0.3 s (at least three samples).
+pub(super) fn start_value(t: &[f64], y: &[f64], moving: bool) -> f64 {
+    let window = if moving { 0.3 } else { 1.0 };
+    let n = t
+        .iter()
+        .take_while(|&&x| x - t[0] <= window)
+        .count()
+        .max(3)
+        .min(y.len());
+    let (t, y) = (&t[..n], &y[..n]);
+    let nf = n as f64;
+    let ym = y.iter().sum::<f64>() / nf;
+    if moving {
+        return ym;
+    }
+    let tm = t.iter().sum::<f64>() / nf;
+    let stt: f64 = t.iter().map(|x| (x - tm) * (x - tm)).sum();
+    let sty: f64 = t.iter().zip(y).map(|(x, v)| (x - tm) * (v - ym)).sum();
+    let slope = if stt > 0.0 { sty / stt } else { 0.0 };
+    ym + slope * (t[0] - tm)
+}
+
+/// Whether the shaft moves in a log (more than 0.5° of travel).
+pub fn input_moves(log: &BenchLog) -> bool {
+    let (lo, hi) = log
+        .theta_deg
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), x| {
+            (a.min(*x), b.max(*x))
+        });
+    hi - lo >= 0.5
+}
+
+/// Solver settings of the fit's simulations: rtol 1e-7 keeps the finite-difference Jacobian
+/// (steps of 1e-4 in the bounded coordinates) two orders above the integration noise at a
+/// third of the cost of the default 1e-8.
+pub const FIT_SOLVER: SolverOptions = SolverOptions {
+    rtol: 1e-7,
+    atol_scale: 1e-2,
+};
+
+/// Simulated (P2 bar, motor rpm) at every log sample.
+pub fn simulate_log(bench: &Bench, p: &Prepared) -> Result<Vec<Truth>, String> {
+    simulate_log_from(bench, p, 0.0)
+}
+
+/// Like [`simulate_log`], with the start P2 moved by `p2_offset` bar.
+pub fn simulate_log_from(
+    bench: &Bench,
+    p: &Prepared,
+    p2_offset: f64,
+) -> Result<Vec<Truth>, String> {
+    let log = &p.log;
+    let on: [bool; 4] = log.on_duty;
+    let plant = Plant::new(bench, log.config - 1, on, p.motion.clone());
+    let t0 = log.t[0];
+    let dur = log.t[log.t.len() - 1] - t0;
+    let res = solver::simulate(Run {
+        plant: &plant,
+        valve: ValveSchedule::Table(p.valve.clone()),
+        initial: Initial {
+            p2_pa: (p.p2_start + p2_offset) * BAR,
+            lp_pa: p.lp_start * BAR,
+        },
+        duration: dur,
+        sample_dt: 0.05,
+        solver: FIT_SOLVER,
+        progress: None,
+    })
+    .map_err(|e| format!("{}: {e}", log.name()))?;
+    Ok(log.t.iter().map(|t| truth_at(&res.trace, t - t0)).collect())
+}
+
+/// Residuals beyond this many σ are flattened (r → C·tanh(r/C)), so that a few samples far off
+/// (a transient slightly shifted in time) cannot dominate the sum and pull the fit into a
+/// compensating valley.
+pub const ROBUST_SIGMAS: f64 = 10.0;
+
+pub(super) fn residuals_of(p: &Prepared, sim: &[Truth], out: &mut Vec<f64>) {
+    let from = out.len();
+    raw_residuals(p, sim, out);
+    for r in &mut out[from..] {
+        *r = ROBUST_SIGMAS * (*r / ROBUST_SIGMAS).tanh();
+    }
+}
+
+pub(super) fn raw_residuals(p: &Prepared, sim: &[Truth], out: &mut Vec<f64>) {
+    for &i in &p.idx {
+        out.push((sim[i].p2_bar - p.log.p2_bar[i]) / SIGMA_P2_BAR);
+        out.push((sim[i].motor_rpm - p.log.rpm[i]) / SIGMA_RPM);
+    }
+    if let Some(tc) = p.collapse {
+        // A simulation that does not collapse within the log counts as collapsing at its end.
+        let rpm: Vec<f64> = sim.iter().map(|x| x.motor_rpm).collect();
+        let ts = crossing(&p.log.t, &rpm, COLLAPSE_FRACTION * p.rpm0)
+            .unwrap_or(p.log.t[p.log.t.len() - 1]);
+        out.push((ts - tc) / SIGMA_COLLAPSE_S);
+    }
+}
+
+/// The collapse is where the motor speed falls below this fraction of its starting speed.
+pub const COLLAPSE_FRACTION: f64 = 0.25;
+/// σ of the collapse time, s.
+pub const SIGMA_COLLAPSE_S: f64 = 2.0;
+
+/// First time `y` falls below `level` after having been above it, linearly interpolated.
+pub fn crossing(t: &[f64], y: &[f64], level: f64) -> Option<f64> {
+    let first_above = y.iter().position(|v| *v >= level)?;
+    (first_above + 1..y.len()).find(|&k| y[k] < level).map(|k| {
+        let (y0, y1) = (y[k - 1], y[k]);
+        let u = if y0 > y1 {
+            (y0 - level) / (y0 - y1)
+        } else {
+            1.0
+        };
+        t[k - 1] + u.clamp(0.0, 1.0) * (t[k] - t[k - 1])
+    })
+}
