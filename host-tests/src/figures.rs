@@ -307,7 +307,7 @@ pub fn single(name: &str, t: &Trace, on_duty: &[(usize, String)]) -> Figure {
                 series: vec![Series {
                     label: "aperture".into(),
                     x: t.t.clone(),
-                    y: t.aperture.iter().map(|a| a * 100.0).collect(),
+                    y: t.aperture_pct.clone(),
                 }],
             },
             Panel {

@@ -51,9 +51,10 @@ enum Cmd {
         /// Machine-readable summary on stdout.
         #[arg(long)]
         json: bool,
-        /// Override a bench value: `--set hp_accumulator.volume_l=5 --set cylinder[1].bore_mm=50`
-        /// (any field of the bench file by its dotted path), or a fit parameter's short name
-        /// (`trapped_air=0.04`, `cd=0.17`, `precharge=45`).
+        /// Override a bench value: `--set hp_accumulator.volume_l=5 --set cylinder[0].bore_mm=50`
+        /// (any field of the bench file by its dotted path; lists count from 0 in file order,
+        /// `cylinder[0]` is HC3.1), or a fit parameter's short name (`trapped_air=0.04`,
+        /// `cd=0.17`, `precharge=45`).
         #[arg(long = "set", value_name = "FIELD=VALUE")]
         set: Vec<String>,
         /// Solver relative tolerance, 1e-12 to 1e-2.
@@ -118,8 +119,9 @@ enum Cmd {
         #[arg(long)]
         bench: Option<PathBuf>,
         /// Override a bench value: any field of the bench file by its dotted path
-        /// (`--set hp_accumulator.precharge_bar=45 --set cylinder[1].bore_mm=50`), or a fit
-        /// parameter's short name (`trapped_air=0.04`, `cd=0.17`, `precharge=45`).
+        /// (`--set hp_accumulator.precharge_bar=45 --set cylinder[0].bore_mm=50`; lists count
+        /// from 0, `cylinder[0]` is HC3.1), or a fit parameter's short name (`trapped_air=0.04`,
+        /// `cd=0.17`, `precharge=45`).
         #[arg(long = "set", value_name = "NAME=VALUE")]
         set: Vec<String>,
         /// Built-in scenarios to log (default: the seven experimental runs).
@@ -191,7 +193,8 @@ enum Cmd {
         json: bool,
     },
     /// Processor-in-the-loop: the full simulation as the plant, the QEMU firmware as the
-    /// controller in lockstep (hold P2, hold motor speed, overpressure trip).
+    /// controller in lockstep (hold P2, hold motor speed, overpressure trip, the trip held
+    /// through a wire break and a refused reset, a motor reading behind a closed valve).
     #[command(
         after_help = "Examples:\n  pto pil\n  pto pil --bench my-bench.toml --json\n\nExit status:\n  0 every check met\n  1 a check missed\n  2 bad input, QEMU or the build missing\n  130 interrupted"
     )]

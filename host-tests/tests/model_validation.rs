@@ -218,7 +218,7 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
 
 #[test]
 fn scheduler_holds_p2_and_motor_speed_in_closed_loop_with_the_full_simulation() {
-    for row in validate::closed_loop_rows(&Bench::reference()) {
+    for row in pto_host::model::closed_loop::closed_loop_rows(&Bench::reference()) {
         let row = row.unwrap();
         println!(
             "{}: max deviation {:.4} (target {})",
@@ -240,13 +240,13 @@ fn scheduler_holds_p2_and_motor_speed_in_closed_loop_with_the_full_simulation() 
 fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
     use pto_host::model::reference::Reference;
     use pto_host::model::sensors::{SensorSpec, SensorSynth};
-    use pto_host::model::{self as estimation};
+    use pto_host::model::{commanded_aperture_pct, duty_mask, inputs, model_config};
     use pto_host::sim::solver::SolverOptions;
     use pto_host::sim::trace::truth_at;
     use pto_model::estimator::{self, State};
     use pto_model::fx::Pressure;
     let bench = Bench::reference();
-    let mcfg = estimation::model_config(&bench).unwrap();
+    let mcfg = model_config(&bench).unwrap();
     let k = mcfg.coefficients().unwrap();
     let lsb = 1.0 / 65_536.0;
     let mut worst_all = 0.0f64;
@@ -273,7 +273,7 @@ fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
             )
             .unwrap();
         let motion = prep.plant.motion();
-        let duty = estimation::duty_mask(&prep.on_duty);
+        let duty = duty_mask(&prep.on_duty);
         let dt = 2f64.powi(-i32::from(mcfg.dt_log2));
         // Test II reaches the relief after ≈ 90 s: judge its last 20 s.
         let t_from = (s.duration_s - 20.0).max(0.0);
@@ -290,8 +290,8 @@ fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
                 let t = t_from + i as f64 * dt;
                 let truth = truth_at(&res.trace, t);
                 let (enc, hp, lp, motor) = synth.read(motion.at(t).0, &truth);
-                let ap = estimation::commanded_aperture_pct(&s, &res, t);
-                let inp = estimation::inputs(
+                let ap = commanded_aperture_pct(&s, &res, t);
+                let inp = inputs(
                     Some(enc),
                     with_hp.then_some(hp),
                     Some(lp),

@@ -2,7 +2,7 @@
 //! peripherals, samples the sensors at the model's rate, and hands the tasks embedded-hal /
 //! embedded-io-async objects. Flash with `cargo flash-bench` (probe-rs, STM32F405RGTx).
 //!
-//! Pin map (the one place it is written down; the README copies it):
+//! Pin map (the one place it is written down; docs/firmware.md copies it):
 //!
 //! | Function                         | Peripheral        | Pins                     |
 //! |----------------------------------|-------------------|--------------------------|

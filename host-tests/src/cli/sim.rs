@@ -136,7 +136,7 @@ pub(crate) fn simulate(
             tol::BALANCE_REL,
             if pass { "met" } else { "MISSED" }
         );
-        println!("  wrote {} and {}", sum.csv, sum.figure);
+        println!("  wrote {}, {} and its .svg", sum.csv, sum.figure);
     }
     Ok(pass)
 }

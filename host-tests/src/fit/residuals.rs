@@ -57,11 +57,7 @@ pub fn prepare(logs: Vec<BenchLog>, spacing_s: f64) -> Vec<Prepared> {
                 log.theta_deg.iter().map(|a| a.to_radians()).collect(),
             );
             let (ts, ap) = log.valve_steps();
-            let valve = ts
-                .into_iter()
-                .zip(ap)
-                .map(|(t, a)| (t, a / 100.0))
-                .collect();
+            let valve = ts.into_iter().zip(ap).collect();
             let p2_start = start_value(&log.t, &log.p2_bar, moving);
             let lp_start = start_value(&log.t, &log.lp_bar, moving);
             Prepared {

@@ -26,7 +26,7 @@ pub fn synth_log(
         p2_bar: Vec::with_capacity(n),
         lp_bar: Vec::with_capacity(n),
         rpm: Vec::with_capacity(n),
-        aperture: Vec::with_capacity(n),
+        aperture_pct: Vec::with_capacity(n),
         on_duty: prep.on_duty,
         config: prep.config + 1,
     };
@@ -41,7 +41,7 @@ pub fn synth_log(
         log.p2_bar.push(hp);
         log.lp_bar.push(lp);
         log.rpm.push(motor);
-        log.aperture
+        log.aperture_pct
             .push(crate::model::commanded_aperture_pct(&s, &res, t));
     }
     Ok(log)

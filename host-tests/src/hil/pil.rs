@@ -311,14 +311,14 @@ impl ValveController for FirmwareController {
         }
         self.tick = self.tick.wrapping_add(1);
         self.rows.push(row);
-        self.applied / 100.0
+        self.applied
     }
 }
 
 /// What a closed-loop run returns: the firmware (still running), the plant's trace, every step.
 pub type LoopRun = (Qemu, SimResult, Vec<PilRow>);
 
-/// A Test III-like closed-loop run ([`crate::model::validate::test3_like_loop`]) with the firmware as
+/// A Test III-like closed-loop run ([`crate::model::closed_loop::test3_like_loop`]) with the firmware as
 /// the controller, from P2 `p2_start` bar, for `duration` s, with the sensors of `spec` (4–20 mA
 /// loops quantised by the firmware's own front end).
 pub fn closed_loop(
@@ -331,19 +331,20 @@ pub fn closed_loop(
     inject: Box<dyn Fn(f64) -> Injection>,
 ) -> Result<LoopRun, String> {
     let dt_log2 = pto_model::ModelConfig::reference().dt_log2;
-    let (res, ctrl) = crate::model::validate::test3_like_loop(bench, p2_start, duration, |prep| {
-        prime(
-            &mut q,
-            p2_start as f32,
-            crate::model::validate::LOOP_LP_START_BAR as f32,
-            mode,
-        )?;
-        q.link.send(&ToFirmware::SetDuty {
-            on_duty: crate::model::duty_mask(&prep.on_duty),
-            config: prep.config as u8,
+    let (res, ctrl) =
+        crate::model::closed_loop::test3_like_loop(bench, p2_start, duration, |prep| {
+            prime(
+                &mut q,
+                p2_start as f32,
+                crate::model::closed_loop::LOOP_LP_START_BAR as f32,
+                mode,
+            )?;
+            q.link.send(&ToFirmware::SetDuty {
+                on_duty: crate::model::duty_mask(&prep.on_duty),
+                config: prep.config as u8,
+            })?;
+            FirmwareController::new(q, dt_log2, spec, 11, inject)
         })?;
-        FirmwareController::new(q, dt_log2, spec, 11, inject)
-    })?;
     if let Some(e) = ctrl.error {
         return Err(e);
     }

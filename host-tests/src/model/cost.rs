@@ -1,7 +1,7 @@
 //! Cost of the fixed-point model: host nanoseconds per estimator + scheduler step, and code size
 //! of `pto-model` for both thumb targets (the `.text` of its release rlib).
 
-use crate::model::{self as estimation, model_config};
+use super::{inputs, model_config};
 use crate::sim::bench::Bench;
 use pto_model::estimator::{self, State};
 use pto_model::fx::Pressure;
@@ -67,7 +67,7 @@ pub fn host_ns_per_step() -> f64 {
             let t = i as f64 / 1024.0;
             let theta = 0.4167 * (0.2 * std::f64::consts::PI * t).sin();
             let enc = (theta / (2.0 * std::f64::consts::PI) * 16384.0).round() as i32;
-            estimation::inputs(
+            inputs(
                 Some(enc),
                 Some(100.0 + (t * 7.0).sin()),
                 Some(8.0),

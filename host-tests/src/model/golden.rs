@@ -6,8 +6,8 @@
 //! break (reads −60 bar), noise bursts, a missing encoder. The estimator and the scheduler
 //! (holding P2 at 100 bar) run from a known start.
 
+use super::{commanded_aperture_pct, duty_mask, inputs};
 use crate::model::sensors::{SensorSpec, SensorSynth};
-use crate::model::{self as estimation};
 use crate::sim::bench::Bench;
 use crate::sim::trace::truth_at;
 use pto_model::estimator::{self, Estimate, Inputs, State};
@@ -69,15 +69,15 @@ pub fn scenario_inputs(
     let t0 = t_start.unwrap_or_else(|| res.valve_opened_at.unwrap_or(50.0) - 1.0);
     let mut synth = SensorSynth::new(SensorSpec::default(), 42);
     let start = truth_at(&res.trace, t0);
-    let duty = estimation::duty_mask(&prep.on_duty);
+    let duty = duty_mask(&prep.on_duty);
     let mut v = Vec::with_capacity(steps);
     for i in 0..steps {
         let t = t0 + i as f64 * dt;
         let truth = truth_at(&res.trace, t);
         let (enc, hp, lp, motor) = synth.read(prep.plant.motion().at(t).0, &truth);
         let (enc, hp) = faults(i, Some(enc), hp);
-        let ap = estimation::commanded_aperture_pct(&s, &res, t);
-        v.push(estimation::inputs(
+        let ap = commanded_aperture_pct(&s, &res, t);
+        v.push(inputs(
             enc,
             hp,
             Some(lp),

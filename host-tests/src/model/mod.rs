@@ -19,6 +19,7 @@
 //! # Ok::<(), String>(())
 //! ```
 
+pub mod closed_loop;
 pub mod cost;
 pub mod golden;
 pub mod reference;
@@ -108,7 +109,7 @@ pub fn commanded_aperture_pct(s: &Scenario, res: &SimResult, t: f64) -> f64 {
         ValveSpec::Constant { aperture_pct } => *aperture_pct,
         ValveSpec::Threshold { aperture_pct, .. } => match res.valve_opened_at {
             Some(t0) if t >= t0 => *aperture_pct,
-            _ if res.trace.aperture[0] > 0.0 => *aperture_pct,
+            _ if res.trace.aperture_pct[0] > 0.0 => *aperture_pct,
             _ => 0.0,
         },
         ValveSpec::Table {

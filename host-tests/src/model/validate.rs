@@ -1,20 +1,16 @@
-//! `pto validate`: the fixed-point model against the full simulation, per scenario, and the
-//! scheduler in closed loop with the full simulation.
-//!
-//! Over 600 lines: one row per scenario (both modes, coverage, the empty flag, the f64 mirror)
-//! and the closed-loop harness the processor-in-the-loop run shares.
+//! `pto validate`: the fixed-point model against the full simulation, per scenario (both modes,
+//! σ coverage, the empty flag, the f64 mirror), and the closed-loop rows of [`super::closed_loop`].
 
+use super::closed_loop::{LoopRow, closed_loop_rows};
+use super::{commanded_aperture_pct, duty_mask, inputs, model_config};
 use crate::model::reference::Reference;
 use crate::model::sensors::{SensorSpec, SensorSynth};
-use crate::model::{self as estimation, model_config};
 use crate::sim::bench::{BAR, Bench};
-use crate::sim::plant::Eval;
 use crate::sim::scenario::Scenario;
-use crate::sim::solver::{self, Initial, Run, SolverOptions, ValveController, ValveSchedule};
+use crate::sim::solver::SolverOptions;
 use crate::sim::trace::{Truth, truth_at};
 use pto_model::estimator::{self, Estimate, State};
-use pto_model::fx::{Pressure, Rpm};
-use pto_model::scheduler::{self, Mode, SchedulerCoeffs, SchedulerConfig, SchedulerState};
+use pto_model::fx::Pressure;
 use pto_model::table::Table1;
 use pto_model::{Coefficients, ModelConfig, coeffs};
 use rayon::prelude::*;
@@ -112,23 +108,6 @@ pub struct Row {
     pub pass: bool,
 }
 
-/// A closed-loop result.
-#[derive(Debug, Clone, Serialize)]
-pub struct LoopRow {
-    /// What was held.
-    pub name: String,
-    /// Setpoint (bar or rpm).
-    pub setpoint: f64,
-    /// Window judged, s.
-    pub window_s: (f64, f64),
-    /// Largest deviation in the window (bar, or fraction of the setpoint).
-    pub max_deviation: f64,
-    /// Target for it.
-    pub target: f64,
-    /// Met.
-    pub pass: bool,
-}
-
 /// The whole report.
 #[derive(Debug, Clone, Serialize)]
 pub struct Report {
@@ -160,7 +139,7 @@ fn validate_scenario(
     let motion = prep.plant.motion();
     let dt = 2f64.powi(-i32::from(mcfg.dt_log2));
     let n = (s.duration_s / dt) as usize;
-    let duty = estimation::duty_mask(&prep.on_duty);
+    let duty = duty_mask(&prep.on_duty);
     let config = prep.config as u8;
     let t0 = truth_at(tr, 0.0);
     // With the HP transducer: fixed point and f64 side by side.
@@ -191,8 +170,8 @@ fn validate_scenario(
         let t = i as f64 * dt;
         let truth = truth_at(tr, t);
         let (enc, hp, lp, motor) = synth.read(motion.at(t).0, &truth);
-        let ap = estimation::commanded_aperture_pct(&s, &res, t);
-        let inp = estimation::inputs(Some(enc), Some(hp), Some(lp), Some(motor), ap, duty, config);
+        let ap = commanded_aperture_pct(&s, &res, t);
+        let inp = inputs(Some(enc), Some(hp), Some(lp), Some(motor), ap, duty, config);
         let e = estimator::step(k, &mut st, &inp);
         let r = rf.step(&inp);
         crosses_cell |= in_cell(r.p2_bar);
@@ -234,8 +213,8 @@ fn validate_scenario(
         let t = i as f64 * dt;
         let truth: Truth = truth_at(tr, t);
         let (enc, _, lp, motor) = synth.read(motion.at(t).0, &truth);
-        let ap = estimation::commanded_aperture_pct(&s, &res, t);
-        let inp = estimation::inputs(Some(enc), None, Some(lp), Some(motor), ap, duty, config);
+        let ap = commanded_aperture_pct(&s, &res, t);
+        let inp = inputs(Some(enc), None, Some(lp), Some(motor), ap, duty, config);
         let e = estimator::step(k, &mut st, &inp);
         let p2 = f64::from(e.p2.to_f32());
         max_mo = max_mo.max((p2 - truth.p2_bar).abs());
@@ -475,212 +454,6 @@ fn seed_of(name: &str) -> u64 {
     name.bytes().fold(0xcbf2_9ce4_8422_2325, |h, b| {
         (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3)
     })
-}
-
-/// The model crate's estimator + scheduler as the plant's valve controller.
-pub struct ModelController {
-    k: Coefficients,
-    sc: SchedulerCoeffs,
-    st: State,
-    sst: SchedulerState,
-    mode: Mode,
-    synth: SensorSynth,
-    duty: u8,
-    config: u8,
-    cmd: f64,
-    /// Every estimate, for inspection.
-    pub log: Vec<(f64, Estimate, f64)>,
-}
-
-impl ModelController {
-    /// A controller holding `mode`, with the model stepping at its configured dt.
-    pub fn new(
-        mcfg: &ModelConfig,
-        mode: Mode,
-        p2: f64,
-        lp: f64,
-        duty: u8,
-        config: u8,
-        seed: u64,
-    ) -> Result<Self, String> {
-        let k = mcfg.coefficients().map_err(|e| e.to_string())?;
-        let sc = SchedulerConfig::default()
-            .coefficients(&k)
-            .map_err(|e| e.to_string())?;
-        Ok(ModelController {
-            st: State::new(
-                Pressure::from_num(p2 as f32),
-                Pressure::from_num(lp as f32),
-                Pressure::from_num(1.0),
-            ),
-            k,
-            sc,
-            sst: SchedulerState::default(),
-            mode,
-            synth: SensorSynth::new(SensorSpec::default(), seed),
-            duty,
-            config,
-            cmd: 0.0,
-            log: Vec::new(),
-        })
-    }
-}
-
-impl ValveController for ModelController {
-    fn period(&self) -> f64 {
-        2f64.powi(-i32::from(self.k.dt_log2))
-    }
-
-    fn update(&mut self, t: f64, p: &Eval) -> f64 {
-        let (enc, hp, lp, motor) = self.synth.read(p.theta, &Truth::of_eval(p));
-        let inp = estimation::inputs(
-            Some(enc),
-            Some(hp),
-            Some(lp),
-            Some(motor),
-            self.cmd,
-            self.duty,
-            self.config,
-        );
-        let e = estimator::step(&self.k, &mut self.st, &inp);
-        let c = scheduler::step(&self.k, &self.sc, &mut self.sst, self.mode, &e, inp.motor);
-        self.cmd = f64::from(c.aperture.to_f32());
-        self.log.push((t, e, self.cmd));
-        self.cmd / 100.0
-    }
-}
-
-/// LP at the start of the closed-loop runs, bar.
-pub const LOOP_LP_START_BAR: f64 = 8.0;
-
-/// A Test III-like closed-loop run (HC3.1 + HC3.4, Config 1, ±40 mm at 0.1 Hz, from `p2_start`
-/// bar, LP 8 bar) for `duration` s, with the controller `make` builds for the prepared scenario
-/// (its duty and geometry); returns the controller with the result.
-pub fn test3_like_loop<C: ValveController + 'static>(
-    bench: &Bench,
-    p2_start: f64,
-    duration: f64,
-    make: impl FnOnce(&crate::sim::scenario::Prepared) -> Result<C, String>,
-) -> Result<(crate::sim::solver::SimResult, C), String> {
-    let s = crate::sim::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
-    let prep = s
-        .prepare(bench, Path::new("."))
-        .map_err(|e| e.to_string())?;
-    let ctrl = make(&prep)?;
-    let (res, ctrl) = solver::simulate_with(
-        Run {
-            plant: &prep.plant,
-            valve: ValveSchedule::Constant(0.0),
-            initial: Initial {
-                p2_pa: p2_start * BAR,
-                lp_pa: LOOP_LP_START_BAR * BAR,
-            },
-            duration,
-            sample_dt: 0.05,
-            solver: SolverOptions {
-                rtol: 1e-6,
-                atol_scale: 0.1,
-            },
-            progress: None,
-        },
-        ctrl,
-    );
-    Ok((res.map_err(|e| e.to_string())?, ctrl))
-}
-
-/// The model crate as the controller of a Test III-like run, its model at 2^−dt_log2 s.
-pub fn closed_loop(
-    bench: &Bench,
-    mode: Mode,
-    p2_start: f64,
-    duration: f64,
-    dt_log2: u8,
-) -> Result<(crate::sim::solver::SimResult, ModelController), String> {
-    let mut mcfg = model_config(bench)?;
-    mcfg.dt_log2 = dt_log2;
-    test3_like_loop(bench, p2_start, duration, |prep| {
-        ModelController::new(
-            &mcfg,
-            mode,
-            p2_start,
-            LOOP_LP_START_BAR,
-            estimation::duty_mask(&prep.on_duty),
-            prep.config as u8,
-            7,
-        )
-    })
-}
-
-fn judge_loop(
-    name: &str,
-    res: &crate::sim::solver::SimResult,
-    setpoint: f64,
-    settle_from: f64,
-    rel: bool,
-    target: f64,
-    f: impl Fn(usize) -> f64,
-) -> LoopRow {
-    let tr = &res.trace;
-    let end = *tr.t.last().unwrap_or(&0.0);
-    let w = tr.window(settle_from, end);
-    let mut worst = 0.0f64;
-    for kk in w {
-        let d = (f(kk) - setpoint).abs();
-        worst = worst.max(if rel { d / setpoint } else { d });
-    }
-    LoopRow {
-        name: name.into(),
-        setpoint,
-        window_s: (settle_from, end),
-        max_deviation: worst,
-        target,
-        pass: worst <= target,
-    }
-}
-
-/// Closed-loop checks: hold P2 at 100 bar; hold the motor at 250 rpm.
-pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
-    let cases: Vec<(&str, Mode)> = vec![
-        (
-            "hold P2 at 100 bar",
-            Mode::HoldPressure(Pressure::from_num(100.0)),
-        ),
-        (
-            "hold motor at 250 rpm",
-            Mode::HoldSpeed(Rpm::from_num(250.0)),
-        ),
-    ];
-    cases
-        .into_par_iter()
-        .map(|(name, mode)| {
-            let (res, _) = closed_loop(bench, mode, 60.0, 400.0, 8)?;
-            let tr = &res.trace;
-            Ok(match mode {
-                Mode::HoldPressure(p) => {
-                    let sp = f64::from(p.to_f32());
-                    // Judge from 60 s after P2 first reaches the setpoint.
-                    let reach = crate::paper::time_to_reach(&tr.t, &tr.p2_pa, sp * BAR)
-                        .unwrap_or(f64::INFINITY);
-                    judge_loop(
-                        name,
-                        &res,
-                        sp,
-                        reach + 60.0,
-                        false,
-                        target::HOLD_P2_BAR,
-                        |k| tr.p2_pa[k] / BAR,
-                    )
-                }
-                Mode::HoldSpeed(r) => {
-                    let sp = f64::from(r.to_f32());
-                    judge_loop(name, &res, sp, 150.0, true, target::HOLD_SPEED_REL, |k| {
-                        tr.omega[k] * 30.0 / std::f64::consts::PI
-                    })
-                }
-                _ => unreachable!(),
-            })
-        })
-        .collect()
 }
 
 /// Validates `scenarios` (in parallel) and the closed loop.

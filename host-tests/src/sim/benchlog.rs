@@ -24,7 +24,7 @@ pub struct BenchLog {
     /// Motor speed, rpm.
     pub rpm: Vec<f64>,
     /// Commanded valve aperture, %.
-    pub aperture: Vec<f64>,
+    pub aperture_pct: Vec<f64>,
     /// Cylinders on duty, HC3.1..HC3.4.
     pub on_duty: [bool; 4],
     /// Geometry, 1..=4.
@@ -33,11 +33,11 @@ pub struct BenchLog {
 
 /// A malformed log.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{file}:{line}: column `{column}`: {message}")]
+#[error("{file}{}: column `{column}`: {message}", line_part(*.line))]
 pub struct LogError {
     /// File.
     pub file: String,
-    /// 1-based line (1 = header).
+    /// 1-based line (1 = header); 0 for the file as a whole.
     pub line: usize,
     /// Column name.
     pub column: String,
@@ -45,7 +45,16 @@ pub struct LogError {
     pub message: String,
 }
 
-/// (column, unit words that would be wrong, allowed range).
+/// `:line` for an error at a line, nothing for one about the whole file.
+fn line_part(line: usize) -> String {
+    if line == 0 {
+        String::new()
+    } else {
+        format!(":{line}")
+    }
+}
+
+/// (column, lowest allowed value, highest allowed value), in the column's unit.
 const COLUMNS: [(&str, f64, f64); 6] = [
     ("time_s", f64::NEG_INFINITY, f64::INFINITY),
     ("shaft_angle_deg", -30.0, 30.0),
@@ -179,7 +188,7 @@ impl BenchLog {
             p2_bar: p2,
             lp_bar: lp,
             rpm,
-            aperture,
+            aperture_pct: aperture,
             on_duty,
             config: config.unwrap_or(1),
         })
@@ -204,7 +213,7 @@ impl BenchLog {
                 self.p2_bar[i],
                 self.lp_bar[i],
                 self.rpm[i],
-                self.aperture[i],
+                self.aperture_pct[i],
                 self.config
             );
         }
@@ -219,11 +228,11 @@ impl BenchLog {
     /// The valve schedule as (time from the log's start, aperture %) steps.
     pub fn valve_steps(&self) -> (Vec<f64>, Vec<f64>) {
         let t0 = self.t[0];
-        let (mut ts, mut ap) = (vec![0.0], vec![self.aperture[0]]);
+        let (mut ts, mut ap) = (vec![0.0], vec![self.aperture_pct[0]]);
         for i in 1..self.t.len() {
-            if (self.aperture[i] - *ap.last().unwrap_or(&0.0)).abs() > 1e-9 {
+            if (self.aperture_pct[i] - *ap.last().unwrap_or(&0.0)).abs() > 1e-9 {
                 ts.push(self.t[i] - t0);
-                ap.push(self.aperture[i]);
+                ap.push(self.aperture_pct[i]);
             }
         }
         (ts, ap)

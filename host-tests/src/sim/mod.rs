@@ -19,7 +19,7 @@
 //! s.duration_s = 20.0;
 //! let here = std::path::Path::new(".");
 //! let (_, run) = s.simulate(&bench, here, SolverOptions::default(), None)?;
-//! let p2_bar = run.trace.p2.last().copied().unwrap_or_default() / BAR;
+//! let p2_bar = run.trace.p2_pa.last().copied().unwrap_or_default() / BAR;
 //! println!("P2 after 20 s: {p2_bar:.1} bar, balances within {:.1e}", run.balance.worst());
 //! // The valve stays shut until 100 bar: the pumps raise P2 from its 60 bar start.
 //! assert!(p2_bar > 60.0 && p2_bar < 100.0, "{p2_bar}");

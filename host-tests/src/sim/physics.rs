@@ -138,28 +138,28 @@ pub fn relief_flow(bench: &Bench, p_in: f64, p_out: f64) -> f64 {
     orifice(&bench.oil, bench.relief_cd, area, p_in - p_out)
 }
 
-/// Control valve area at aperture `a` (fraction 0..1): linear interpolation of the table, with the
-/// leakage area as a floor so the closed valve leaks like every other closed valve.
-pub fn valve_area(bench: &Bench, a: f64) -> f64 {
-    let xs = &bench.valve_aperture;
+/// Control valve area at aperture `a_pct` (%, 0..100): linear interpolation of the table, with
+/// the leakage area as a floor so the closed valve leaks like every other closed valve.
+pub fn valve_area(bench: &Bench, a_pct: f64) -> f64 {
+    let xs = &bench.valve_aperture_pct;
     let ys = &bench.valve_area;
-    let a = a.clamp(0.0, 1.0);
+    let a = a_pct.clamp(0.0, 100.0);
     let i = xs.partition_point(|&x| x <= a).clamp(1, xs.len() - 1);
     let (x0, x1, y0, y1) = (xs[i - 1], xs[i], ys[i - 1], ys[i]);
     let area = y0 + (y1 - y0) * (a - x0) / (x1 - x0);
     area.max(bench.oil.leak_area)
 }
 
-/// Control valve flow at aperture `a`, m³/s. With a pressure-dependent characteristic the Cd
+/// Control valve flow at aperture `a_pct` (%), m³/s. With a pressure-dependent characteristic the Cd
 /// varies linearly with |Δp| around 50 bar (kept ≥ 10 % of its nominal value).
-pub fn valve_flow(bench: &Bench, a: f64, dp: f64) -> f64 {
+pub fn valve_flow(bench: &Bench, a_pct: f64, dp: f64) -> f64 {
     let cd = if bench.valve_cd_slope == 0.0 {
         bench.valve_cd
     } else {
         let k = 1.0 + bench.valve_cd_slope * (dp.abs() / 1e5 - 50.0) / 100.0;
         bench.valve_cd * k.max(0.1)
     };
-    orifice(&bench.oil, cd, valve_area(bench, a), dp)
+    orifice(&bench.oil, cd, valve_area(bench, a_pct), dp)
 }
 
 /// Pressure band over which the bladder lifts off its stop, Pa.
@@ -345,8 +345,8 @@ mod tests {
     fn valve_flow_reproduces_the_arithmetic_check_of_physics_md() {
         // 10 % at 92 bar: ≈1.53 L/min; 15 %: ≈2.61 L/min (turbulent regime).
         let b = Bench::reference();
-        let q10 = valve_flow(&b, 0.10, 92.0 * BAR) * 60_000.0;
-        let q15 = valve_flow(&b, 0.15, 92.0 * BAR) * 60_000.0;
+        let q10 = valve_flow(&b, 10.0, 92.0 * BAR) * 60_000.0;
+        let q15 = valve_flow(&b, 15.0, 92.0 * BAR) * 60_000.0;
         println!("q10 {q10:.3} L/min, q15 {q15:.3} L/min");
         assert!((q10 - 1.53).abs() < 0.01);
         assert!((q15 - 2.61).abs() < 0.015);
@@ -431,10 +431,10 @@ mod properties {
         }
 
         #[test]
-        fn valve_flow_is_monotone_in_aperture(a in 0.0f64..0.99, da in 1e-3f64..0.5, dp_bar in 1.0f64..150.0) {
+        fn valve_flow_is_monotone_in_aperture(a in 0.0f64..99.0, da in 0.1f64..50.0, dp_bar in 1.0f64..150.0) {
             let b = Bench::reference();
             let q0 = valve_flow(&b, a, dp_bar * BAR);
-            let q1 = valve_flow(&b, (a + da).min(1.0), dp_bar * BAR);
+            let q1 = valve_flow(&b, (a + da).min(100.0), dp_bar * BAR);
             prop_assert!(q1 >= q0);
         }
 

@@ -96,8 +96,8 @@ pub struct Eval {
     pub q_motor: f64,
     /// Motor speed, rad/s.
     pub omega: f64,
-    /// Spool aperture, fraction.
-    pub aperture: f64,
+    /// Spool aperture, %.
+    pub aperture_pct: f64,
     /// Integrand of the balance quadratures (see [`QUAD_NAMES`]), SI units per second.
     pub quad: [f64; N_QUAD],
     /// Stored mechanical spring energy in the hard stops, J.
@@ -113,8 +113,8 @@ pub struct Plant {
     idle: Vec<(usize, Idle)>,
     motion: Motion,
     fluid: Fluid,
-    /// Commanded aperture, fraction 0..1 (set by the valve schedule between solver segments).
-    pub command: Cell<f64>,
+    /// Commanded aperture, % (set by the valve schedule between solver segments).
+    pub command_pct: Cell<f64>,
     i_p2: usize,
     i_lp: usize,
     i_pm: usize,
@@ -179,7 +179,7 @@ impl Plant {
             idle,
             motion,
             fluid: Fluid::new(&bench.oil),
-            command: Cell::new(0.0),
+            command_pct: Cell::new(0.0),
             i_p2: base,
             i_lp: base + 1,
             i_pm: base + 2,
@@ -264,7 +264,7 @@ impl Plant {
         lp: f64,
         p_motor: f64,
         omega: f64,
-        aperture: f64,
+        aperture_pct: f64,
     ) -> Vec<f64> {
         let (theta, _) = self.motion.at(0.0);
         let mut y = vec![0.0; self.n];
@@ -279,7 +279,7 @@ impl Plant {
         y[self.i_pm] = p_motor / BAR;
         y[self.i_w] = omega;
         if let Some(i) = self.i_a {
-            y[i] = aperture * 100.0;
+            y[i] = aperture_pct;
         }
         if let Some(i) = self.i_hm {
             y[i] = p2 / BAR;
@@ -287,7 +287,7 @@ impl Plant {
         if let Some(i) = self.i_lm {
             y[i] = lp / BAR;
         }
-        self.command.set(aperture);
+        self.command_pct.set(aperture_pct);
         y
     }
 
@@ -312,9 +312,9 @@ impl Plant {
         let lp = y[self.i_lp] * BAR;
         let pm = y[self.i_pm] * BAR;
         let omega = y[self.i_w];
-        let aperture = match self.i_a {
-            Some(i) => (y[i] / 100.0).clamp(0.0, 1.0),
-            None => self.command.get(),
+        let aperture_pct = match self.i_a {
+            Some(i) => y[i].clamp(0.0, 100.0),
+            None => self.command_pct.get(),
         };
         let (v_hp, e_hp) = fl.state(p2);
         let (v_lp, e_lp) = fl.state(lp);
@@ -344,7 +344,7 @@ impl Plant {
             lp_pa: lp,
             p_motor_pa: pm,
             omega,
-            aperture,
+            aperture_pct,
             ..Eval::default()
         };
         let half = 0.5 * b.free_play;
@@ -446,7 +446,7 @@ impl Plant {
             e.torque[*ci] = c.lever.side() * arm * f_contact;
             e.quad[6] += f_contact * v_eye;
         }
-        let q_valve = physics::valve_flow(b, aperture, p2 - pm);
+        let q_valve = physics::valve_flow(b, aperture_pct, p2 - pm);
         let q_relief = physics::relief_flow(b, p2, lp);
         let q_makeup = check_flow(oil, &b.makeup, lp - pm);
         let dp_motor = pm - lp;
@@ -488,7 +488,7 @@ impl Plant {
             dy[self.i_pm] = v_pm * (m_valve + m_makeup - m_motor) / c_pm / BAR;
             dy[self.i_w] = (t_motor - t_load) / b.motor_inertia;
             if let Some(i) = self.i_a {
-                dy[i] = (self.command.get() * 100.0 - y[i]) / b.spool_tau;
+                dy[i] = (self.command_pct.get() - y[i]) / b.spool_tau;
             }
         }
         e.q_valve = q_valve;

@@ -15,7 +15,7 @@ use std::time::Instant;
 type M = NalgebraMat<f64>;
 
 /// A valve controller plugged into the plant: called every `period` seconds with the time and the
-/// plant's instantaneous values; returns the commanded aperture (fraction 0..1).
+/// plant's instantaneous values; returns the commanded aperture (%, 0..100).
 pub trait ValveController {
     /// Control period, s.
     fn period(&self) -> f64;
@@ -25,16 +25,16 @@ pub trait ValveController {
 
 /// How the control valve is driven.
 pub enum ValveSchedule {
-    /// Fixed aperture (fraction).
+    /// Fixed aperture, %.
     Constant(f64),
-    /// Closed until P2 reaches `threshold` (Pa), then `aperture` for the rest of the run.
+    /// Closed until P2 reaches `threshold_pa`, then `aperture_pct` for the rest of the run.
     Threshold {
         /// P2 threshold, Pa.
-        threshold: f64,
-        /// Aperture after the threshold, fraction.
-        aperture: f64,
+        threshold_pa: f64,
+        /// Aperture after the threshold, %.
+        aperture_pct: f64,
     },
-    /// Step changes (time s, aperture fraction), sorted by time; before the first, closed.
+    /// Step changes (time s, aperture %), sorted by time; before the first, closed.
     Table(Vec<(f64, f64)>),
     /// External controller.
     Controller(Box<dyn ValveController>),
@@ -45,10 +45,10 @@ impl std::fmt::Debug for ValveSchedule {
         match self {
             ValveSchedule::Constant(a) => write!(f, "Constant({a})"),
             ValveSchedule::Threshold {
-                threshold,
-                aperture,
+                threshold_pa,
+                aperture_pct,
             } => {
-                write!(f, "Threshold({threshold} Pa -> {aperture})")
+                write!(f, "Threshold({threshold_pa} Pa -> {aperture_pct} %)")
             }
             ValveSchedule::Table(t) => write!(f, "Table({t:?})"),
             ValveSchedule::Controller(c) => write!(f, "Controller(period {} s)", c.period()),
@@ -62,11 +62,11 @@ impl ValveSchedule {
         match self {
             ValveSchedule::Constant(a) => *a,
             ValveSchedule::Threshold {
-                threshold,
-                aperture,
+                threshold_pa,
+                aperture_pct,
             } => {
-                if plant0.p2_pa >= *threshold {
-                    *aperture
+                if plant0.p2_pa >= *threshold_pa {
+                    *aperture_pct
                 } else {
                     0.0
                 }
@@ -173,8 +173,8 @@ pub struct Trace {
     pub lp_pa: Vec<f64>,
     /// Motor inlet, Pa.
     pub p_motor_pa: Vec<f64>,
-    /// Spool aperture, fraction.
-    pub aperture: Vec<f64>,
+    /// Spool aperture, %.
+    pub aperture_pct: Vec<f64>,
     /// Restraining torque (input must supply it), N·m.
     pub torque: Vec<f64>,
     /// Per cylinder, N·m.
@@ -201,7 +201,7 @@ impl Trace {
         self.p2_pa.push(e.p2_pa);
         self.lp_pa.push(e.lp_pa);
         self.p_motor_pa.push(e.p_motor_pa);
-        self.aperture.push(e.aperture);
+        self.aperture_pct.push(e.aperture_pct);
         self.torque.push(e.torque.iter().sum());
     }
 
@@ -279,7 +279,7 @@ impl Trace {
                 self.q_valve[k] * 6e4,
                 self.q_relief[k] * 6e4,
                 self.omega[k] * rpm,
-                self.aperture[k] * 100.0,
+                self.aperture_pct[k],
                 self.torque[k],
             ];
             for i in 0..N_CYL {
@@ -479,7 +479,7 @@ pub fn simulate_with<C: ValveController + 'static>(
 }
 
 /// Steady motor state (inlet pressure Pa, speed rad/s) for P2, LP and aperture.
-pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture: f64) -> (f64, f64) {
+pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture_pct: f64) -> (f64, f64) {
     use crate::sim::bench::Load;
     let dp_of = |w: f64| match bench.load {
         Load::Viscous(c) => c * w / (bench.motor_disp * bench.motor_eta_mech),
@@ -487,11 +487,11 @@ pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture: f64) -> (f64, f64
     };
     let resid = |w: f64| {
         let dpm = dp_of(w);
-        crate::sim::physics::valve_flow(bench, aperture, p2 - lp - dpm)
+        crate::sim::physics::valve_flow(bench, aperture_pct, p2 - lp - dpm)
             - bench.motor_disp * w
             - bench.motor_leak * dpm
     };
-    if aperture <= 0.0 || resid(0.0) <= 0.0 {
+    if aperture_pct <= 0.0 || resid(0.0) <= 0.0 {
         return (lp, 0.0);
     }
     let (mut lo, mut hi) = (0.0, 1.0);
@@ -533,11 +533,11 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let a0 = run
         .valve
         .initial(&plant.evaluate(0.0, &probe, None, false))
-        .clamp(0.0, 1.0);
+        .clamp(0.0, 100.0);
     let (pm0, w0) = steady_motor(bench, run.initial.p2_pa, run.initial.lp_pa, a0);
     let y0 = plant.initial_state(run.initial.p2_pa, run.initial.lp_pa, pm0, w0, a0);
     let threshold = match run.valve {
-        ValveSchedule::Threshold { threshold, .. } if a0 == 0.0 => Some(threshold / BAR),
+        ValveSchedule::Threshold { threshold_pa, .. } if a0 == 0.0 => Some(threshold_pa / BAR),
         _ => None,
     };
     let latched = std::cell::Cell::new(threshold.is_none());
@@ -673,8 +673,8 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
             OdeSolverStopReason::RootFound(tr, _) => {
                 latched.set(true);
                 valve_opened_at = Some(tr);
-                if let ValveSchedule::Threshold { aperture, .. } = run.valve {
-                    plant.command.set(aperture.clamp(0.0, 1.0));
+                if let ValveSchedule::Threshold { aperture_pct, .. } = run.valve {
+                    plant.command_pct.set(aperture_pct.clamp(0.0, 100.0));
                 }
                 solver.state_mut_back(tr).map_err(|e| solver_err(tr, e))?;
                 refresh_derivative!(solver, tr);
@@ -687,11 +687,11 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
                 let cmd = match &mut run.valve {
                     ValveSchedule::Table(tab) => table_at(tab, t_now),
                     ValveSchedule::Controller(c) => c.update(t_now, &e),
-                    _ => plant.command.get(),
+                    _ => plant.command_pct.get(),
                 }
-                .clamp(0.0, 1.0);
-                if cmd != plant.command.get() {
-                    plant.command.set(cmd);
+                .clamp(0.0, 100.0);
+                if cmd != plant.command_pct.get() {
+                    plant.command_pct.set(cmd);
                     refresh_derivative!(solver, t_now);
                 }
                 stop = run.valve.next_event(t_now).min(t_end);

@@ -199,7 +199,7 @@ pub const REVERSAL_UNITS_PER_STEP: u8 = 1;
 /// Steps between autonomy refreshes (8 ms at 2^−10 s; more while reversals hold the slot).
 pub const AUTONOMY_EVERY: u8 = 8;
 
-/// Estimator state (352 bytes together with the scheduler's; `pto model-cost` prints it).
+/// Estimator state (360 bytes together with the scheduler's; `pto model-cost` prints it).
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct State {

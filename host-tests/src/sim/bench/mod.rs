@@ -145,8 +145,8 @@ pub struct Bench {
     pub valve_cd: f64,
     /// Relative change of the control valve's Cd per 100 bar of Δp around 50 bar.
     pub valve_cd_slope: f64,
-    /// Control valve aperture table, fraction 0..1.
-    pub valve_aperture: Vec<f64>,
+    /// Control valve aperture table, %.
+    pub valve_aperture_pct: Vec<f64>,
     /// Control valve area table, m².
     pub valve_area: Vec<f64>,
     /// Spool time constant, s (0 = ideal).
@@ -300,12 +300,7 @@ impl Bench {
             relief_cd: f.relief_valve.discharge_coefficient,
             valve_cd: f.control_valve.discharge_coefficient,
             valve_cd_slope: f.control_valve.cd_slope_per_100bar,
-            valve_aperture: f
-                .control_valve
-                .aperture_pct
-                .iter()
-                .map(|a| a / 100.0)
-                .collect(),
+            valve_aperture_pct: f.control_valve.aperture_pct.clone(),
             valve_area: f.control_valve.area_mm2.iter().map(|a| a * 1e-6).collect(),
             spool_tau: f.control_valve.spool_time_constant_ms * 1e-3,
             hp_acc: acc(&f.hp_accumulator),

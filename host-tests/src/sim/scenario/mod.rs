@@ -1,7 +1,5 @@
-//! Named scenarios: the paper's tests as built-ins, and the same format loadable from TOML.
-//!
-//! Over 600 lines: the format, its feasibility checks, and the paper's 62 runs as data
-//! (`builtin`, a third of the file).
+//! Named scenarios: the format loadable from TOML, its feasibility checks and its preparation
+//! against a bench; the paper's tests as built-ins in [`builtin`](mod@builtin).
 
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::motion::{Motion, MotionSpec};
@@ -9,6 +7,9 @@ use crate::sim::plant::{N_CYL, Plant};
 use crate::sim::solver::{self, Initial, Run, SimError, SimResult, SolverOptions, ValveSchedule};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+
+pub mod builtin;
+pub use builtin::{BLOCKED_APERTURES, SETS, TEST3_APERTURES, builtin, builtin_named};
 
 /// How the control valve is driven, as written in scenario files (apertures in %).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -252,10 +253,8 @@ impl Scenario {
                 p * BAR
             }
             None => {
-                let aperture = match self.valve {
-                    ValveSpec::Constant { aperture_pct } if aperture_pct > 0.0 => {
-                        aperture_pct / 100.0
-                    }
+                let aperture_pct = match self.valve {
+                    ValveSpec::Constant { aperture_pct } if aperture_pct > 0.0 => aperture_pct,
                     _ => {
                         return Err(err(
                             "initial_hp_bar",
@@ -263,7 +262,7 @@ impl Scenario {
                         ));
                     }
                 };
-                steady_p2(bench, config, &on_duty, &motion, lp, aperture).ok_or_else(|| {
+                steady_p2(bench, config, &on_duty, &motion, lp, aperture_pct).ok_or_else(|| {
                     err(
                         "initial_hp_bar",
                         "missing: the steady-state start needs a sine input".into(),
@@ -361,13 +360,13 @@ impl Scenario {
     /// The valve schedule in simulator units.
     pub fn schedule(&self) -> ValveSchedule {
         match &self.valve {
-            ValveSpec::Constant { aperture_pct } => ValveSchedule::Constant(aperture_pct / 100.0),
+            ValveSpec::Constant { aperture_pct } => ValveSchedule::Constant(*aperture_pct),
             ValveSpec::Threshold {
                 threshold_bar,
                 aperture_pct,
             } => ValveSchedule::Threshold {
-                threshold: threshold_bar * BAR,
-                aperture: aperture_pct / 100.0,
+                threshold_pa: threshold_bar * BAR,
+                aperture_pct: *aperture_pct,
             },
             ValveSpec::Table {
                 time_s,
@@ -376,7 +375,7 @@ impl Scenario {
                 time_s
                     .iter()
                     .zip(aperture_pct)
-                    .map(|(t, a)| (*t, a / 100.0))
+                    .map(|(t, a)| (*t, *a))
                     .collect(),
             ),
         }
@@ -392,7 +391,7 @@ fn steady_p2(
     on_duty: &[bool; N_CYL],
     motion: &Motion,
     lp: f64,
-    aperture: f64,
+    aperture_pct: f64,
 ) -> Option<f64> {
     let Motion::Sine { amplitude, omega } = motion else {
         return None;
@@ -407,7 +406,7 @@ fn steady_p2(
     }
     let q = q * (1.0 - 0.016);
     let motor_flow = |p2: f64| {
-        let (pm, w) = solver::steady_motor(bench, p2, lp, aperture);
+        let (pm, w) = solver::steady_motor(bench, p2, lp, aperture_pct);
         bench.motor_disp * w + bench.motor_leak * (pm - lp)
     };
     let (mut lo, mut hi) = (lp, bench.relief_setting);
@@ -461,256 +460,6 @@ impl Prepared {
     }
 }
 
-fn sine() -> MotionSpec {
-    MotionSpec::Sine {
-        amplitude_mm: 40.0,
-        frequency_hz: 0.1,
-    }
-}
-
-/// Cylinder sets of the paper's figures, with short tags.
-pub const SETS: [(&str, &[&str]); 4] = [
-    ("c1", &["HC3.1"]),
-    ("c4", &["HC3.4"]),
-    ("c14", &["HC3.1", "HC3.4"]),
-    ("c1234", &["HC3.1", "HC3.2", "HC3.3", "HC3.4"]),
-];
-
-/// Test III apertures, %.
-pub const TEST3_APERTURES: [f64; 6] = [5.0, 8.0, 10.0, 15.0, 20.0, 25.0];
-/// Blocked-input apertures, %.
-pub const BLOCKED_APERTURES: [f64; 5] = [10.0, 12.0, 15.0, 20.0, 25.0];
-
-#[allow(clippy::too_many_arguments)]
-fn scenario(
-    name: String,
-    group: &str,
-    description: String,
-    config: usize,
-    cylinders: &[&str],
-    motion: MotionSpec,
-    valve: ValveSpec,
-    duration_s: f64,
-    sample_interval_s: f64,
-    initial_hp_bar: Option<f64>,
-) -> Scenario {
-    Scenario {
-        name,
-        description,
-        group: group.into(),
-        config: format!("Config {config}"),
-        cylinders: cylinders.iter().map(|s| s.to_string()).collect(),
-        motion,
-        valve,
-        duration_s,
-        sample_interval_s,
-        initial_hp_bar,
-        initial_lp_bar: 8.0,
-    }
-}
-
-/// Every built-in scenario, in the order of the paper.
-pub fn builtin() -> Vec<Scenario> {
-    let mut v = Vec::new();
-    let open = ValveSpec::Constant {
-        aperture_pct: 100.0,
-    };
-    let closed = ValveSpec::Constant { aperture_pct: 0.0 };
-    // Test I: valve fully open, periodic steady state. {HC3.1, HC3.3} added for fact 7.
-    for config in [1, 2, 3] {
-        for (tag, set) in SETS
-            .iter()
-            .copied()
-            .chain([("c13", &["HC3.1", "HC3.3"][..])])
-        {
-            v.push(scenario(
-                format!("test1-cfg{config}-{tag}"),
-                "test1",
-                format!(
-                    "Test I: valve 100 %, Config {config}, {} on duty",
-                    set.join(" + ")
-                ),
-                config,
-                set,
-                sine(),
-                open.clone(),
-                150.0,
-                0.01,
-                None,
-            ));
-        }
-    }
-    // Test II: valve closed from 30 bar until the relief holds P2.
-    for config in 1..=4 {
-        for (tag, set) in SETS {
-            v.push(scenario(
-                format!("test2-cfg{config}-{tag}"),
-                "test2",
-                format!(
-                    "Test II: valve closed, Config {config}, {} on duty, from 30 bar",
-                    set.join(" + ")
-                ),
-                config,
-                set,
-                sine(),
-                closed.clone(),
-                1200.0,
-                0.05,
-                Some(30.0),
-            ));
-        }
-    }
-    // Restraining torque (Figs. 15/16): valve closed near 100 bar, three wave periods.
-    for config in 1..=3 {
-        for (tag, set) in SETS {
-            v.push(scenario(
-                format!("torque-cfg{config}-{tag}"),
-                "torque",
-                format!(
-                    "Restraining torque: valve closed from 100 bar, Config {config}, {}",
-                    set.join(" + ")
-                ),
-                config,
-                set,
-                sine(),
-                closed.clone(),
-                30.0,
-                0.005,
-                Some(100.0),
-            ));
-        }
-    }
-    // Test III: HC3.1 + HC3.4, Config 1, valve opens at 100 bar.
-    for ap in TEST3_APERTURES {
-        v.push(scenario(
-            format!("test3-ap{ap}"),
-            "test3",
-            format!("Test III: HC3.1 + HC3.4, Config 1, from 60 bar, valve to {ap} % at 100 bar"),
-            1,
-            &["HC3.1", "HC3.4"],
-            sine(),
-            ValveSpec::Threshold {
-                threshold_bar: 100.0,
-                aperture_pct: ap,
-            },
-            400.0,
-            0.01,
-            Some(60.0),
-        ));
-    }
-    // Blocked input from 102 bar (Fig. 19).
-    for ap in BLOCKED_APERTURES {
-        v.push(scenario(
-            format!("blocked-ap{ap}"),
-            "blocked",
-            format!("Blocked input from 102 bar, valve {ap} %"),
-            1,
-            &["HC3.1", "HC3.4"],
-            MotionSpec::Blocked { angle_deg: 0.0 },
-            ValveSpec::Constant { aperture_pct: ap },
-            600.0,
-            0.05,
-            Some(102.0),
-        ));
-    }
-    // The experimental runs of Section 4.2 (Config 1).
-    // (name, cylinders, initial P2 bar, aperture %, input blocked, duration s)
-    type ExpRun<'a> = (&'a str, &'a [&'a str], f64, f64, bool, f64);
-    let exp: [ExpRun; 7] = [
-        (
-            "exp-charge-64.5",
-            &["HC3.1", "HC3.3"],
-            64.5,
-            0.0,
-            false,
-            200.0,
-        ),
-        ("exp-charge-67.2", &["HC3.2"], 67.2, 0.0, false, 200.0),
-        ("exp-charge-72", &["HC3.4"], 72.0, 0.0, false, 200.0),
-        (
-            "exp-9pct-101.5",
-            &["HC3.1", "HC3.3"],
-            101.5,
-            9.0,
-            false,
-            300.0,
-        ),
-        (
-            "exp-discharge-102",
-            &["HC3.1", "HC3.4"],
-            102.0,
-            12.0,
-            true,
-            200.0,
-        ),
-        (
-            "exp-discharge-84",
-            &["HC3.1", "HC3.4"],
-            84.0,
-            15.0,
-            true,
-            200.0,
-        ),
-        (
-            "exp-discharge-71",
-            &["HC3.1", "HC3.4"],
-            71.0,
-            25.0,
-            true,
-            200.0,
-        ),
-    ];
-    for (name, set, p0, ap, blocked, dur) in exp {
-        v.push(scenario(
-            name.into(),
-            "experimental",
-            format!(
-                "Experimental run: {}, {} from {p0} bar, valve {ap} %",
-                if blocked {
-                    "input blocked"
-                } else {
-                    "±40 mm at 0.1 Hz"
-                },
-                set.join(" + ")
-            ),
-            1,
-            set,
-            if blocked {
-                MotionSpec::Blocked { angle_deg: 0.0 }
-            } else {
-                sine()
-            },
-            ValveSpec::Constant { aperture_pct: ap },
-            dur,
-            0.02,
-            Some(p0),
-        ));
-    }
-    // Irregular sea: the performance case and the estimator's validation input.
-    v.push(scenario(
-        "irregular-sea".into(),
-        "irregular",
-        "Irregular sea: JONSWAP Hs 50 mm of rack, Tp 10 s, HC3.1 + HC3.4, Config 1, valve 10 % at 100 bar".into(),
-        1,
-        &["HC3.1", "HC3.4"],
-        MotionSpec::Irregular {
-            significant_mm: 50.0,
-            peak_period_s: 10.0,
-            gamma: 3.3,
-            components: 64,
-            seed: 1,
-        },
-        ValveSpec::Threshold {
-            threshold_bar: 100.0,
-            aperture_pct: 10.0,
-        },
-        1000.0,
-        0.02,
-        Some(60.0),
-    ));
-    v
-}
-
 /// A scenario name that is safe as a file name in any output folder: 1–64 ASCII letters,
 /// digits, `.`, `_` or `-`, not starting with `.` (so no `..`, no path separators, no hidden
 /// files).
@@ -720,11 +469,6 @@ pub fn is_file_name_safe(name: &str) -> bool {
         && name
             .bytes()
             .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
-}
-
-/// The built-in scenario called `name`.
-pub fn builtin_named(name: &str) -> Option<Scenario> {
-    builtin().into_iter().find(|s| s.name == name)
 }
 
 /// A built-in by name, or a scenario file by path.

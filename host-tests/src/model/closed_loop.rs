@@ -1,0 +1,240 @@
+//! The scheduler in closed loop with the full simulation: the model crate (or, in `hil::pil`, the
+//! firmware) as the plant's valve controller in a Test III-like run, and the checks that judge it.
+
+use super::validate::target;
+use super::{duty_mask, inputs, model_config};
+use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::sim::bench::{BAR, Bench};
+use crate::sim::plant::Eval;
+use crate::sim::solver::{self, Initial, Run, SolverOptions, ValveController, ValveSchedule};
+use crate::sim::trace::Truth;
+use pto_model::estimator::{self, Estimate, State};
+use pto_model::fx::{Pressure, Rpm};
+use pto_model::scheduler::{self, Mode, SchedulerCoeffs, SchedulerConfig, SchedulerState};
+use pto_model::{Coefficients, ModelConfig};
+use rayon::prelude::*;
+use serde::Serialize;
+use std::path::Path;
+
+/// A closed-loop result.
+#[derive(Debug, Clone, Serialize)]
+pub struct LoopRow {
+    /// What was held.
+    pub name: String,
+    /// Setpoint (bar or rpm).
+    pub setpoint: f64,
+    /// Window judged, s.
+    pub window_s: (f64, f64),
+    /// Largest deviation in the window (bar, or fraction of the setpoint).
+    pub max_deviation: f64,
+    /// Target for it.
+    pub target: f64,
+    /// Met.
+    pub pass: bool,
+}
+
+/// The model crate's estimator + scheduler as the plant's valve controller.
+pub struct ModelController {
+    k: Coefficients,
+    sc: SchedulerCoeffs,
+    st: State,
+    sst: SchedulerState,
+    mode: Mode,
+    synth: SensorSynth,
+    duty: u8,
+    config: u8,
+    cmd: f64,
+    /// Every estimate, for inspection.
+    pub log: Vec<(f64, Estimate, f64)>,
+}
+
+impl ModelController {
+    /// A controller holding `mode`, with the model stepping at its configured dt.
+    pub fn new(
+        mcfg: &ModelConfig,
+        mode: Mode,
+        p2: f64,
+        lp: f64,
+        duty: u8,
+        config: u8,
+        seed: u64,
+    ) -> Result<Self, String> {
+        let k = mcfg.coefficients().map_err(|e| e.to_string())?;
+        let sc = SchedulerConfig::default()
+            .coefficients(&k)
+            .map_err(|e| e.to_string())?;
+        Ok(ModelController {
+            st: State::new(
+                Pressure::from_num(p2 as f32),
+                Pressure::from_num(lp as f32),
+                Pressure::from_num(1.0),
+            ),
+            k,
+            sc,
+            sst: SchedulerState::default(),
+            mode,
+            synth: SensorSynth::new(SensorSpec::default(), seed),
+            duty,
+            config,
+            cmd: 0.0,
+            log: Vec::new(),
+        })
+    }
+}
+
+impl ValveController for ModelController {
+    fn period(&self) -> f64 {
+        2f64.powi(-i32::from(self.k.dt_log2))
+    }
+
+    fn update(&mut self, t: f64, p: &Eval) -> f64 {
+        let (enc, hp, lp, motor) = self.synth.read(p.theta, &Truth::of_eval(p));
+        let inp = inputs(
+            Some(enc),
+            Some(hp),
+            Some(lp),
+            Some(motor),
+            self.cmd,
+            self.duty,
+            self.config,
+        );
+        let e = estimator::step(&self.k, &mut self.st, &inp);
+        let c = scheduler::step(&self.k, &self.sc, &mut self.sst, self.mode, &e, inp.motor);
+        self.cmd = f64::from(c.aperture.to_f32());
+        self.log.push((t, e, self.cmd));
+        self.cmd
+    }
+}
+
+/// LP at the start of the closed-loop runs, bar.
+pub const LOOP_LP_START_BAR: f64 = 8.0;
+
+/// A Test III-like closed-loop run (HC3.1 + HC3.4, Config 1, ±40 mm at 0.1 Hz, from `p2_start`
+/// bar, LP 8 bar) for `duration` s, with the controller `make` builds for the prepared scenario
+/// (its duty and geometry); returns the controller with the result.
+pub fn test3_like_loop<C: ValveController + 'static>(
+    bench: &Bench,
+    p2_start: f64,
+    duration: f64,
+    make: impl FnOnce(&crate::sim::scenario::Prepared) -> Result<C, String>,
+) -> Result<(crate::sim::solver::SimResult, C), String> {
+    let s = crate::sim::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
+    let prep = s
+        .prepare(bench, Path::new("."))
+        .map_err(|e| e.to_string())?;
+    let ctrl = make(&prep)?;
+    let (res, ctrl) = solver::simulate_with(
+        Run {
+            plant: &prep.plant,
+            valve: ValveSchedule::Constant(0.0),
+            initial: Initial {
+                p2_pa: p2_start * BAR,
+                lp_pa: LOOP_LP_START_BAR * BAR,
+            },
+            duration,
+            sample_dt: 0.05,
+            solver: SolverOptions {
+                rtol: 1e-6,
+                atol_scale: 0.1,
+            },
+            progress: None,
+        },
+        ctrl,
+    );
+    Ok((res.map_err(|e| e.to_string())?, ctrl))
+}
+
+/// The model crate as the controller of a Test III-like run, its model at 2^−dt_log2 s.
+pub fn closed_loop(
+    bench: &Bench,
+    mode: Mode,
+    p2_start: f64,
+    duration: f64,
+    dt_log2: u8,
+) -> Result<(crate::sim::solver::SimResult, ModelController), String> {
+    let mut mcfg = model_config(bench)?;
+    mcfg.dt_log2 = dt_log2;
+    test3_like_loop(bench, p2_start, duration, |prep| {
+        ModelController::new(
+            &mcfg,
+            mode,
+            p2_start,
+            LOOP_LP_START_BAR,
+            duty_mask(&prep.on_duty),
+            prep.config as u8,
+            7,
+        )
+    })
+}
+
+fn judge_loop(
+    name: &str,
+    res: &crate::sim::solver::SimResult,
+    setpoint: f64,
+    settle_from: f64,
+    rel: bool,
+    target: f64,
+    f: impl Fn(usize) -> f64,
+) -> LoopRow {
+    let tr = &res.trace;
+    let end = *tr.t.last().unwrap_or(&0.0);
+    let w = tr.window(settle_from, end);
+    let mut worst = 0.0f64;
+    for kk in w {
+        let d = (f(kk) - setpoint).abs();
+        worst = worst.max(if rel { d / setpoint } else { d });
+    }
+    LoopRow {
+        name: name.into(),
+        setpoint,
+        window_s: (settle_from, end),
+        max_deviation: worst,
+        target,
+        pass: worst <= target,
+    }
+}
+
+/// Closed-loop checks: hold P2 at 100 bar; hold the motor at 250 rpm.
+pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
+    let cases: Vec<(&str, Mode)> = vec![
+        (
+            "hold P2 at 100 bar",
+            Mode::HoldPressure(Pressure::from_num(100.0)),
+        ),
+        (
+            "hold motor at 250 rpm",
+            Mode::HoldSpeed(Rpm::from_num(250.0)),
+        ),
+    ];
+    cases
+        .into_par_iter()
+        .map(|(name, mode)| {
+            let (res, _) = closed_loop(bench, mode, 60.0, 400.0, 8)?;
+            let tr = &res.trace;
+            Ok(match mode {
+                Mode::HoldPressure(p) => {
+                    let sp = f64::from(p.to_f32());
+                    // Judge from 60 s after P2 first reaches the setpoint.
+                    let reach = crate::paper::time_to_reach(&tr.t, &tr.p2_pa, sp * BAR)
+                        .unwrap_or(f64::INFINITY);
+                    judge_loop(
+                        name,
+                        &res,
+                        sp,
+                        reach + 60.0,
+                        false,
+                        target::HOLD_P2_BAR,
+                        |k| tr.p2_pa[k] / BAR,
+                    )
+                }
+                Mode::HoldSpeed(r) => {
+                    let sp = f64::from(r.to_f32());
+                    judge_loop(name, &res, sp, 150.0, true, target::HOLD_SPEED_REL, |k| {
+                        tr.omega[k] * 30.0 / std::f64::consts::PI
+                    })
+                }
+                _ => unreachable!(),
+            })
+        })
+        .collect()
+}
