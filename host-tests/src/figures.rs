@@ -25,10 +25,10 @@ impl Col {
         match self {
             Col::P2 => t.p2_pa[k] / BAR,
             Col::Lp => t.lp_pa[k] / BAR,
-            Col::Inj => t.q_inj[k] * LPM,
-            Col::Motor => t.q_motor[k] * LPM,
-            Col::Speed => t.omega[k] * RPM,
-            Col::Torque => t.torque[k],
+            Col::Inj => t.q_inj_m3_s[k] * LPM,
+            Col::Motor => t.q_motor_m3_s[k] * LPM,
+            Col::Speed => t.omega_rad_s[k] * RPM,
+            Col::Torque => t.torque_nm[k],
         }
     }
 
@@ -47,7 +47,7 @@ impl Col {
 /// A series of `col` from scenario `name` over `[from, to]` (negative `from`: the last |from| s).
 fn series(r: &Results, name: &str, label: &str, col: Col, from: f64, to: f64) -> Option<Series> {
     let t = r.trace(name)?;
-    let end = *t.t.last()?;
+    let end = *t.t_s.last()?;
     let (a, b) = if from < 0.0 {
         (end + from, end)
     } else {
@@ -56,7 +56,7 @@ fn series(r: &Results, name: &str, label: &str, col: Col, from: f64, to: f64) ->
     let w = t.window(a, b);
     Some(Series {
         label: label.into(),
-        x: t.t[w.clone()].to_vec(),
+        x: t.t_s[w.clone()].to_vec(),
         y: w.map(|k| col.get(t, k)).collect(),
     })
 }
@@ -271,7 +271,7 @@ pub fn all(r: &Results) -> Vec<Figure> {
 pub fn single(name: &str, t: &Trace, on_duty: &[(usize, String)]) -> Figure {
     let s = |label: &str, col: Col| Series {
         label: label.into(),
-        x: t.t.clone(),
+        x: t.t_s.clone(),
         y: (0..t.len()).map(|k| col.get(t, k)).collect(),
     };
     Figure {
@@ -306,7 +306,7 @@ pub fn single(name: &str, t: &Trace, on_duty: &[(usize, String)]) -> Figure {
                 y_label: "aperture (%)".into(),
                 series: vec![Series {
                     label: "aperture".into(),
-                    x: t.t.clone(),
+                    x: t.t_s.clone(),
                     y: t.aperture_pct.clone(),
                 }],
             },
@@ -317,10 +317,12 @@ pub fn single(name: &str, t: &Trace, on_duty: &[(usize, String)]) -> Figure {
                 series: on_duty
                     .iter()
                     .flat_map(|(i, n)| {
-                        [(&t.p_cap[*i], "cap"), (&t.p_rod[*i], "rod")].map(|(p, side)| Series {
-                            label: format!("{n} {side}"),
-                            x: t.t.clone(),
-                            y: p.iter().map(|v| v / BAR).collect(),
+                        [(&t.p_cap_pa[*i], "cap"), (&t.p_rod_pa[*i], "rod")].map(|(p, side)| {
+                            Series {
+                                label: format!("{n} {side}"),
+                                x: t.t_s.clone(),
+                                y: p.iter().map(|v| v / BAR).collect(),
+                            }
                         })
                     })
                     .collect(),

@@ -10,7 +10,8 @@
 //! - [`model`]: the fixed-point model against the simulation (configuration from the bench,
 //!   sensors, the f64 mirror, `pto validate`, golden vectors, code cost).
 //! - [`hil`]: the firmware under QEMU, processor-in-the-loop, firmware cost.
-//! - [`runner`]: scenarios run in parallel on all cores, with progress bars.
+//! - [`runner`]: scenarios run in parallel on all cores; [`perf`]: the solver's timing
+//!   (`pto bench`).
 //! - [`figures`] (the figures of a run and of the paper), [`plot`] (the plotting), [`output`]
 //!   (outputs written whole).
 
@@ -20,6 +21,7 @@ pub mod hil;
 pub mod model;
 pub mod output;
 pub mod paper;
+pub mod perf;
 pub mod plot;
 pub mod runner;
 pub mod sim;

@@ -1,9 +1,9 @@
-//! Runs many scenarios in parallel with one progress bar each.
+//! Runs many scenarios in parallel on all cores, reporting each one's progress through
+//! [`RunProgress`] (the CLI draws progress bars with it; the library knows no terminal).
 
 use crate::sim::bench::Bench;
 use crate::sim::scenario::Scenario;
 use crate::sim::solver::{SimResult, SolverOptions};
-use indicatif::{MultiProgress, ProgressBar, ProgressDrawTarget, ProgressStyle};
 use rayon::prelude::*;
 use std::path::Path;
 
@@ -15,48 +15,46 @@ pub struct Outcome {
     pub result: Result<SimResult, String>,
 }
 
-/// Runs `scenarios` on all cores. Progress bars go to stderr when it is a terminal and
-/// `progress` is set.
+/// What a parallel run reports, from any thread: a scenario started, reached a simulated time,
+/// finished. `Sync`: the scenarios run on rayon's threads.
+pub trait RunProgress: Sync {
+    /// Scenario `index` (of `scenarios`) starts; it simulates `duration_s` seconds.
+    fn start(&self, index: usize, name: &str, duration_s: f64);
+    /// Scenario `index` reached `t_s` simulated seconds.
+    fn at(&self, index: usize, t_s: f64);
+    /// Scenario `index` finished (or failed).
+    fn done(&self, index: usize);
+}
+
+/// Runs `scenarios` on all cores, telling `progress` (if any) how each one goes.
 pub fn run_all(
     bench: &Bench,
     scenarios: &[Scenario],
     solver: SolverOptions,
-    progress: bool,
+    progress: Option<&dyn RunProgress>,
 ) -> Vec<Outcome> {
-    let multi = MultiProgress::with_draw_target(if progress {
-        ProgressDrawTarget::stderr()
-    } else {
-        ProgressDrawTarget::hidden()
-    });
-    let style =
-        ProgressStyle::with_template("{prefix:>22} [{bar:30}] {pos:>7}/{len:7} ms sim  {elapsed}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> ");
-    let overall = multi.add(ProgressBar::new(scenarios.len() as u64));
-    overall.set_style(
-        ProgressStyle::with_template("{prefix:>22} {pos}/{len} scenarios  {elapsed}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
-    overall.set_prefix("total");
-    let out = scenarios
+    scenarios
         .par_iter()
-        .map(|s| {
-            let pb = multi.add(ProgressBar::new((s.duration_s * 1000.0) as u64));
-            pb.set_style(style.clone());
-            pb.set_prefix(s.name.clone());
-            let at = |t: f64| pb.set_position((t * 1000.0) as u64);
+        .enumerate()
+        .map(|(i, s)| {
+            if let Some(p) = progress {
+                p.start(i, &s.name, s.duration_s);
+            }
+            let at = |t: f64| {
+                if let Some(p) = progress {
+                    p.at(i, t);
+                }
+            };
             let result = s
                 .simulate(bench, Path::new("."), solver, Some(&at))
                 .map(|(_, r)| r);
-            pb.finish_and_clear();
-            multi.remove(&pb);
-            overall.inc(1);
+            if let Some(p) = progress {
+                p.done(i);
+            }
             Outcome {
                 scenario: s.clone(),
                 result,
             }
         })
-        .collect();
-    overall.finish_and_clear();
-    out
+        .collect()
 }

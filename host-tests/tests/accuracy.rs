@@ -65,7 +65,7 @@ fn line_resistances_conserve_oil_and_energy_and_vanish_when_small() {
             / BAR
     };
     let peak = |r: &pto_host::sim::solver::SimResult| {
-        r.trace.p_cap[0].iter().fold(0.0f64, |m, v| m.max(*v)) / BAR
+        r.trace.p_cap_pa[0].iter().fold(0.0f64, |m, v| m.max(*v)) / BAR
     };
     let d_tiny = max_diff(&lumped.trace.p2_pa, &tiny.trace.p2_pa);
     let (pk_l, pk_r) = (peak(&lumped), peak(&resistive));

@@ -140,19 +140,20 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
             .unwrap();
         let tr = &res.trace;
         // P2 (bar) and the motor speed (rpm) at each sample, as the validation reads the plant.
-        let (p, w): (Vec<f64>, Vec<f64>) =
-            tr.t.iter()
-                .map(|&t| {
-                    let v = pto_host::sim::trace::truth_at(tr, t);
-                    (v.p2_bar, v.motor_rpm)
-                })
-                .unzip();
+        let (p, w): (Vec<f64>, Vec<f64>) = tr
+            .t_s
+            .iter()
+            .map(|&t| {
+                let v = pto_host::sim::trace::truth_at(tr, t);
+                (v.p2_bar, v.motor_rpm)
+            })
+            .unzip();
         let fit = 40;
         let (mut n, mut fastest, mut d_lo, mut d_hi) = (0, f64::MAX, f64::MAX, 0.0f64);
         let mut off = 0.0f64;
         let mut i = fit;
         while i + 1 < p.len() {
-            if !(p[i] >= p0 && p[i + 1] < p0 && tr.t[i] > 0.5) {
+            if !(p[i] >= p0 && p[i + 1] < p0 && tr.t_s[i] > 0.5) {
                 i += 1;
                 continue;
             }
@@ -162,7 +163,7 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
                 continue;
             };
             // The rotor's course: a least-squares line through the 40 ms before.
-            let (xs, ys) = (&tr.t[i - fit..=i], &w[i - fit..=i]);
+            let (xs, ys) = (&tr.t_s[i - fit..=i], &w[i - fit..=i]);
             let m = xs.len() as f64;
             let (mx, my) = (xs.iter().sum::<f64>() / m, ys.iter().sum::<f64>() / m);
             let b = xs
@@ -172,12 +173,12 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
                 .sum::<f64>()
                 / xs.iter().map(|x| (x - mx).powi(2)).sum::<f64>();
             let ss: f64 = (i + 1..=j)
-                .map(|k| (w[k] - my - b * (tr.t[k] - mx)).powi(2))
+                .map(|k| (w[k] - my - b * (tr.t_s[k] - mx)).powi(2))
                 .sum();
             let d = ss.sqrt() / sigma;
-            off = off.max((w[j] - my - b * (tr.t[j] - mx)).abs());
+            off = off.max((w[j] - my - b * (tr.t_s[j] - mx)).abs());
             n += 1;
-            fastest = fastest.min((tr.t[j] - tr.t[i]) * 1e3);
+            fastest = fastest.min((tr.t_s[j] - tr.t_s[i]) * 1e3);
             (d_lo, d_hi) = (d_lo.min(d), d_hi.max(d));
             i = j;
         }

@@ -9,12 +9,7 @@ use pto_host::sim::solver::SolverOptions;
 #[test]
 fn all_ten_facts_hold_on_the_reference_bench() {
     let bench = Bench::reference();
-    let outcomes = runner::run_all(
-        &bench,
-        &scenario::builtin(),
-        SolverOptions::default(),
-        false,
-    );
+    let outcomes = runner::run_all(&bench, &scenario::builtin(), SolverOptions::default(), None);
     let facts = paper::check(&bench, &outcomes);
     for f in &facts {
         println!(

@@ -59,3 +59,71 @@ pub(crate) fn count_bar(n: u64, what: &str) -> ProgressBar {
     }
     pb
 }
+
+/// Progress bars of a parallel run: one per running scenario and a total, on stderr.
+pub(crate) struct ScenarioBars {
+    multi: indicatif::MultiProgress,
+    overall: ProgressBar,
+    style: ProgressStyle,
+    bars: std::sync::Mutex<Vec<Option<ProgressBar>>>,
+}
+
+impl ScenarioBars {
+    pub(crate) fn new(n: usize) -> Self {
+        let multi = indicatif::MultiProgress::with_draw_target(ProgressDrawTarget::stderr());
+        let overall = multi.add(ProgressBar::new(n as u64));
+        overall.set_style(
+            ProgressStyle::with_template("{prefix:>22} {pos}/{len} scenarios  {elapsed}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        overall.set_prefix("total");
+        let style = ProgressStyle::with_template(
+            "{prefix:>22} [{bar:30}] {pos:>7}/{len:7} ms sim  {elapsed}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> ");
+        ScenarioBars {
+            multi,
+            overall,
+            style,
+            bars: std::sync::Mutex::new(vec![None; n]),
+        }
+    }
+
+    pub(crate) fn finish(&self) {
+        self.overall.finish_and_clear();
+    }
+
+    fn bar(&self, index: usize) -> Option<ProgressBar> {
+        self.bars.lock().ok()?.get(index).cloned().flatten()
+    }
+}
+
+impl pto_host::runner::RunProgress for ScenarioBars {
+    fn start(&self, index: usize, name: &str, duration_s: f64) {
+        let pb = self
+            .multi
+            .add(ProgressBar::new((duration_s * 1000.0) as u64));
+        pb.set_style(self.style.clone());
+        pb.set_prefix(name.to_string());
+        if let Ok(mut bars) = self.bars.lock()
+            && let Some(slot) = bars.get_mut(index)
+        {
+            *slot = Some(pb);
+        }
+    }
+
+    fn at(&self, index: usize, t_s: f64) {
+        if let Some(pb) = self.bar(index) {
+            pb.set_position((t_s * 1000.0) as u64);
+        }
+    }
+
+    fn done(&self, index: usize) {
+        if let Some(pb) = self.bar(index) {
+            pb.finish_and_clear();
+            self.multi.remove(&pb);
+        }
+        self.overall.inc(1);
+    }
+}

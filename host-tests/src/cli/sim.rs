@@ -4,10 +4,11 @@ use super::{load_bench, load_bench_with, progress_bar, write_atomic};
 use anyhow::{Context, Result, bail};
 use pto_host::figures;
 use pto_host::paper::{self, Fact, Results, tol};
+use pto_host::perf;
 use pto_host::runner::{self, Outcome};
 use pto_host::sim::bench::BAR;
+use pto_host::sim::scenario;
 use pto_host::sim::solver::{SimResult, SolverOptions};
-use pto_host::sim::{perf, scenario};
 use serde::Serialize;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -55,7 +56,7 @@ pub(crate) fn summarize(name: &str, r: &SimResult, csv: &Path, fig: &Path) -> Ru
     let mean = |x: &[f64]| x.iter().sum::<f64>() / x.len().max(1) as f64;
     RunSummary {
         scenario: name.into(),
-        simulated_s: *t.t.last().unwrap_or(&0.0),
+        simulated_s: *t.t_s.last().unwrap_or(&0.0),
         wall_s: r.stats.wall_s,
         steps: r.stats.steps,
         p2_start_bar: t.p2_pa[0] / BAR,
@@ -63,10 +64,10 @@ pub(crate) fn summarize(name: &str, r: &SimResult, csv: &Path, fig: &Path) -> Ru
         p2_min_bar: t.p2_pa.iter().copied().fold(f64::INFINITY, f64::min) / BAR,
         p2_max_bar: t.p2_pa.iter().copied().fold(f64::NEG_INFINITY, f64::max) / BAR,
         lp_end_bar: t.lp_pa[t.len() - 1] / BAR,
-        mean_injected_lpm: mean(&t.q_inj) * 6e4,
-        mean_motor_flow_lpm: mean(&t.q_motor) * 6e4,
-        mean_motor_speed_rpm: mean(&t.omega) * 30.0 / std::f64::consts::PI,
-        peak_torque_nm: t.torque.iter().fold(0.0f64, |m, v| m.max(v.abs())),
+        mean_injected_lpm: mean(&t.q_inj_m3_s) * 6e4,
+        mean_motor_flow_lpm: mean(&t.q_motor_m3_s) * 6e4,
+        mean_motor_speed_rpm: mean(&t.omega_rad_s) * 30.0 / std::f64::consts::PI,
+        peak_torque_nm: t.torque_nm.iter().fold(0.0f64, |m, v| m.max(v.abs())),
         balance_worst_rel: r.balance.worst(),
         balance_target_rel: tol::BALANCE_REL,
         csv: csv.display().to_string(),
@@ -168,12 +169,16 @@ pub(crate) fn paper_cmd(
             rayon::current_num_threads()
         );
     }
+    let bars = super::ScenarioBars::new(all.len());
     let outcomes = runner::run_all(
         &bench,
         &all,
         SolverOptions::default(),
-        std::io::stderr().is_terminal(),
+        std::io::stderr()
+            .is_terminal()
+            .then_some(&bars as &dyn runner::RunProgress),
     );
+    bars.finish();
     let wall = start.elapsed().as_secs_f64();
     let facts = paper::check(&bench, &outcomes);
     let pass = facts.iter().all(|f| f.pass);

@@ -271,7 +271,7 @@ impl ValveController for FirmwareController {
     fn update(&mut self, t: f64, p: &Eval) -> f64 {
         let inj = (self.inject)(t);
         let truth = Truth::of_eval(p);
-        let f = self.frame(p.theta, &truth, inj);
+        let f = self.frame(p.theta_rad, &truth, inj);
         let mut row = PilRow {
             t,
             p2_bar: truth.p2_bar,

@@ -88,7 +88,7 @@ impl ValveController for ModelController {
     }
 
     fn update(&mut self, t: f64, p: &Eval) -> f64 {
-        let (enc, hp, lp, motor) = self.synth.read(p.theta, &Truth::of_eval(p));
+        let (enc, hp, lp, motor) = self.synth.read(p.theta_rad, &Truth::of_eval(p));
         let inp = inputs(
             Some(enc),
             Some(hp),
@@ -177,7 +177,7 @@ fn judge_loop(
     f: impl Fn(usize) -> f64,
 ) -> LoopRow {
     let tr = &res.trace;
-    let end = *tr.t.last().unwrap_or(&0.0);
+    let end = *tr.t_s.last().unwrap_or(&0.0);
     let w = tr.window(settle_from, end);
     let mut worst = 0.0f64;
     for kk in w {
@@ -215,7 +215,7 @@ pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
                 Mode::HoldPressure(p) => {
                     let sp = f64::from(p.to_f32());
                     // Judge from 60 s after P2 first reaches the setpoint.
-                    let reach = crate::paper::time_to_reach(&tr.t, &tr.p2_pa, sp * BAR)
+                    let reach = crate::paper::time_to_reach(&tr.t_s, &tr.p2_pa, sp * BAR)
                         .unwrap_or(f64::INFINITY);
                     judge_loop(
                         name,
@@ -230,7 +230,7 @@ pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
                 Mode::HoldSpeed(r) => {
                     let sp = f64::from(r.to_f32());
                     judge_loop(name, &res, sp, 150.0, true, target::HOLD_SPEED_REL, |k| {
-                        tr.omega[k] * 30.0 / std::f64::consts::PI
+                        tr.omega_rad_s[k] * 30.0 / std::f64::consts::PI
                     })
                 }
                 _ => unreachable!(),

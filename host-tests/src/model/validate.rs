@@ -187,10 +187,10 @@ fn validate_scenario(
         if t >= 1.0 {
             max_p2 = max_p2.max((p2 - truth.p2_bar).abs());
             se_p2 += (p2 - truth.p2_bar).powi(2);
-            se_tq += (tq - truth.torque).powi(2);
+            se_tq += (tq - truth.torque_nm).powi(2);
             se_w += (w - truth.motor_rpm).powi(2);
             ss_w += truth.motor_rpm.powi(2);
-            peak_tq = peak_tq.max(truth.torque.abs());
+            peak_tq = peak_tq.max(truth.torque_nm.abs());
             count += 1.0;
             cover.add(p2 - truth.p2_bar, &e);
         }

@@ -170,7 +170,7 @@ pub fn check(bench: &Bench, outcomes: &[Outcome]) -> Vec<Fact> {
 fn fact1(r: &Results) -> Fact {
     let st = "peak shaft speed for ±40 mm at 0.1 Hz is 2.5 rpm ± 5 %";
     let t = need!(r, "test3-ap10", 1, st);
-    let peak = t.theta_dot.iter().fold(0.0f64, |m, v| m.max(v.abs())) * RPM;
+    let peak = t.theta_dot_rad_s.iter().fold(0.0f64, |m, v| m.max(v.abs())) * RPM;
     let rel = (peak / tol::PEAK_SPEED_RPM - 1.0).abs();
     fact(
         1,
@@ -193,7 +193,7 @@ fn fact2(bench: &Bench, r: &Results) -> Fact {
         for (tag, _) in SETS {
             let name = format!("test2-cfg{config}-{tag}");
             let t = need!(r, name, 2, st);
-            let end = *t.t.last().unwrap_or(&0.0);
+            let end = *t.t_s.last().unwrap_or(&0.0);
             let w = t.window(end - 100.0, end);
             let (a, b) = (min(&t.p2_pa[w.clone()]) / BAR, max(&t.p2_pa[w]) / BAR);
             let lp_drop = (t.lp_pa[t.len() - 1] - t.lp_pa[0]) / BAR;
@@ -224,7 +224,7 @@ fn fact3(r: &Results) -> Fact {
             let name = format!("test2-cfg{config}-{tag}");
             let t = need!(r, name, 3, st);
             times[config - 1][j] =
-                time_to_reach(&t.t, &t.p2_pa, 100.0 * BAR).unwrap_or(f64::INFINITY);
+                time_to_reach(&t.t_s, &t.p2_pa, 100.0 * BAR).unwrap_or(f64::INFINITY);
         }
         table.push(format!(
             "cfg{config}: {}",
@@ -268,7 +268,7 @@ fn fact4(r: &Results) -> Fact {
         };
         // Compare one-period means right after opening and at the end of the run.
         let a = t.window(t_open, t_open + 10.0);
-        let end = *t.t.last().unwrap_or(&0.0);
+        let end = *t.t_s.last().unwrap_or(&0.0);
         let b = t.window(end - 10.0, end);
         let dp2 = (mean(&t.p2_pa[b.clone()]) - mean(&t.p2_pa[a.clone()])) / BAR;
         let dlp = (mean(&t.lp_pa[b]) - mean(&t.lp_pa[a])) / BAR;
@@ -290,16 +290,17 @@ fn fact5(bench: &Bench, r: &Results) -> Fact {
         let name = format!("test3-ap{ap}");
         let t = need!(r, name, 5, st);
         let w = t.window(200.0, 400.0);
-        let dt = t.t[1] - t.t[0];
+        let dt = t.t_s[1] - t.t_s[0];
         let period = (10.0 / dt).round() as usize;
-        worst_ripple = worst_ripple.max(ripple_about_moving_mean(&t.omega[w.clone()], period));
+        worst_ripple =
+            worst_ripple.max(ripple_about_moving_mean(&t.omega_rad_s[w.clone()], period));
         // Eq. 9 on the flow that reaches the motor: ω = (q − k_leak·Δp)/D.
         let mut se = 0.0;
         let mut n = 0.0;
         for k in w {
-            let pred = (t.q_valve[k] - bench.motor_leak * (t.p_motor_pa[k] - t.lp_pa[k]))
+            let pred = (t.q_valve_m3_s[k] - bench.motor_leak * (t.p_motor_pa[k] - t.lp_pa[k]))
                 / bench.motor_disp;
-            se += ((pred - t.omega[k]) / t.omega[k]).powi(2);
+            se += ((pred - t.omega_rad_s[k]) / t.omega_rad_s[k]).powi(2);
             n += 1.0;
         }
         worst_eq9 = worst_eq9.max((se / n).sqrt());
@@ -318,7 +319,7 @@ fn fact5(bench: &Bench, r: &Results) -> Fact {
 
 /// Window of the last `n` whole wave periods (10 s) of a run.
 fn last_periods(t: &Trace, n: f64) -> std::ops::Range<usize> {
-    let end = *t.t.last().unwrap_or(&0.0);
+    let end = *t.t_s.last().unwrap_or(&0.0);
     t.window(end - 10.0 * n, end - 1e-9)
 }
 
@@ -331,9 +332,9 @@ fn fact6(r: &Results) -> Fact {
             let name = format!("test1-cfg{config}-{tag}");
             let t = need!(r, name, 6, st);
             let w = last_periods(t, 5.0);
-            let inj = mean(&t.q_inj[w.clone()]);
-            let leak = mean(&t.q_relief[w.clone()]);
-            let motor = mean(&t.q_motor[w]);
+            let inj = mean(&t.q_inj_m3_s[w.clone()]);
+            let leak = mean(&t.q_relief_m3_s[w.clone()]);
+            let motor = mean(&t.q_motor_m3_s[w]);
             let rel = (motor - (inj - leak)).abs() / inj;
             worst = worst.max(rel);
             parts.push(format!("{config}/{tag} {:.2}", inj * LPM));
@@ -356,10 +357,10 @@ fn directional_peaks(t: &Trace) -> (f64, f64) {
     let w = last_periods(t, 3.0);
     let (mut pos, mut neg) = (0.0f64, 0.0f64);
     for k in w {
-        if t.theta_dot[k] > 0.0 {
-            pos = pos.max(t.q_inj[k]);
+        if t.theta_dot_rad_s[k] > 0.0 {
+            pos = pos.max(t.q_inj_m3_s[k]);
         } else {
-            neg = neg.max(t.q_inj[k]);
+            neg = neg.max(t.q_inj_m3_s[k]);
         }
     }
     (pos, neg)
@@ -391,10 +392,10 @@ fn fact7(bench: &Bench, r: &Results) -> Fact {
 /// last two periods.
 fn torque_stats(t: &Trace) -> (f64, f64) {
     let w = last_periods(t, 2.0);
-    let peak = t.torque[w.clone()]
+    let peak = t.torque_nm[w.clone()]
         .iter()
         .fold(0.0f64, |m, v| m.max(v.abs()));
-    let on = t.torque[w.clone()]
+    let on = t.torque_nm[w.clone()]
         .iter()
         .filter(|v| v.abs() > tol::TORQUE_ON_FRACTION * peak)
         .count();
@@ -440,8 +441,8 @@ fn fact8(r: &Results) -> Fact {
 
 /// Autonomy of a blocked-input run: time until the motor falls below the minimum speed.
 pub fn autonomy(t: &Trace, min_rpm: f64) -> Option<f64> {
-    let rpm: Vec<f64> = t.omega.iter().map(|w| w * RPM).collect();
-    time_to_fall(&t.t, &rpm, min_rpm)
+    let rpm: Vec<f64> = t.omega_rad_s.iter().map(|w| w * RPM).collect();
+    time_to_fall(&t.t_s, &rpm, min_rpm)
 }
 
 fn fact9(r: &Results) -> Fact {

@@ -4,7 +4,7 @@
 //! Layers: [`bench`](mod@bench) (the validated parameter file and its SI values) → [`physics`]
 //! (component laws) → [`plant`] (the ODE) → [`solver`] (diffsol BDF driver, sampling, balances)
 //! → [`scenario`] (named runs and scenario files, over [`motion`]) → [`trace`] (plant values at
-//! an instant). [`benchlog`] is the bench-log format, [`perf`] times the solver.
+//! an instant). [`benchlog`] is the bench-log format.
 //!
 //! A run of a built-in scenario, shortened to 20 s:
 //!
@@ -30,7 +30,6 @@
 pub mod bench;
 pub mod benchlog;
 pub mod motion;
-pub mod perf;
 pub mod physics;
 pub mod plant;
 pub mod scenario;

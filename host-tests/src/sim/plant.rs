@@ -67,19 +67,19 @@ impl Idle {
 #[derive(Debug, Clone, Default)]
 pub struct Eval {
     /// Shaft angle, rad.
-    pub theta: f64,
+    pub theta_rad: f64,
     /// Shaft speed, rad/s.
-    pub theta_dot: f64,
+    pub theta_dot_rad_s: f64,
     /// Rod positions, m (eye position for idle cylinders).
-    pub rod: [f64; N_CYL],
+    pub rod_m: [f64; N_CYL],
     /// Cap chamber pressures, Pa.
-    pub p_cap: [f64; N_CYL],
+    pub p_cap_pa: [f64; N_CYL],
     /// Rod chamber pressures, Pa.
-    pub p_rod: [f64; N_CYL],
+    pub p_rod_pa: [f64; N_CYL],
     /// Flow delivered into HP per cylinder, m³/s.
-    pub q_into_hp: [f64; N_CYL],
+    pub q_into_hp_m3_s: [f64; N_CYL],
     /// Torque the input must supply per cylinder (restraining torque), N·m.
-    pub torque: [f64; N_CYL],
+    pub torque_nm: [f64; N_CYL],
     /// HP pressure P2, Pa.
     pub p2_pa: f64,
     /// LP pressure, Pa.
@@ -87,21 +87,21 @@ pub struct Eval {
     /// Motor inlet pressure, Pa.
     pub p_motor_pa: f64,
     /// Control valve flow, m³/s.
-    pub q_valve: f64,
+    pub q_valve_m3_s: f64,
     /// Relief flow, m³/s.
-    pub q_relief: f64,
+    pub q_relief_m3_s: f64,
     /// Make-up flow, m³/s.
-    pub q_makeup: f64,
+    pub q_makeup_m3_s: f64,
     /// Flow through the motor (inlet -> LP, incl. leakage), m³/s.
-    pub q_motor: f64,
+    pub q_motor_m3_s: f64,
     /// Motor speed, rad/s.
-    pub omega: f64,
+    pub omega_rad_s: f64,
     /// Spool aperture, %.
     pub aperture_pct: f64,
     /// Integrand of the balance quadratures (see [`QUAD_NAMES`]), SI units per second.
     pub quad: [f64; N_QUAD],
     /// Stored mechanical spring energy in the hard stops, J.
-    pub spring_energy: f64,
+    pub spring_energy_j: f64,
 }
 
 /// The plant: bench, cylinders on duty, geometry, input motion and the commanded aperture.
@@ -338,12 +338,12 @@ impl Plant {
         // Reference-volume flow of an orifice flow q from a node with v_a to one with v_b.
         let mref = |q: f64, va: f64, vb: f64| if q >= 0.0 { q / va } else { q / vb };
         let mut e = Eval {
-            theta,
-            theta_dot,
+            theta_rad: theta,
+            theta_dot_rad_s: theta_dot,
             p2_pa: p2,
             lp_pa: lp,
             p_motor_pa: pm,
-            omega,
+            omega_rad_s: omega,
             aperture_pct,
             ..Eval::default()
         };
@@ -411,11 +411,11 @@ impl Plant {
             }
             m_into_hp += del_cap + del_rod;
             m_from_lp += suc_cap + suc_rod;
-            e.rod[ci] = x;
-            e.p_cap[ci] = p_cap;
-            e.p_rod[ci] = p_rod;
-            e.q_into_hp[ci] = (del_cap + del_rod) * v_hm;
-            e.torque[ci] = c.lever.side() * arm * f_contact;
+            e.rod_m[ci] = x;
+            e.p_cap_pa[ci] = p_cap;
+            e.p_rod_pa[ci] = p_rod;
+            e.q_into_hp_m3_s[ci] = (del_cap + del_rod) * v_hm;
+            e.torque_nm[ci] = c.lever.side() * arm * f_contact;
             e.quad[6] += f_contact * v_eye;
             if want_quad {
                 let v_rel = v_eye - x_dot;
@@ -427,7 +427,7 @@ impl Plant {
                     + del_cap * (g_cap - g_hm)
                     + suc_rod * (g_lm - g_rod)
                     + del_rod * (g_rod - g_hm);
-                e.spring_energy += 0.5 * k * (pen * pen + pen_end * pen_end);
+                e.spring_energy_j += 0.5 * k * (pen * pen + pen_end * pen_end);
             }
         }
         // Idle cylinders: chambers bypassed to LP, so they are part of the LP node's volume; the
@@ -440,10 +440,10 @@ impl Plant {
             let f_contact = -p_lm * area_rod;
             idle_volume += c.volume_at(b.chamber_dead_volume, x_eye);
             idle_vdot += area_rod * v_eye;
-            e.rod[*ci] = x_eye;
-            e.p_cap[*ci] = p_lm;
-            e.p_rod[*ci] = p_lm;
-            e.torque[*ci] = c.lever.side() * arm * f_contact;
+            e.rod_m[*ci] = x_eye;
+            e.p_cap_pa[*ci] = p_lm;
+            e.p_rod_pa[*ci] = p_lm;
+            e.torque_nm[*ci] = c.lever.side() * arm * f_contact;
             e.quad[6] += f_contact * v_eye;
         }
         let q_valve = physics::valve_flow(b, aperture_pct, p2 - pm);
@@ -491,10 +491,10 @@ impl Plant {
                 dy[i] = (self.command_pct.get() - y[i]) / b.spool_tau;
             }
         }
-        e.q_valve = q_valve;
-        e.q_relief = q_relief;
-        e.q_makeup = q_makeup;
-        e.q_motor = q_motor;
+        e.q_valve_m3_s = q_valve;
+        e.q_relief_m3_s = q_relief;
+        e.q_makeup_m3_s = q_makeup;
+        e.q_motor_m3_s = q_motor;
         e.quad[0] = m_into_hp;
         e.quad[1] = m_valve;
         e.quad[2] = m_relief;
@@ -583,7 +583,7 @@ impl Plant {
             }
         }
         energy += 0.5 * b.motor_inertia * y[self.i_w].powi(2);
-        energy += self.evaluate(t, y, None, true).spring_energy;
+        energy += self.evaluate(t, y, None, true).spring_energy_j;
         (content, energy)
     }
 

@@ -144,29 +144,29 @@ pub struct Initial {
 #[derive(Debug, Clone, Default, Serialize)]
 pub struct Trace {
     /// s.
-    pub t: Vec<f64>,
+    pub t_s: Vec<f64>,
     /// Shaft angle, rad.
-    pub theta: Vec<f64>,
+    pub theta_rad: Vec<f64>,
     /// Shaft speed, rad/s.
-    pub theta_dot: Vec<f64>,
+    pub theta_dot_rad_s: Vec<f64>,
     /// Rod positions per cylinder, m.
-    pub rod: [Vec<f64>; N_CYL],
+    pub rod_m: [Vec<f64>; N_CYL],
     /// Cap pressures, Pa.
-    pub p_cap: [Vec<f64>; N_CYL],
+    pub p_cap_pa: [Vec<f64>; N_CYL],
     /// Rod-side pressures, Pa.
-    pub p_rod: [Vec<f64>; N_CYL],
+    pub p_rod_pa: [Vec<f64>; N_CYL],
     /// Flow into HP per cylinder, m³/s.
-    pub q_cyl: [Vec<f64>; N_CYL],
+    pub q_cyl_m3_s: [Vec<f64>; N_CYL],
     /// Total flow into HP, m³/s.
-    pub q_inj: Vec<f64>,
+    pub q_inj_m3_s: Vec<f64>,
     /// Flow through the motor, m³/s.
-    pub q_motor: Vec<f64>,
+    pub q_motor_m3_s: Vec<f64>,
     /// Flow through the control valve, m³/s.
-    pub q_valve: Vec<f64>,
+    pub q_valve_m3_s: Vec<f64>,
     /// Relief flow, m³/s.
-    pub q_relief: Vec<f64>,
+    pub q_relief_m3_s: Vec<f64>,
     /// Motor speed, rad/s.
-    pub omega: Vec<f64>,
+    pub omega_rad_s: Vec<f64>,
     /// P2, Pa.
     pub p2_pa: Vec<f64>,
     /// LP, Pa.
@@ -176,49 +176,49 @@ pub struct Trace {
     /// Spool aperture, %.
     pub aperture_pct: Vec<f64>,
     /// Restraining torque (input must supply it), N·m.
-    pub torque: Vec<f64>,
+    pub torque_nm: Vec<f64>,
     /// Per cylinder, N·m.
-    pub torque_cyl: [Vec<f64>; N_CYL],
+    pub torque_cyl_nm: [Vec<f64>; N_CYL],
 }
 
 impl Trace {
     fn push(&mut self, t: f64, e: &Eval) {
-        self.t.push(t);
-        self.theta.push(e.theta);
-        self.theta_dot.push(e.theta_dot);
+        self.t_s.push(t);
+        self.theta_rad.push(e.theta_rad);
+        self.theta_dot_rad_s.push(e.theta_dot_rad_s);
         for i in 0..N_CYL {
-            self.rod[i].push(e.rod[i]);
-            self.p_cap[i].push(e.p_cap[i]);
-            self.p_rod[i].push(e.p_rod[i]);
-            self.q_cyl[i].push(e.q_into_hp[i]);
-            self.torque_cyl[i].push(e.torque[i]);
+            self.rod_m[i].push(e.rod_m[i]);
+            self.p_cap_pa[i].push(e.p_cap_pa[i]);
+            self.p_rod_pa[i].push(e.p_rod_pa[i]);
+            self.q_cyl_m3_s[i].push(e.q_into_hp_m3_s[i]);
+            self.torque_cyl_nm[i].push(e.torque_nm[i]);
         }
-        self.q_inj.push(e.q_into_hp.iter().sum());
-        self.q_motor.push(e.q_motor);
-        self.q_valve.push(e.q_valve);
-        self.q_relief.push(e.q_relief);
-        self.omega.push(e.omega);
+        self.q_inj_m3_s.push(e.q_into_hp_m3_s.iter().sum());
+        self.q_motor_m3_s.push(e.q_motor_m3_s);
+        self.q_valve_m3_s.push(e.q_valve_m3_s);
+        self.q_relief_m3_s.push(e.q_relief_m3_s);
+        self.omega_rad_s.push(e.omega_rad_s);
         self.p2_pa.push(e.p2_pa);
         self.lp_pa.push(e.lp_pa);
         self.p_motor_pa.push(e.p_motor_pa);
         self.aperture_pct.push(e.aperture_pct);
-        self.torque.push(e.torque.iter().sum());
+        self.torque_nm.push(e.torque_nm.iter().sum());
     }
 
     /// Number of samples.
     pub fn len(&self) -> usize {
-        self.t.len()
+        self.t_s.len()
     }
 
     /// True when empty.
     pub fn is_empty(&self) -> bool {
-        self.t.is_empty()
+        self.t_s.is_empty()
     }
 
     /// Indices of samples with `from <= t <= to`.
     pub fn window(&self, from: f64, to: f64) -> std::ops::Range<usize> {
-        let a = self.t.partition_point(|&x| x < from - 1e-9);
-        let b = self.t.partition_point(|&x| x <= to + 1e-9);
+        let a = self.t_s.partition_point(|&x| x < from - 1e-9);
+        let b = self.t_s.partition_point(|&x| x <= to + 1e-9);
         a..b
     }
 
@@ -268,27 +268,27 @@ impl Trace {
         let rpm = 30.0 / std::f64::consts::PI;
         for k in 0..self.len() {
             let mut row = vec![
-                self.t[k],
-                self.theta[k].to_degrees(),
-                self.theta_dot[k] * rpm,
+                self.t_s[k],
+                self.theta_rad[k].to_degrees(),
+                self.theta_dot_rad_s[k] * rpm,
                 self.p2_pa[k] / BAR,
                 self.lp_pa[k] / BAR,
                 self.p_motor_pa[k] / BAR,
-                self.q_inj[k] * 6e4,
-                self.q_motor[k] * 6e4,
-                self.q_valve[k] * 6e4,
-                self.q_relief[k] * 6e4,
-                self.omega[k] * rpm,
+                self.q_inj_m3_s[k] * 6e4,
+                self.q_motor_m3_s[k] * 6e4,
+                self.q_valve_m3_s[k] * 6e4,
+                self.q_relief_m3_s[k] * 6e4,
+                self.omega_rad_s[k] * rpm,
                 self.aperture_pct[k],
-                self.torque[k],
+                self.torque_nm[k],
             ];
             for i in 0..N_CYL {
                 row.extend([
-                    self.rod[i][k] * 1e3,
-                    self.p_cap[i][k] / BAR,
-                    self.p_rod[i][k] / BAR,
-                    self.q_cyl[i][k] * 6e4,
-                    self.torque_cyl[i][k],
+                    self.rod_m[i][k] * 1e3,
+                    self.p_cap_pa[i][k] / BAR,
+                    self.p_rod_pa[i][k] / BAR,
+                    self.q_cyl_m3_s[i][k] * 6e4,
+                    self.torque_cyl_nm[i][k],
                 ]);
             }
             w.write_record(row.iter().map(|v| format!("{v:.6}")))?;

@@ -13,7 +13,7 @@ pub struct Truth {
     /// LP, bar.
     pub lp_bar: f64,
     /// Restraining torque, N·m.
-    pub torque: f64,
+    pub torque_nm: f64,
     /// Motor speed, rpm.
     pub motor_rpm: f64,
 }
@@ -24,8 +24,8 @@ impl Truth {
         Truth {
             p2_bar: p.p2_pa / BAR,
             lp_bar: p.lp_pa / BAR,
-            torque: p.torque.iter().sum(),
-            motor_rpm: p.omega * RPM,
+            torque_nm: p.torque_nm.iter().sum(),
+            motor_rpm: p.omega_rad_s * RPM,
         }
     }
 }
@@ -33,14 +33,14 @@ impl Truth {
 /// Plant values at time `t` of a trace (linear interpolation).
 pub fn truth_at(tr: &Trace, t: f64) -> Truth {
     let n = tr.len();
-    let k = tr.t.partition_point(|&x| x <= t).clamp(1, n - 1);
-    let (t0, t1) = (tr.t[k - 1], tr.t[k]);
+    let k = tr.t_s.partition_point(|&x| x <= t).clamp(1, n - 1);
+    let (t0, t1) = (tr.t_s[k - 1], tr.t_s[k]);
     let u = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0);
     let l = |v: &[f64]| v[k - 1] + u * (v[k] - v[k - 1]);
     Truth {
         p2_bar: l(&tr.p2_pa) / BAR,
         lp_bar: l(&tr.lp_pa) / BAR,
-        torque: l(&tr.torque),
-        motor_rpm: l(&tr.omega) * RPM,
+        torque_nm: l(&tr.torque_nm),
+        motor_rpm: l(&tr.omega_rad_s) * RPM,
     }
 }

@@ -75,7 +75,7 @@ fn timed(bench: &Bench, name: &str, repeats: usize, compare: bool) -> Result<Ben
     } else {
         None
     };
-    let simulated = *r.trace.t.last().unwrap_or(&0.0);
+    let simulated = *r.trace.t_s.last().unwrap_or(&0.0);
     Ok(BenchRow {
         scenario: name.into(),
         simulated_s: simulated,
