@@ -124,7 +124,7 @@ fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
 fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() {
     let bench = Bench::reference();
     let sigma = pto_host::model::sensors::SensorSpec::default().motor_noise_rpm;
-    let p0 = bench.hp_acc.precharge / pto_host::sim::bench::BAR;
+    let p0 = bench.hp_acc.precharge_pa / pto_host::sim::bench::BAR;
     let dt = 1.0 / 1024.0;
     // (fastest 2 bar fall in ms, smallest d′, largest d′) over a run's emptying events.
     let events = |name: &str| {
@@ -204,7 +204,9 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
             r.empty_flag_delay_ms
         );
         assert!(r.p2_model_only_max_bar > target::P2_MODEL_ONLY_MAX_BAR);
-        assert!(r.model_only_min_p2_bar < bench.hp_acc.precharge / pto_host::sim::bench::BAR + 1.0);
+        assert!(
+            r.model_only_min_p2_bar < bench.hp_acc.precharge_pa / pto_host::sim::bench::BAR + 1.0
+        );
         assert_meets(r);
     }
     for cfg in [1, 2] {

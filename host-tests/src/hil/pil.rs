@@ -515,7 +515,7 @@ fn overpressure_run(
     inject: Box<dyn Fn(f64) -> Injection>,
 ) -> Result<LoopRun, String> {
     let mut b = bench.clone();
-    b.relief_setting = 170.0 * BAR;
+    b.relief_setting_pa = 170.0 * BAR;
     let spec = SensorSpec {
         hp_noise_bar: 0.0,
         ..SensorSpec::default()

@@ -58,8 +58,8 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
         oc_mm: f.config[i].oc_mm as f32,
     });
     let acc = |a: &crate::sim::bench::Accumulator, line: f64| AccumulatorConfig {
-        volume_l: (a.volume * 1e3) as f32,
-        precharge_bar: (a.precharge / BAR) as f32,
+        volume_l: (a.volume_m3 * 1e3) as f32,
+        precharge_bar: (a.precharge_pa / BAR) as f32,
         polytropic_index: a.index as f32,
         line_volume_l: (line * 1e3) as f32,
     };
@@ -69,34 +69,34 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
             .map_err(|_| "the reduced model needs an 11-point valve table".to_string())
     };
     // Relief: flow gained per bar above the setting, d/dp of Cd·A(p)·sqrt(2Δp/ρ) at the setting.
-    let relief_gain = b.relief_cd * b.relief_area / b.relief_range
-        * (2.0 * (b.relief_setting - 8.0 * BAR) / b.oil.density).sqrt()
+    let relief_gain = b.relief_cd * b.relief_area_m2 / b.relief_range_pa
+        * (2.0 * (b.relief_setting_pa - 8.0 * BAR) / b.oil.density_kg_m3).sqrt()
         * 6e4
         * BAR;
     let r = ModelConfig::reference();
     let c = ModelConfig {
         cylinders,
         geometries,
-        free_play_mm: (b.free_play * 1e3) as f32,
-        seal_friction_n_s_per_m: b.seal_friction as f32,
-        chamber_dead_volume_cm3: (b.chamber_dead_volume * 1e6) as f32,
-        oil_bulk_modulus_mpa: (b.oil.liquid_modulus * 1e-6) as f32,
-        oil_density_kg_m3: b.oil.density as f32,
+        free_play_mm: (b.free_play_m * 1e3) as f32,
+        seal_friction_n_s_per_m: b.seal_friction_n_s_per_m as f32,
+        chamber_dead_volume_cm3: (b.chamber_dead_volume_m3 * 1e6) as f32,
+        oil_bulk_modulus_mpa: (b.oil.liquid_modulus_pa * 1e-6) as f32,
+        oil_density_kg_m3: b.oil.density_kg_m3 as f32,
         trapped_air_fraction: b.oil.trapped_air_fraction as f32,
         air_polytropic_index: b.oil.air_polytropic_index as f32,
-        hp: acc(&b.hp_acc, b.hp_line_volume),
-        lp: acc(&b.lp_acc, b.lp_line_volume),
+        hp: acc(&b.hp_acc, b.hp_line_volume_m3),
+        lp: acc(&b.lp_acc, b.lp_line_volume_m3),
         valve_cd: b.valve_cd as f32,
         valve_aperture_pct: table(&f.control_valve.aperture_pct)?,
         valve_area_mm2: table(&f.control_valve.area_mm2)?,
-        spool_time_constant_ms: (b.spool_tau * 1e3) as f32,
-        relief_setting_bar: (b.relief_setting / BAR) as f32,
+        spool_time_constant_ms: (b.spool_tau_s * 1e3) as f32,
+        relief_setting_bar: (b.relief_setting_pa / BAR) as f32,
         relief_gain_lpm_per_bar: relief_gain as f32,
         motor_displacement_cm3: f.motor.displacement_cm3_per_rev as f32,
-        motor_leak_lpm_per_bar: (b.motor_leak * 6e4 * BAR) as f32,
+        motor_leak_lpm_per_bar: (b.motor_leak_m3_per_s_pa * 6e4 * BAR) as f32,
         motor_mech_efficiency: b.motor_eta_mech as f32,
         load_nm_per_rpm: load_nm_per_rpm as f32,
-        motor_inertia_kg_m2: b.motor_inertia as f32,
+        motor_inertia_kg_m2: b.motor_inertia_kg_m2 as f32,
         ..r
     };
     c.validate().map_err(|e| e.to_string())?;

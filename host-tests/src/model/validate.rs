@@ -208,7 +208,10 @@ fn validate_scenario(
     let mut rf_mo = Reference::new(mcfg, k, t0.p2_bar, t0.lp_bar, 0.0);
     let mut d_p2_mo = 0.0f64;
     let mut cover_mo = Coverage::default();
-    let mut empty = EmptyWatch::new(bench.hp_acc.precharge / BAR, target::EMPTY_FLAG_MS * 1e-3);
+    let mut empty = EmptyWatch::new(
+        bench.hp_acc.precharge_pa / BAR,
+        target::EMPTY_FLAG_MS * 1e-3,
+    );
     for i in 0..m {
         let t = i as f64 * dt;
         let truth: Truth = truth_at(tr, t);

@@ -186,7 +186,7 @@ fn fact1(r: &Results) -> Fact {
 fn fact2(bench: &Bench, r: &Results) -> Fact {
     let st =
         "valve closed: P2 rises to the relief setting and holds at 130 ± 2 bar; LP falls meanwhile";
-    let setting = bench.relief_setting / BAR;
+    let setting = bench.relief_setting_pa / BAR;
     let (mut lo, mut hi, mut worst_lp, mut all) =
         (f64::INFINITY, f64::NEG_INFINITY, f64::NEG_INFINITY, true);
     for config in 1..=4 {
@@ -298,8 +298,9 @@ fn fact5(bench: &Bench, r: &Results) -> Fact {
         let mut se = 0.0;
         let mut n = 0.0;
         for k in w {
-            let pred = (t.q_valve_m3_s[k] - bench.motor_leak * (t.p_motor_pa[k] - t.lp_pa[k]))
-                / bench.motor_disp;
+            let pred = (t.q_valve_m3_s[k]
+                - bench.motor_leak_m3_per_s_pa * (t.p_motor_pa[k] - t.lp_pa[k]))
+                / bench.motor_disp_m3_per_rad;
             se += ((pred - t.omega_rad_s[k]) / t.omega_rad_s[k]).powi(2);
             n += 1.0;
         }
@@ -371,7 +372,7 @@ fn fact7(bench: &Bench, r: &Results) -> Fact {
     let t1 = need!(r, "test1-cfg1-c1", 7, st);
     let t13 = need!(r, "test1-cfg1-c13", 7, st);
     let c = &bench.cylinders[0];
-    let want = c.area_cap / c.area_ann;
+    let want = c.area_cap_m2 / c.area_ann_m2;
     let (a, b) = directional_peaks(t1);
     let ratio = a.max(b) / a.min(b);
     let (p, n) = directional_peaks(t13);

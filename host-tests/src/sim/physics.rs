@@ -28,7 +28,7 @@ impl Fluid {
     /// The fluid of a bench's oil.
     pub fn new(oil: &Oil) -> Self {
         Fluid {
-            el: oil.liquid_modulus,
+            el: oil.liquid_modulus_pa,
             alpha: oil.trapped_air_fraction,
             n: oil.air_polytropic_index,
         }
@@ -90,7 +90,8 @@ pub fn bulk_modulus_simhydraulics(oil: &Oil, p: f64) -> f64 {
     let n = oil.air_polytropic_index;
     let a = oil.trapped_air_fraction;
     let ratio = (P_ATM / pabs).powf(1.0 / n);
-    oil.liquid_modulus * (1.0 + a * ratio) / (1.0 + a * ratio / (n * pabs) * oil.liquid_modulus)
+    oil.liquid_modulus_pa * (1.0 + a * ratio)
+        / (1.0 + a * ratio / (n * pabs) * oil.liquid_modulus_pa)
 }
 
 /// Orifice flow with laminar transition, m³/s (positive from high to low for `dp > 0`).
@@ -101,10 +102,10 @@ pub fn orifice(oil: &Oil, cd: f64, area: f64, dp: f64) -> f64 {
     if area <= 0.0 {
         return 0.0;
     }
-    let k = oil.re_crit * oil.viscosity / cd;
-    let p_cr = 0.5 * oil.density * k * k * std::f64::consts::PI / (4.0 * area);
+    let k = oil.re_crit * oil.viscosity_m2_s / cd;
+    let p_cr = 0.5 * oil.density_kg_m3 * k * k * std::f64::consts::PI / (4.0 * area);
     let root = (dp * dp + p_cr * p_cr).sqrt().sqrt();
-    cd * area * (2.0 / oil.density).sqrt() * dp / root
+    cd * area * (2.0 / oil.density_kg_m3).sqrt() * dp / root
 }
 
 /// C¹ smoothstep of u on [0, 1] (clamped).
@@ -119,22 +120,22 @@ fn smoothstep(u: f64) -> f64 {
 /// linear. We blend with a C¹ smoothstep instead so the Jacobian has no jump at the two corners
 /// (the BDF solver would otherwise cut its step at each of the hundreds of valve switches).
 pub fn check_area(v: &CheckValve, leak: f64, dp: f64) -> f64 {
-    let u = (dp - v.cracking) / (v.full_open - v.cracking);
-    leak + (v.max_area - leak) * smoothstep(u)
+    let u = (dp - v.cracking_pa) / (v.full_open_pa - v.cracking_pa);
+    leak + (v.max_area_m2 - leak) * smoothstep(u)
 }
 
 /// Check valve flow for a pressure drop `dp` = upstream − downstream, m³/s.
 pub fn check_flow(oil: &Oil, v: &CheckValve, dp: f64) -> f64 {
-    orifice(oil, v.cd, check_area(v, oil.leak_area, dp), dp)
+    orifice(oil, v.cd, check_area(v, oil.leak_area_m2, dp), dp)
 }
 
 /// Relief valve flow HP -> LP, m³/s. The valve opens on its inlet gauge pressure `p_in` (pilot
 /// referenced to the drain/atmosphere), from leakage at the setting to the full area at
 /// setting + regulation range; the flow is driven by `p_in − p_out`.
 pub fn relief_flow(bench: &Bench, p_in: f64, p_out: f64) -> f64 {
-    let u = (p_in - bench.relief_setting) / bench.relief_range;
-    let leak = bench.oil.leak_area;
-    let area = leak + (bench.relief_area - leak) * smoothstep(u);
+    let u = (p_in - bench.relief_setting_pa) / bench.relief_range_pa;
+    let leak = bench.oil.leak_area_m2;
+    let area = leak + (bench.relief_area_m2 - leak) * smoothstep(u);
     orifice(&bench.oil, bench.relief_cd, area, p_in - p_out)
 }
 
@@ -142,21 +143,21 @@ pub fn relief_flow(bench: &Bench, p_in: f64, p_out: f64) -> f64 {
 /// the leakage area as a floor so the closed valve leaks like every other closed valve.
 pub fn valve_area(bench: &Bench, a_pct: f64) -> f64 {
     let xs = &bench.valve_aperture_pct;
-    let ys = &bench.valve_area;
+    let ys = &bench.valve_area_m2;
     let a = a_pct.clamp(0.0, 100.0);
     let i = xs.partition_point(|&x| x <= a).clamp(1, xs.len() - 1);
     let (x0, x1, y0, y1) = (xs[i - 1], xs[i], ys[i - 1], ys[i]);
     let area = y0 + (y1 - y0) * (a - x0) / (x1 - x0);
-    area.max(bench.oil.leak_area)
+    area.max(bench.oil.leak_area_m2)
 }
 
 /// Control valve flow at aperture `a_pct` (%), m³/s. With a pressure-dependent characteristic the Cd
 /// varies linearly with |Δp| around 50 bar (kept ≥ 10 % of its nominal value).
 pub fn valve_flow(bench: &Bench, a_pct: f64, dp: f64) -> f64 {
-    let cd = if bench.valve_cd_slope == 0.0 {
+    let cd = if bench.valve_cd_slope_per_100bar == 0.0 {
         bench.valve_cd
     } else {
-        let k = 1.0 + bench.valve_cd_slope * (dp.abs() / 1e5 - 50.0) / 100.0;
+        let k = 1.0 + bench.valve_cd_slope_per_100bar * (dp.abs() / 1e5 - 50.0) / 100.0;
         bench.valve_cd * k.max(0.1)
     };
     orifice(&bench.oil, cd, valve_area(bench, a_pct), dp)
@@ -175,10 +176,10 @@ pub const BLADDER_BAND: f64 = 0.5e5;
 impl Accumulator {
     /// Gas volume of the ideal polytropic gas law at gauge pressure `p`, m³.
     pub fn gas_volume(&self, p: f64) -> f64 {
-        if p <= self.precharge {
-            self.volume
+        if p <= self.precharge_pa {
+            self.volume_m3
         } else {
-            self.volume * ((self.precharge + P_ATM) / (p + P_ATM)).powf(1.0 / self.index)
+            self.volume_m3 * ((self.precharge_pa + P_ATM) / (p + P_ATM)).powf(1.0 / self.index)
         }
     }
 
@@ -188,16 +189,16 @@ impl Accumulator {
 
     /// ∫ p dV of the exact gas law from the precharge to p (gauge frame), J.
     fn exact_energy(&self, p: f64) -> f64 {
-        let (p0, p1) = (self.precharge + P_ATM, p + P_ATM);
+        let (p0, p1) = (self.precharge_pa + P_ATM, p + P_ATM);
         let v1 = self.gas_volume(p);
         // −∫ p_abs dV = (p1·V1 − p0·V0)/(k − 1); the atmosphere's share p_a·(V0 − V1) is not
         // stored in the gauge frame.
-        (p1 * v1 - p0 * self.volume) / (self.index - 1.0) - P_ATM * (self.volume - v1)
+        (p1 * v1 - p0 * self.volume_m3) / (self.index - 1.0) - P_ATM * (self.volume_m3 - v1)
     }
 
     /// Values at the top of the lift-off band: (p1, C(p1), fluid volume, energy).
     fn band_top(&self) -> (f64, f64, f64, f64) {
-        let p0 = self.precharge;
+        let p0 = self.precharge_pa;
         let p1 = p0 + BLADDER_BAND;
         let c1 = self.exact_capacitance(p1);
         let vf = c1 * BLADDER_BAND / 2.0;
@@ -208,7 +209,7 @@ impl Accumulator {
 
     /// Oil volume inside, m³.
     pub fn fluid_volume(&self, p: f64) -> f64 {
-        let p0 = self.precharge;
+        let p0 = self.precharge_pa;
         if p <= p0 {
             return 0.0;
         }
@@ -222,7 +223,7 @@ impl Accumulator {
 
     /// dV_fluid/dp, m³/Pa (0 below precharge: the bladder rests on its stop).
     pub fn capacitance(&self, p: f64) -> f64 {
-        let p0 = self.precharge;
+        let p0 = self.precharge_pa;
         if p <= p0 {
             return 0.0;
         }
@@ -236,7 +237,7 @@ impl Accumulator {
 
     /// Work done on the gas by the oil, with gauge pressures: ∫ p dV_fluid, J.
     pub fn stored_energy(&self, p: f64) -> f64 {
-        let p0 = self.precharge;
+        let p0 = self.precharge_pa;
         if p <= p0 {
             return 0.0;
         }
@@ -263,12 +264,12 @@ impl Lever {
     /// Lever of a cylinder with stroke `stroke` and side `side`, mounted in geometry `g` so that
     /// the eye sits at mid-stroke at shaft angle 0.
     pub fn new(g: &Geometry, stroke: f64, side: f64) -> Self {
-        let mid = g.ac + 0.5 * stroke;
-        let cos_phi0 = (g.ob * g.ob + g.oc * g.oc - mid * mid) / (2.0 * g.ob * g.oc);
+        let mid = g.ac_m + 0.5 * stroke;
+        let cos_phi0 = (g.ob_m * g.ob_m + g.oc_m * g.oc_m - mid * mid) / (2.0 * g.ob_m * g.oc_m);
         Lever {
-            r: g.ob,
-            oc: g.oc,
-            l: g.ac,
+            r: g.ob_m,
+            oc: g.oc_m,
+            l: g.ac_m,
             phi0: cos_phi0.clamp(-1.0, 1.0).acos(),
             side,
         }
@@ -358,7 +359,7 @@ mod tests {
         let v = b.hp_acc.gas_volume(102.0 * BAR) * 1e3;
         assert!((v - 3.74).abs() < 0.01, "{v}");
         // Stored energy is ∫ p dV and capacitance is dV/dp: compare with fine sums.
-        let (p0, p1) = (b.hp_acc.precharge, 102.0 * BAR);
+        let (p0, p1) = (b.hp_acc.precharge_pa, 102.0 * BAR);
         // (Points off the band top, where C is continuous but its slope is not.)
         for p in [p0 + 0.2e5, p0 + 0.7e5, p0 + 3e5, p1] {
             let h = 1.0;
@@ -381,7 +382,7 @@ mod tests {
     fn config_rod_travel_orders_as_the_paper() {
         // ±40 mm rack on a 96 mm pinion; travel of the eye of HC3.1 per config.
         let b = Bench::reference();
-        let amp = 0.040 / b.pinion_radius;
+        let amp = 0.040 / b.pinion_radius_m;
         let travel: Vec<f64> = b
             .configs
             .iter()
@@ -406,11 +407,11 @@ mod tests {
         let mut prev = 0.0;
         for k in -100..400 {
             let dp = k as f64 * 0.01 * BAR;
-            let a = check_area(&b.check, b.oil.leak_area, dp);
+            let a = check_area(&b.check, b.oil.leak_area_m2, dp);
             assert!(a >= prev);
             prev = a;
         }
-        assert_eq!(prev, b.check.max_area);
+        assert_eq!(prev, b.check.max_area_m2);
     }
 }
 
@@ -444,7 +445,7 @@ mod properties {
             let (p0, p1) = (p_bar * BAR, (p_bar + dp) * BAR);
             prop_assert!(acc.fluid_volume(p1) >= acc.fluid_volume(p0));
             prop_assert!(acc.stored_energy(p1) >= acc.stored_energy(p0));
-            prop_assert!(acc.fluid_volume(p1) < acc.volume);
+            prop_assert!(acc.fluid_volume(p1) < acc.volume_m3);
         }
 
         #[test]

@@ -139,13 +139,13 @@ impl Plant {
         let mut active_index = Vec::new();
         let mut idle = Vec::new();
         for (i, c) in bench.cylinders.iter().enumerate() {
-            let lever = Lever::new(geom, c.stroke, c.side);
+            let lever = Lever::new(geom, c.stroke_m, c.side);
             if on_duty[i] {
                 active.push(Active {
                     lever,
-                    area_cap: c.area_cap,
-                    area_ann: c.area_ann,
-                    stroke: c.stroke,
+                    area_cap: c.area_cap_m2,
+                    area_ann: c.area_ann_m2,
+                    stroke: c.stroke_m,
                     at: 3 * active.len(),
                 });
                 active_index.push(i);
@@ -154,15 +154,15 @@ impl Plant {
                     i,
                     Idle {
                         lever,
-                        area_cap: c.area_cap,
-                        area_ann: c.area_ann,
-                        stroke: c.stroke,
+                        area_cap: c.area_cap_m2,
+                        area_ann: c.area_ann_m2,
+                        stroke: c.stroke_m,
                     },
                 ));
             }
         }
         let base = 3 * active.len();
-        let i_a = (bench.spool_tau > 0.0).then_some(base + 4);
+        let i_a = (bench.spool_tau_s > 0.0).then_some(base + 4);
         let mut next = base + 4 + usize::from(i_a.is_some());
         let mut take = |on: bool| {
             on.then(|| {
@@ -170,8 +170,8 @@ impl Plant {
                 next - 1
             })
         };
-        let i_hm = take(bench.hp_line_resistance > 0.0);
-        let i_lm = take(bench.lp_line_resistance > 0.0);
+        let i_hm = take(bench.hp_line_resistance_pa_s_per_m3 > 0.0);
+        let i_lm = take(bench.lp_line_resistance_pa_s_per_m3 > 0.0);
         Plant {
             bench: bench.clone(),
             active,
@@ -189,12 +189,12 @@ impl Plant {
             i_hm,
             i_lm,
             vol_hm: if i_hm.is_some() {
-                0.5 * bench.hp_line_volume
+                0.5 * bench.hp_line_volume_m3
             } else {
                 0.0
             },
             vol_lm: if i_lm.is_some() {
-                0.5 * bench.lp_manifold_line_volume
+                0.5 * bench.lp_manifold_line_volume_m3
             } else {
                 0.0
             },
@@ -347,8 +347,12 @@ impl Plant {
             aperture_pct,
             ..Eval::default()
         };
-        let half = 0.5 * b.free_play;
-        let (k, d, c_seal) = (b.stop_stiffness, b.stop_damping, b.seal_friction);
+        let half = 0.5 * b.free_play_m;
+        let (k, d, c_seal) = (
+            b.stop_stiffness_n_per_m,
+            b.stop_damping_n_s_per_m,
+            b.seal_friction_n_s_per_m,
+        );
         let mut m_into_hp = 0.0;
         let mut m_from_lp = 0.0;
         let mut dy = dy;
@@ -396,8 +400,8 @@ impl Plant {
             };
             let (v_cap, e_cap) = fl.state(p_cap);
             let (v_rod, e_rod) = fl.state(p_rod);
-            let vol_cap = b.chamber_dead_volume + c.area_cap * x;
-            let vol_rod = b.chamber_dead_volume + c.area_ann * (c.stroke - x);
+            let vol_cap = b.chamber_dead_volume_m3 + c.area_cap * x;
+            let vol_rod = b.chamber_dead_volume_m3 + c.area_ann * (c.stroke - x);
             let suc_cap = mref(check_flow(oil, &b.check, p_lm - p_cap), v_lm, v_cap);
             let del_cap = mref(check_flow(oil, &b.check, p_cap - p_hm), v_cap, v_hm);
             let suc_rod = mref(check_flow(oil, &b.check, p_lm - p_rod), v_lm, v_rod);
@@ -438,7 +442,7 @@ impl Plant {
             let (x_eye, v_eye, arm) = c.lever.eye(theta, theta_dot);
             let area_rod = c.area_cap - c.area_ann;
             let f_contact = -p_lm * area_rod;
-            idle_volume += c.volume_at(b.chamber_dead_volume, x_eye);
+            idle_volume += c.volume_at(b.chamber_dead_volume_m3, x_eye);
             idle_vdot += area_rod * v_eye;
             e.rod_m[*ci] = x_eye;
             e.p_cap_pa[*ci] = p_lm;
@@ -450,7 +454,7 @@ impl Plant {
         let q_relief = physics::relief_flow(b, p2, lp);
         let q_makeup = check_flow(oil, &b.makeup, lp - pm);
         let dp_motor = pm - lp;
-        let q_motor = b.motor_disp * omega + b.motor_leak * dp_motor;
+        let q_motor = b.motor_disp_m3_per_rad * omega + b.motor_leak_m3_per_s_pa * dp_motor;
         let m_valve = mref(q_valve, v_hp, v_pm);
         let m_relief = mref(q_relief, v_hp, v_lp);
         let m_makeup = mref(q_makeup, v_lp, v_pm);
@@ -459,21 +463,21 @@ impl Plant {
             Load::Viscous(c) => c * omega,
             Load::Constant(tq) => tq * (omega / 0.104_719_755).tanh(),
         };
-        let t_motor = b.motor_disp * dp_motor * b.motor_eta_mech;
+        let t_motor = b.motor_disp_m3_per_rad * dp_motor * b.motor_eta_mech;
         // Line flows manifold <-> accumulator (pass-through when lumped).
         let m_hline = match self.i_hm {
-            Some(_) => mref((p_hm - p2) / b.hp_line_resistance, v_hm, v_hp),
+            Some(_) => mref((p_hm - p2) / b.hp_line_resistance_pa_s_per_m3, v_hm, v_hp),
             None => m_into_hp,
         };
         let m_lline = match self.i_lm {
-            Some(_) => mref((lp - p_lm) / b.lp_line_resistance, v_lp, v_lm),
+            Some(_) => mref((lp - p_lm) / b.lp_line_resistance_pa_s_per_m3, v_lp, v_lm),
             None => m_from_lp,
         };
         if let Some(dy) = dy {
             let [oil_hp, oil_lp] = self.accumulator_node_oil(p2, lp, idle_volume);
             let c_hp = b.hp_acc.capacitance(p2) + oil_hp / e_hp;
             let c_lp = b.lp_acc.capacitance(lp) + oil_lp / e_lp;
-            let c_pm = b.motor_line_volume / e_pm;
+            let c_pm = b.motor_line_volume_m3 / e_pm;
             dy[self.i_p2] = v_hp * (m_hline - m_valve - m_relief) / c_hp / BAR;
             let idle_at_lp = if self.i_lm.is_some() { 0.0 } else { idle_vdot };
             dy[self.i_lp] =
@@ -486,9 +490,9 @@ impl Plant {
                 dy[i] = e_lm / vol * (v_lm * (m_lline - m_from_lp) - idle_vdot) / BAR;
             }
             dy[self.i_pm] = v_pm * (m_valve + m_makeup - m_motor) / c_pm / BAR;
-            dy[self.i_w] = (t_motor - t_load) / b.motor_inertia;
+            dy[self.i_w] = (t_motor - t_load) / b.motor_inertia_kg_m2;
             if let Some(i) = self.i_a {
-                dy[i] = (self.command_pct.get() - y[i]) / b.spool_tau;
+                dy[i] = (self.command_pct.get() - y[i]) / b.spool_tau_s;
             }
         }
         e.q_valve_m3_s = q_valve;
@@ -531,8 +535,8 @@ impl Plant {
             idle_volume
         };
         [
-            b.hp_line_volume - self.vol_hm + b.hp_acc.fluid_volume(p2),
-            b.lp_line_volume - self.vol_lm + b.lp_acc.fluid_volume(lp) + idle,
+            b.hp_line_volume_m3 - self.vol_hm + b.hp_acc.fluid_volume(p2),
+            b.lp_line_volume_m3 - self.vol_lm + b.lp_acc.fluid_volume(lp) + idle,
         ]
     }
 
@@ -548,13 +552,13 @@ impl Plant {
         let idle: f64 = self
             .idle
             .iter()
-            .map(|(_, c)| c.volume_at(b.chamber_dead_volume, c.lever.eye(theta, 0.0).0))
+            .map(|(_, c)| c.volume_at(b.chamber_dead_volume_m3, c.lever.eye(theta, 0.0).0))
             .sum();
         let [oil_hp, oil_lp] = self.accumulator_node_oil(p2, lp, idle);
         // (side, oil volume, pressure)
         let mut nodes = vec![
             (0, oil_hp, p2),
-            (1, b.motor_line_volume, pm),
+            (1, b.motor_line_volume_m3, pm),
             (2, oil_lp, lp),
         ];
         if let Some(i) = self.i_hm {
@@ -572,9 +576,9 @@ impl Plant {
         for c in &self.active {
             let x = y[c.at + 2] * 1e-3;
             for (vol, pc) in [
-                (b.chamber_dead_volume + c.area_cap * x, y[c.at] * BAR),
+                (b.chamber_dead_volume_m3 + c.area_cap * x, y[c.at] * BAR),
                 (
-                    b.chamber_dead_volume + c.area_ann * (c.stroke - x),
+                    b.chamber_dead_volume_m3 + c.area_ann * (c.stroke - x),
                     y[c.at + 1] * BAR,
                 ),
             ] {
@@ -582,7 +586,7 @@ impl Plant {
                 energy += fl.stored_energy(vol, pc);
             }
         }
-        energy += 0.5 * b.motor_inertia * y[self.i_w].powi(2);
+        energy += 0.5 * b.motor_inertia_kg_m2 * y[self.i_w].powi(2);
         energy += self.evaluate(t, y, None, true).spring_energy_j;
         (content, energy)
     }

@@ -482,14 +482,14 @@ pub fn simulate_with<C: ValveController + 'static>(
 pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture_pct: f64) -> (f64, f64) {
     use crate::sim::bench::Load;
     let dp_of = |w: f64| match bench.load {
-        Load::Viscous(c) => c * w / (bench.motor_disp * bench.motor_eta_mech),
-        Load::Constant(t) => t / (bench.motor_disp * bench.motor_eta_mech),
+        Load::Viscous(c) => c * w / (bench.motor_disp_m3_per_rad * bench.motor_eta_mech),
+        Load::Constant(t) => t / (bench.motor_disp_m3_per_rad * bench.motor_eta_mech),
     };
     let resid = |w: f64| {
         let dpm = dp_of(w);
         crate::sim::physics::valve_flow(bench, aperture_pct, p2 - lp - dpm)
-            - bench.motor_disp * w
-            - bench.motor_leak * dpm
+            - bench.motor_disp_m3_per_rad * w
+            - bench.motor_leak_m3_per_s_pa * dpm
     };
     if aperture_pct <= 0.0 || resid(0.0) <= 0.0 {
         return (lp, 0.0);

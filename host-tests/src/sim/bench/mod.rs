@@ -28,11 +28,11 @@ pub use file::*;
 #[derive(Debug, Clone, PartialEq)]
 pub struct Oil {
     /// kg/m³.
-    pub density: f64,
+    pub density_kg_m3: f64,
     /// m²/s.
-    pub viscosity: f64,
+    pub viscosity_m2_s: f64,
     /// Liquid bulk modulus, Pa.
-    pub liquid_modulus: f64,
+    pub liquid_modulus_pa: f64,
     /// Relative trapped air at atmospheric pressure.
     pub trapped_air_fraction: f64,
     /// Polytropic index of the trapped air.
@@ -40,7 +40,7 @@ pub struct Oil {
     /// Critical Reynolds number of the orifices.
     pub re_crit: f64,
     /// Leakage area of closed valves, m².
-    pub leak_area: f64,
+    pub leak_area_m2: f64,
 }
 
 /// One double-acting cylinder in SI units.
@@ -49,11 +49,11 @@ pub struct Cylinder {
     /// HC3.x.
     pub name: String,
     /// Piston (cap side) area, m².
-    pub area_cap: f64,
+    pub area_cap_m2: f64,
     /// Annulus (rod side) area, m².
-    pub area_ann: f64,
+    pub area_ann_m2: f64,
     /// Stroke, m.
-    pub stroke: f64,
+    pub stroke_m: f64,
     /// Side of the shaft, ±1.
     pub side: f64,
 }
@@ -64,22 +64,22 @@ pub struct Geometry {
     /// Config name.
     pub name: String,
     /// OB = R, m.
-    pub ob: f64,
+    pub ob_m: f64,
     /// AC = L, retracted pin-to-pin length, m.
-    pub ac: f64,
+    pub ac_m: f64,
     /// OC, m.
-    pub oc: f64,
+    pub oc_m: f64,
 }
 
 /// A check valve (or make-up valve) in SI units.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct CheckValve {
     /// Pa.
-    pub cracking: f64,
+    pub cracking_pa: f64,
     /// Pa.
-    pub full_open: f64,
+    pub full_open_pa: f64,
     /// m².
-    pub max_area: f64,
+    pub max_area_m2: f64,
     /// Discharge coefficient.
     pub cd: f64,
 }
@@ -88,9 +88,9 @@ pub struct CheckValve {
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Accumulator {
     /// Total volume, m³.
-    pub volume: f64,
+    pub volume_m3: f64,
     /// Precharge, Pa gauge.
-    pub precharge: f64,
+    pub precharge_pa: f64,
     /// Polytropic index.
     pub index: f64,
 }
@@ -112,19 +112,19 @@ pub struct Bench {
     /// The file as parsed (kept so fitted copies can be written back).
     pub file: BenchFile,
     /// Pinion pitch radius, m.
-    pub pinion_radius: f64,
+    pub pinion_radius_m: f64,
     /// Oil.
     pub oil: Oil,
     /// Chamber dead volume + hose volume, m³.
-    pub chamber_dead_volume: f64,
+    pub chamber_dead_volume_m3: f64,
     /// Rod-fixation free play, m.
-    pub free_play: f64,
+    pub free_play_m: f64,
     /// Hard-stop stiffness, N/m.
-    pub stop_stiffness: f64,
+    pub stop_stiffness_n_per_m: f64,
     /// Hard-stop damping, N·s/m.
-    pub stop_damping: f64,
+    pub stop_damping_n_s_per_m: f64,
     /// Seal viscous friction, N·s/m.
-    pub seal_friction: f64,
+    pub seal_friction_n_s_per_m: f64,
     /// HC3.1..HC3.4.
     pub cylinders: Vec<Cylinder>,
     /// Config 1..4.
@@ -134,50 +134,50 @@ pub struct Bench {
     /// Make-up valve LP -> motor inlet.
     pub makeup: CheckValve,
     /// Relief setting, Pa.
-    pub relief_setting: f64,
+    pub relief_setting_pa: f64,
     /// Relief regulation range, Pa.
-    pub relief_range: f64,
+    pub relief_range_pa: f64,
     /// Relief max area, m².
-    pub relief_area: f64,
+    pub relief_area_m2: f64,
     /// Relief Cd.
     pub relief_cd: f64,
     /// Control valve Cd (at 50 bar Δp).
     pub valve_cd: f64,
     /// Relative change of the control valve's Cd per 100 bar of Δp around 50 bar.
-    pub valve_cd_slope: f64,
+    pub valve_cd_slope_per_100bar: f64,
     /// Control valve aperture table, %.
     pub valve_aperture_pct: Vec<f64>,
     /// Control valve area table, m².
-    pub valve_area: Vec<f64>,
+    pub valve_area_m2: Vec<f64>,
     /// Spool time constant, s (0 = ideal).
-    pub spool_tau: f64,
+    pub spool_tau_s: f64,
     /// HP accumulator.
     pub hp_acc: Accumulator,
     /// LP accumulator.
     pub lp_acc: Accumulator,
     /// Motor displacement, m³/rad.
-    pub motor_disp: f64,
+    pub motor_disp_m3_per_rad: f64,
     /// Motor leakage coefficient, m³/(s·Pa).
-    pub motor_leak: f64,
+    pub motor_leak_m3_per_s_pa: f64,
     /// Motor mechanical efficiency.
     pub motor_eta_mech: f64,
     /// Motor + generator inertia, kg·m².
-    pub motor_inertia: f64,
+    pub motor_inertia_kg_m2: f64,
     /// Generator load.
     pub load: Load,
     /// HP line volume (lumped into the HP node), m³.
-    pub hp_line_volume: f64,
+    pub hp_line_volume_m3: f64,
     /// Valve -> motor line volume (motor inlet node), m³.
-    pub motor_line_volume: f64,
+    pub motor_line_volume_m3: f64,
     /// Motor -> LP and LP -> manifold line volume (LP node), m³.
-    pub lp_line_volume: f64,
+    pub lp_line_volume_m3: f64,
     /// LP -> manifold line volume alone, m³ (split off into the LP manifold node when the LP
     /// line has a resistance).
-    pub lp_manifold_line_volume: f64,
+    pub lp_manifold_line_volume_m3: f64,
     /// HP line resistance, Pa·s/m³ (0 = lumped).
-    pub hp_line_resistance: f64,
+    pub hp_line_resistance_pa_s_per_m3: f64,
     /// LP line resistance, Pa·s/m³ (0 = lumped).
-    pub lp_line_resistance: f64,
+    pub lp_line_resistance_pa_s_per_m3: f64,
 }
 
 fn pipe_volume(length_m: f64, id_mm: f64) -> f64 {
@@ -224,13 +224,13 @@ impl Bench {
     pub fn from_file(f: BenchFile, source: &str) -> Result<Self, BenchError> {
         f.validate(source)?;
         let oil = Oil {
-            density: f.oil.density_kg_m3,
-            viscosity: f.oil.kinematic_viscosity_cst * 1e-6,
-            liquid_modulus: f.oil.liquid_bulk_modulus_mpa * 1e6,
+            density_kg_m3: f.oil.density_kg_m3,
+            viscosity_m2_s: f.oil.kinematic_viscosity_cst * 1e-6,
+            liquid_modulus_pa: f.oil.liquid_bulk_modulus_mpa * 1e6,
             trapped_air_fraction: f.oil.trapped_air_fraction,
             air_polytropic_index: f.oil.air_polytropic_index,
             re_crit: f.oil.critical_reynolds,
-            leak_area: f.oil.leakage_area_mm2 * 1e-6,
+            leak_area_m2: f.oil.leakage_area_mm2 * 1e-6,
         };
         let m = &f.cylinder_mounting;
         let cylinders = f
@@ -240,9 +240,9 @@ impl Bench {
                 let cap = disc_area(c.bore_mm);
                 Cylinder {
                     name: c.name.clone(),
-                    area_cap: cap,
-                    area_ann: cap - disc_area(c.rod_mm),
-                    stroke: c.stroke_mm * 1e-3,
+                    area_cap_m2: cap,
+                    area_ann_m2: cap - disc_area(c.rod_mm),
+                    stroke_m: c.stroke_mm * 1e-3,
                     side: f64::from(c.side),
                 }
             })
@@ -252,20 +252,20 @@ impl Bench {
             .iter()
             .map(|g| Geometry {
                 name: g.name.clone(),
-                ob: g.ob_mm * 1e-3,
-                ac: g.ac_mm * 1e-3,
-                oc: g.oc_mm * 1e-3,
+                ob_m: g.ob_mm * 1e-3,
+                ac_m: g.ac_mm * 1e-3,
+                oc_m: g.oc_mm * 1e-3,
             })
             .collect();
         let valve = |v: &ValveSection| CheckValve {
-            cracking: v.cracking_bar * BAR,
-            full_open: v.full_open_bar * BAR,
-            max_area: v.max_area_mm2 * 1e-6,
+            cracking_pa: v.cracking_bar * BAR,
+            full_open_pa: v.full_open_bar * BAR,
+            max_area_m2: v.max_area_mm2 * 1e-6,
             cd: v.discharge_coefficient,
         };
         let acc = |a: &AccumulatorSection| Accumulator {
-            volume: a.volume_l * 1e-3,
-            precharge: a.precharge_bar * BAR,
+            volume_m3: a.volume_l * 1e-3,
+            precharge_pa: a.precharge_bar * BAR,
             index: a.polytropic_index,
         };
         let mo = &f.motor;
@@ -282,50 +282,50 @@ impl Bench {
         let l = &f.lines;
         Ok(Bench {
             source: source.to_string(),
-            pinion_radius: f.input.pinion_radius_mm * 1e-3,
+            pinion_radius_m: f.input.pinion_radius_mm * 1e-3,
             oil,
-            chamber_dead_volume: m.dead_volume_cm3 * 1e-6
+            chamber_dead_volume_m3: m.dead_volume_cm3 * 1e-6
                 + pipe_volume(m.hose_length_m, m.hose_inner_diameter_mm),
-            free_play: m.free_play_mm * 1e-3,
-            stop_stiffness: m.hard_stop_stiffness_n_per_m,
-            stop_damping: m.hard_stop_damping_n_s_per_m,
-            seal_friction: m.seal_friction_n_s_per_m,
+            free_play_m: m.free_play_mm * 1e-3,
+            stop_stiffness_n_per_m: m.hard_stop_stiffness_n_per_m,
+            stop_damping_n_s_per_m: m.hard_stop_damping_n_s_per_m,
+            seal_friction_n_s_per_m: m.seal_friction_n_s_per_m,
             cylinders,
             configs,
             check: valve(&f.check_valve),
             makeup: valve(&f.makeup_valve),
-            relief_setting: f.relief_valve.setting_bar * BAR,
-            relief_range: f.relief_valve.regulation_range_bar * BAR,
-            relief_area: f.relief_valve.max_area_mm2 * 1e-6,
+            relief_setting_pa: f.relief_valve.setting_bar * BAR,
+            relief_range_pa: f.relief_valve.regulation_range_bar * BAR,
+            relief_area_m2: f.relief_valve.max_area_mm2 * 1e-6,
             relief_cd: f.relief_valve.discharge_coefficient,
             valve_cd: f.control_valve.discharge_coefficient,
-            valve_cd_slope: f.control_valve.cd_slope_per_100bar,
+            valve_cd_slope_per_100bar: f.control_valve.cd_slope_per_100bar,
             valve_aperture_pct: f.control_valve.aperture_pct.clone(),
-            valve_area: f.control_valve.area_mm2.iter().map(|a| a * 1e-6).collect(),
-            spool_tau: f.control_valve.spool_time_constant_ms * 1e-3,
+            valve_area_m2: f.control_valve.area_mm2.iter().map(|a| a * 1e-6).collect(),
+            spool_tau_s: f.control_valve.spool_time_constant_ms * 1e-3,
             hp_acc: acc(&f.hp_accumulator),
             lp_acc: acc(&f.lp_accumulator),
-            motor_disp,
-            motor_leak,
+            motor_disp_m3_per_rad: motor_disp,
+            motor_leak_m3_per_s_pa: motor_leak,
             motor_eta_mech: mo.total_efficiency / mo.volumetric_efficiency,
-            motor_inertia: mo.inertia_kg_m2,
+            motor_inertia_kg_m2: mo.inertia_kg_m2,
             load,
-            hp_line_volume: pipe_volume(l.hp_length_m, l.hp_inner_diameter_mm),
-            motor_line_volume: pipe_volume(
+            hp_line_volume_m3: pipe_volume(l.hp_length_m, l.hp_inner_diameter_mm),
+            motor_line_volume_m3: pipe_volume(
                 l.valve_to_motor_length_m,
                 l.valve_to_motor_inner_diameter_mm,
             ),
-            lp_line_volume: pipe_volume(l.motor_to_lp_length_m, l.motor_to_lp_inner_diameter_mm)
+            lp_line_volume_m3: pipe_volume(l.motor_to_lp_length_m, l.motor_to_lp_inner_diameter_mm)
                 + pipe_volume(
                     l.lp_to_manifold_length_m,
                     l.lp_to_manifold_inner_diameter_mm,
                 ),
-            lp_manifold_line_volume: pipe_volume(
+            lp_manifold_line_volume_m3: pipe_volume(
                 l.lp_to_manifold_length_m,
                 l.lp_to_manifold_inner_diameter_mm,
             ),
-            hp_line_resistance: l.hp_line_resistance_bar_per_lpm * BAR * 6e4,
-            lp_line_resistance: l.lp_line_resistance_bar_per_lpm * BAR * 6e4,
+            hp_line_resistance_pa_s_per_m3: l.hp_line_resistance_bar_per_lpm * BAR * 6e4,
+            lp_line_resistance_pa_s_per_m3: l.lp_line_resistance_bar_per_lpm * BAR * 6e4,
             file: f,
         })
     }
@@ -370,8 +370,8 @@ mod tests {
         assert_eq!(b.cylinders.len(), 4);
         assert_eq!(b.configs.len(), 4);
         // 32/18 mm cylinder: cap 804.2 mm², annulus 549.8 mm².
-        assert!((b.cylinders[0].area_cap * 1e6 - 804.25).abs() < 0.01);
-        assert!((b.cylinders[0].area_ann * 1e6 - 549.78).abs() < 0.01);
+        assert!((b.cylinders[0].area_cap_m2 * 1e6 - 804.25).abs() < 0.01);
+        assert!((b.cylinders[0].area_ann_m2 * 1e6 - 549.78).abs() < 0.01);
         // Mechanical efficiency 0.85 / 0.92.
         assert!((b.motor_eta_mech - 0.923_913).abs() < 1e-6);
     }

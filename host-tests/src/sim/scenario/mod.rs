@@ -182,11 +182,11 @@ impl Scenario {
             ));
         }
         range("initial_lp_bar", self.initial_lp_bar, 0.0, 100.0, "bar")?;
-        let relief = bench.relief_setting / BAR;
+        let relief = bench.relief_setting_pa / BAR;
         // The accumulators must hold oil at the start: the HP precharge below the relief
         // setting (else the HP accumulator never takes any), the LP precharge below the LP
         // start (else LP runs below zero as the pumps draw from it).
-        let hp_pre = bench.hp_acc.precharge / BAR;
+        let hp_pre = bench.hp_acc.precharge_pa / BAR;
         if hp_pre >= relief {
             return Err(err(
                 "hp_accumulator.precharge_bar",
@@ -196,7 +196,7 @@ impl Scenario {
                 ),
             ));
         }
-        let lp_pre = bench.lp_acc.precharge / BAR;
+        let lp_pre = bench.lp_acc.precharge_pa / BAR;
         if lp_pre >= self.initial_lp_bar {
             return Err(err(
                 "initial_lp_bar",
@@ -242,7 +242,7 @@ impl Scenario {
                 }
             }
         }
-        let motion = Motion::from_spec(&self.motion, bench.pinion_radius, base)
+        let motion = Motion::from_spec(&self.motion, bench.pinion_radius_m, base)
             .map_err(|e| err("motion", e.to_string()))?;
         self.check_kinematics(bench, config, &motion)
             .map_err(|m| err("motion", m))?;
@@ -330,11 +330,11 @@ impl Scenario {
             (a, if i < 128 { t_lo } else { t_hi })
         });
         for c in &bench.cylinders {
-            let lever = crate::sim::physics::Lever::new(geom, c.stroke, c.side);
+            let lever = crate::sim::physics::Lever::new(geom, c.stroke_m, c.side);
             for (a, t) in sweep.clone() {
                 let x = lever.eye(a, 0.0).0;
-                if !(0.0..=c.stroke).contains(&x) {
-                    let past = if x < 0.0 { -x } else { x - c.stroke };
+                if !(0.0..=c.stroke_m).contains(&x) {
+                    let past = if x < 0.0 { -x } else { x - c.stroke_m };
                     return Err(format!(
                         "the shaft swings to {:.1}° (its extreme near t = {t:.2} s); at {:.1}° \
                          {}'s rod eye is {:.1} mm past its {} (stroke {:.0} mm, lever {}): \
@@ -348,7 +348,7 @@ impl Scenario {
                         } else {
                             "extended end"
                         },
-                        c.stroke * 1e3,
+                        c.stroke_m * 1e3,
                         geom.name
                     ));
                 }
@@ -400,16 +400,16 @@ fn steady_p2(
     let geom = &bench.configs[config];
     let mut q = 0.0;
     for (c, _) in bench.cylinders.iter().zip(on_duty).filter(|(_, d)| **d) {
-        let lever = crate::sim::physics::Lever::new(geom, c.stroke, c.side);
+        let lever = crate::sim::physics::Lever::new(geom, c.stroke_m, c.side);
         let travel = (lever.eye(*amplitude, 0.0).0 - lever.eye(-amplitude, 0.0).0).abs();
-        q += f * (c.area_cap + c.area_ann) * (travel - bench.free_play).max(0.0);
+        q += f * (c.area_cap_m2 + c.area_ann_m2) * (travel - bench.free_play_m).max(0.0);
     }
     let q = q * (1.0 - 0.016);
     let motor_flow = |p2: f64| {
         let (pm, w) = solver::steady_motor(bench, p2, lp, aperture_pct);
-        bench.motor_disp * w + bench.motor_leak * (pm - lp)
+        bench.motor_disp_m3_per_rad * w + bench.motor_leak_m3_per_s_pa * (pm - lp)
     };
-    let (mut lo, mut hi) = (lp, bench.relief_setting);
+    let (mut lo, mut hi) = (lp, bench.relief_setting_pa);
     if motor_flow(hi) < q {
         return Some(hi);
     }
