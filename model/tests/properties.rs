@@ -48,7 +48,7 @@ proptest! {
         let sc = SchedulerConfig::default().coefficients(k).unwrap();
         let mut s = State::new(Pressure::from_num(p0), Pressure::from_num(8.0), Pressure::from_num(1.0));
         // Any phase of the shaft tracker, even one it never takes (past its start-up length).
-        s.enc_phase = enc_phase;
+        s.tracker.phase = enc_phase;
         let mut st = SchedulerState::default();
         let mode = match mode_sel {
             0 => Mode::Fixed(Aperture::from_num(set.min(100.0))),

@@ -125,13 +125,13 @@ impl Reference {
             |p: Fx, lo: u16| (f64::from(p.to_bits()) * 65_536.0 + f64::from(lo)) / 4_294_967_296.0;
         let f = |x: Fx| x.to_num::<f64>();
         let mut r = Reference::new(cfg, k, ext(s.p2, s.p2_lo), ext(s.lp, s.lp_lo), 0.0);
-        r.theta = q32(s.theta_q32);
-        r.omega = q32(s.omega_q32);
-        r.accel = q32(s.accel_q32);
-        r.init = s.enc_phase != 0;
+        r.theta = q32(s.tracker.theta_q32);
+        r.omega = q32(s.tracker.omega_q32);
+        r.accel = q32(s.tracker.accel_q32);
+        r.init = s.tracker.phase != 0;
         // enc_phase: 1 tracking, n + 1 with n start-up steps left.
         r.enc_n = u32::from(k.tracker_startup_len)
-            .saturating_sub(u32::from(s.enc_phase.saturating_sub(1)));
+            .saturating_sub(u32::from(s.tracker.phase.saturating_sub(1)));
         r.var = ext(s.var, s.var_lo);
         r.aperture = f(s.aperture);
         r.q_motor = s.started.then(|| ext(s.q_motor, s.q_motor_lo));
@@ -158,14 +158,14 @@ impl Reference {
                 p: (f(c.p_cap), f(c.p_rod)),
             };
         }
-        r.meas = s.meas_live.then(|| RefMeas {
-            q: f(s.q_meas),
-            f: f(s.f_meas),
-            odd: s.meas_odd,
-            band: f(s.meas_band),
-            var: f(s.meas_var),
+        r.meas = s.reading.live.then(|| RefMeas {
+            q: f(s.reading.q),
+            f: f(s.reading.f),
+            odd: s.reading.odd,
+            band: f(s.reading.band),
+            var: f(s.reading.var),
         });
-        r.meas_wait = u32::from(s.meas_wait);
+        r.meas_wait = u32::from(s.reading.wait);
         r
     }
 

@@ -203,23 +203,8 @@ pub const AUTONOMY_EVERY: u8 = 8;
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct State {
-    /// Shaft angle estimate, rad, Q32.32.
-    pub theta_q32: i64,
-    /// Shaft speed estimate, rad/s, Q32.32.
-    pub omega_q32: i64,
-    /// Shaft acceleration estimate, rad/s², Q32.32.
-    pub accel_q32: i64,
-    /// The tracker's phase: 0 before its first encoder reading (and after a drop-out), 1
-    /// tracking with the fading-memory gains, n + 1 with n start-up steps left
-    /// ([`Coefficients::tracker_startup_len`], the expanding-memory gains [`TRACKER_STARTUP`]).
-    /// One byte, so that the steady step tests one value.
-    pub enc_phase: u8,
-    /// Last encoder count.
-    pub enc_last: i32,
-    /// Steps since the encoder last changed.
-    pub enc_still: u16,
-    /// HP reading when the encoder last changed, bar.
-    pub hp_at_enc_change: Fx,
+    /// The shaft tracker (`tracker`).
+    pub tracker: TrackerState,
     /// P2, bar.
     pub p2: Fx,
     /// The 16 bits of P2 below its Q16.16 LSB (units of 2^−32 bar): see `node_step`.
@@ -255,29 +240,8 @@ pub struct State {
     pub cyl: [CylState; 4],
     /// Consecutive rejected HP readings.
     pub rejected: u16,
-    /// Measured motor flow (speed / rpm per L/min), low-passed, L/min (the motor reading, used
-    /// without the HP transducer: see `estimator::motor_reading`).
-    pub q_meas: Fx,
-    /// LP + F(measured motor flow), low-passed, bar.
-    pub f_meas: Fx,
-    /// The motor reading's step: odd (the guards, F and both filters) or even (P2's
-    /// correction).
-    pub meas_odd: bool,
-    /// The reading's dead band as of the last odd step, bar.
-    pub meas_band: Fx,
-    /// `q_meas` and `f_meas` follow the motor sensor. They run while the HP reading is missing,
-    /// the spool stands at its command and the valve is open enough, and restart from the
-    /// sensor after any of these changes.
-    pub meas_live: bool,
-    /// Correction steps the reading still waits before P2 takes it: set to
-    /// [`Coefficients::motor_reading_warm_steps`] while the spool moves or the valve is near
-    /// closed (the rotor may then be accelerating, which filters started from one sample do not
-    /// know yet).
-    pub meas_wait: u16,
-    /// Variance of the motor reading as of the last odd step, bar²: its noise and its dead
-    /// band (an error spread evenly over ±band: band²/3). P2's variance relaxes toward it as
-    /// the reading corrects P2.
-    pub meas_var: Fx,
+    /// The motor reading, used without the HP transducer (`motor`).
+    pub reading: ReadingState,
     /// Consecutive steps with the valve closed (commanded or modelled aperture below
     /// `Coefficients::motor_reading_min_aperture`).
     pub closed_steps: u16,
@@ -296,9 +260,9 @@ impl State {
     }
 }
 
-/// [`State::enc_phase`] before the tracker's first encoder reading.
+/// [`TrackerState::phase`] before the tracker's first encoder reading.
 const ENC_UNSEEN: u8 = 0;
-/// [`State::enc_phase`] once the fading-memory gains track the shaft.
+/// [`TrackerState::phase`] once the fading-memory gains track the shaft.
 const ENC_TRACKING: u8 = 1;
 
 /// Lower end of the pressure states' range (P2, LP), bar: vacuum.
@@ -321,8 +285,10 @@ mod tracker;
 use cylinder::*;
 pub use cylinder::{FLOAT_BAND, FLOAT_RAMP};
 use fine::*;
+pub use motor::ReadingState;
 use motor::*;
 use observer::*;
+pub use tracker::TrackerState;
 use tracker::*;
 
 /// Advances the estimator by one step. Cannot fail; every reading may be missing or wrong.
@@ -330,7 +296,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let dtl = k.dt_log2;
     let mut faults = 0u16;
     // --- Shaft: α–β–γ tracker on the encoder angle.
-    let (theta, omega) = track(k, s, inp, &mut faults);
+    let (theta, omega) = track(k, &mut s.tracker, s.p2, inp, &mut faults);
     // --- Spool lag.
     // The first step takes the spool as settled at the command and the valve/motor flow at its
     // steady value (a state started from known pressures is a bench at rest or in steady
@@ -373,7 +339,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     // took that as a P2 LSB a step. |ω| ≤ 100 rad/s (`OMEGA_LIM_Q32`) is < 2^31 in Q8.24, so
     // it is one word; times an arm (< 2^31 bits) < 2^62; the rod speed is held to the Q16.16
     // range.
-    let omega24 = ((s.omega_q32 + (1 << 7)) >> 8) as i32;
+    let omega24 = ((s.tracker.omega_q32 + (1 << 7)) >> 8) as i32;
     let lever = |th: Fx, negative: bool| {
         let d = arm_table.at(th);
         let sd = if negative { d.saturating_neg() } else { d };
@@ -462,8 +428,8 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
             match motor {
                 Some(m) if !closed => faults |= motor_reading(k, s, m.0, cmd, lp_dp, dp, q_ss, g),
                 // Closed: no reading; the filters restart once it opens, P2 waiting for them.
-                Some(_) => (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps),
-                None => (s.meas_live, s.meas_wait) = (false, 0),
+                Some(_) => (s.reading.live, s.reading.wait) = (false, k.motor_reading_warm_steps),
+                None => (s.reading.live, s.reading.wait) = (false, 0),
             }
             // Within the band above the precharge the accumulator's last cm³ decide when it
             // runs empty, and P2 then falls to the empty node's level (5–15 bar lower) within

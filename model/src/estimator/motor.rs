@@ -2,6 +2,35 @@
 
 use super::*;
 
+/// The motor reading's state: its filters and its phase.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct ReadingState {
+    /// Measured motor flow (speed / rpm per L/min), low-passed, L/min (the motor reading, used
+    /// without the HP transducer: see `estimator::motor_reading`).
+    pub q: Fx,
+    /// LP + F(measured motor flow), low-passed, bar.
+    pub f: Fx,
+    /// The motor reading's step: odd (the guards, F and both filters) or even (P2's
+    /// correction).
+    pub odd: bool,
+    /// The reading's dead band as of the last odd step, bar.
+    pub band: Fx,
+    /// `q` and `f` follow the motor sensor. They run while the HP reading is missing,
+    /// the spool stands at its command and the valve is open enough, and restart from the
+    /// sensor after any of these changes.
+    pub live: bool,
+    /// Correction steps the reading still waits before P2 takes it: set to
+    /// [`Coefficients::motor_reading_warm_steps`] while the spool moves or the valve is near
+    /// closed (the rotor may then be accelerating, which filters started from one sample do not
+    /// know yet).
+    pub wait: u16,
+    /// Variance of the motor reading as of the last odd step, bar²: its noise and its dead
+    /// band (an error spread evenly over ±band: band²/3). P2's variance relaxes toward it as
+    /// the reading corrects P2.
+    pub var: Fx,
+}
+
 /// P2 read from the motor speed, for a step without the HP transducer.
 ///
 /// The rotor's equation L·dQ/dt = P2 − LP − F(Q) (see the valve/motor step in [`step`]) read
@@ -51,17 +80,17 @@ pub(super) fn motor_reading(
         ((i64::from(rpm.to_bits()) * i64::from(k.lpm_per_rpm_q24) + (1 << 23)) >> 24)
             .min(i64::from(FLOW_LIM.to_bits())) as i32,
     );
-    if !s.meas_live {
-        s.q_meas = q_m;
-        s.f_meas = lp_plus_f(lp_dp, q_ss, q_m, mul_bounded(g, k.motor_reading_ldt));
-        (s.meas_live, s.meas_odd) = (true, false);
+    if !s.reading.live {
+        s.reading.q = q_m;
+        s.reading.f = lp_plus_f(lp_dp, q_ss, q_m, mul_bounded(g, k.motor_reading_ldt));
+        (s.reading.live, s.reading.odd) = (true, false);
         return 0;
     }
     // The work alternates between two steps, each filter running at half rate, so that a
     // step costs about what the HP transducer's Kalman update it replaces does: the guards, F
     // and both filters in one, P2's correction in the other.
-    s.meas_odd = !s.meas_odd;
-    if s.meas_odd {
+    s.reading.odd = !s.reading.odd;
+    if s.reading.odd {
         // dF/dQ = g·L/dt: g ≤ 1 and L/dt < 2^15 bar per L/min (a saturated coefficient), so
         // the product fits.
         // Plausibility: the flow read must be one the valve can pass at the modelled aperture
@@ -76,7 +105,7 @@ pub(super) fn motor_reading(
             .saturating_add(mul_bounded(q_cap, k.motor_reading_band))
             .saturating_add(k.motor_reading_min_lpm);
         if q_m > q_cap {
-            (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps);
+            (s.reading.live, s.reading.wait) = (false, k.motor_reading_warm_steps);
             return fault::MOTOR_IMPLAUSIBLE;
         }
         let slope = mul_bounded(g, k.motor_reading_ldt);
@@ -85,33 +114,35 @@ pub(super) fn motor_reading(
         {
             // The valve near closed, or the spool moving: no reading; the filters restart
             // once both end, and P2 takes the reading after they have run a while.
-            (s.meas_live, s.meas_wait) = (false, k.motor_reading_warm_steps);
+            (s.reading.live, s.reading.wait) = (false, k.motor_reading_warm_steps);
             return 0;
         }
         let f = lp_plus_f(lp_dp, q_ss, q_m, slope);
-        s.f_meas = filter(s.f_meas, k.motor_reading_filter, f);
+        s.reading.f = filter(s.reading.f, k.motor_reading_filter, f);
         // The derivative L·(Q_m − Q̄)/τ of the next step takes Q̄ as of this one.
-        s.q_meas = filter(s.q_meas, k.motor_reading_filter, q_m);
+        s.reading.q = filter(s.reading.q, k.motor_reading_filter, q_m);
         // ΔP ≤ 400 bar × a band ≤ 0.5: fits.
-        s.meas_band = mul_bounded(dp, k.motor_reading_band);
+        s.reading.band = mul_bounded(dp, k.motor_reading_band);
         // band²/3 saturates above a 181 bar band: far beyond any P2 gate.
-        s.meas_var = s
-            .meas_band
-            .qmul(s.meas_band)
+        s.reading.var = s
+            .reading
+            .band
+            .qmul(s.reading.band)
             .qmul(ONE_THIRD)
             .saturating_add(k.motor_reading_r);
         return 0;
     }
-    if s.meas_wait > 0 {
-        s.meas_wait -= 1;
+    if s.reading.wait > 0 {
+        s.reading.wait -= 1;
     } else if q_m >= k.motor_reading_min_lpm {
         let z = s
-            .f_meas
-            .saturating_add(q_m.saturating_sub(s.q_meas).qmul(k.motor_reading_lt));
+            .reading
+            .f
+            .saturating_add(q_m.saturating_sub(s.reading.q).qmul(k.motor_reading_lt));
         // Only the part of the innovation beyond the band counts: inside it the reading does
         // not know P2 better than the model does.
         let e = z.saturating_sub(s.p2);
-        let e = e - clamp(e, -s.meas_band, s.meas_band);
+        let e = e - clamp(e, -s.reading.band, s.reading.band);
         // Plausibility: the flow read must be one the valve can pass at a P2 the relief allows,
         // i.e. the P2 it implies, less its band, at most the relief setting plus the gate's
         // worth of the reading's noise (F is monotone in the flow, so this is the valve's
@@ -119,7 +150,7 @@ pub(super) fn motor_reading(
         // speed sensor or the model is wrong: flagged, P2 not moved. (A gate on the distance
         // to P2 itself would refuse the readings the empty HP node needs most: there the
         // model can run empty 0.1 s before the bench, 17 bar below it.)
-        if z.saturating_sub(s.meas_band) > k.motor_reading_p2_max {
+        if z.saturating_sub(s.reading.band) > k.motor_reading_p2_max {
             return fault::MOTOR_IMPLAUSIBLE;
         }
         // P2 += gain·e, exact in Q32.32 (|e| < 2^31 bits × gain ≤ 2^16 bits: < 2^47) and kept
@@ -131,8 +162,13 @@ pub(super) fn motor_reading(
             .clamp(ext(P_MIN, 0), ext(P_MAX, 0)),
         );
         // The reading brings P2's variance toward its own (never up to it).
-        if s.var > s.meas_var {
-            relax(&mut s.var, &mut s.var_lo, k.motor_reading_gain, s.meas_var);
+        if s.var > s.reading.var {
+            relax(
+                &mut s.var,
+                &mut s.var_lo,
+                k.motor_reading_gain,
+                s.reading.var,
+            );
         }
     }
     0

@@ -13,7 +13,7 @@ pub(super) fn kalman(k: &Coefficients, s: &mut State, z: Fx, faults: &mut u16) {
         s.var = s.var.saturating_add(k.q_relief);
     }
     // The motor reading restarts when the transducer goes missing again.
-    (s.meas_live, s.meas_wait) = (false, 0);
+    (s.reading.live, s.reading.wait) = (false, 0);
     let innov = z.saturating_sub(s.p2);
     let s_innov = s.var.saturating_add(k.r);
     if innov.qmul(innov) <= k.gate_sq.qmul(s_innov) {
