@@ -108,6 +108,25 @@ pub fn host_ns_per_step() -> f64 {
     runs[2]
 }
 
+/// The per-step functions and tables, as fragments of their mangled names (legacy mangling:
+/// length-prefixed path segments, then `17h` and the hash). Every one must be found in the
+/// rlib ([`code_size`] fails otherwise), so a function moved to another module cannot drop out
+/// of the count unnoticed.
+const STEP: [&str; 12] = [
+    "9estimator4step17h",
+    "9estimator8cylinder8cylinder17h",
+    "9estimator8cylinder13reversal_unit17h",
+    "9estimator7tracker15tracker_startup17h",
+    "6coeffs15TRACKER_STARTUP",
+    "9scheduler4step17h",
+    "17aperture_for_flow",
+    "2fx5recip",
+    "2fx7mul_q24",
+    "2at17h",
+    "6at_ext17h",
+    "6at_q3217h",
+];
+
 /// Builds `pto-model` for `target` (release, into `target/model-size`) and sums its sections.
 pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
     let target_dir = workspace.join("target").join("model-size");
@@ -139,6 +158,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
     let archive = object::read::archive::ArchiveFile::parse(&*data)
         .map_err(|e| format!("{}: {e}", rlib.display()))?;
     let (mut text, mut rodata, mut step) = (0u64, 0u64, 0u64);
+    let mut seen = [false; STEP.len()];
     for member in archive.members() {
         let member = member.map_err(|e| e.to_string())?;
         let name = String::from_utf8_lossy(member.name()).to_string();
@@ -152,24 +172,12 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
         use object::{Object, ObjectSection, ObjectSymbol};
         for sym in file.symbols() {
             let n = sym.name().unwrap_or("");
-            // The per-step functions (legacy mangling: length-prefixed path segments).
-            const STEP: [&str; 13] = [
-                "9estimator4step",
-                "9estimator8cylinder",
-                "9estimator13reversal_unit",
-                "9estimator15tracker_startup",
-                "6coeffs15TRACKER_STARTUP",
-                "9scheduler4step",
-                "17aperture_for_flow",
-                "2fx5recip",
-                "2fx7mul_q24",
-                "2at17h",
-                "6at_ext17h",
-                "6at_q3217h",
-                "6locate",
-            ];
-            if n.contains("9pto_model") && STEP.iter().any(|m| n.contains(m)) {
+            if !n.contains("9pto_model") {
+                continue;
+            }
+            if let Some(i) = STEP.iter().position(|m| n.contains(m)) {
                 step += sym.size();
+                seen[i] = true;
             }
         }
         for s in file.sections() {
@@ -180,6 +188,15 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
                 rodata += s.size();
             }
         }
+    }
+    // A function moved or renamed would silently drop out of the count: every entry must be
+    // found.
+    if let Some(i) = seen.iter().position(|s| !s) {
+        return Err(format!(
+            "{}: no symbol matches `{}`: the per-step function list in model/cost.rs is stale",
+            rlib.display(),
+            STEP[i]
+        ));
     }
     Ok(CodeSize {
         target: target.into(),
