@@ -257,7 +257,9 @@ fn finite_in(lo: f64, hi: f64, unit: &'static str) -> impl Fn(&str) -> Result<f6
 fn main() -> ExitCode {
     let cli = Cli::parse();
     // Ctrl-C or SIGTERM: QEMU children ended, their sockets removed, exit 130.
-    if let Err(e) = pto_host::output::install_interrupt_handler() {
+    if let Err(e) =
+        pto_host::output::install_interrupt_handler(pto_host::hil::qemu::end_all_children)
+    {
         eprintln!("warning: {e}");
     }
     let result = match cli.cmd {

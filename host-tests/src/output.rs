@@ -161,13 +161,14 @@ pub fn remove_staged() {
     }
 }
 
-/// On SIGINT (Ctrl-C) or SIGTERM: end the QEMU children and remove their sockets, remove the
-/// staging folders, exit with 130. Call once at the start of the program.
-pub fn install_interrupt_handler() -> Result<(), String> {
-    ctrlc::set_handler(|| {
-        crate::hil::qemu::end_all_children();
+/// On SIGINT (Ctrl-C) or SIGTERM: run `end_children` (the caller's child processes, e.g.
+/// `hil::qemu::end_all_children`), remove the staging folders, exit with 130. Call once at the
+/// start of the program.
+pub fn install_interrupt_handler(end_children: fn()) -> Result<(), String> {
+    ctrlc::set_handler(move || {
+        end_children();
         remove_staged();
-        eprintln!("interrupted: nothing left half-written, QEMU stopped");
+        eprintln!("interrupted: nothing left half-written, child processes stopped");
         std::process::exit(130);
     })
     .map_err(|e| format!("cannot install the interrupt handler: {e}"))

@@ -7,7 +7,7 @@
 //! p = lo + (hi − lo)(1 + tanh z)/2, so a step can never leave the range the bench file accepts.
 //! The valve's area table is fitted as factors on its increments (≥ 0), so it stays monotone.
 
-use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench, BenchFile};
 use crate::sim::benchlog::BenchLog;
 use crate::sim::motion::Motion;

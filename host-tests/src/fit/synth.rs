@@ -34,7 +34,12 @@ pub fn synth_log(
         let t = k as f64 / rate_hz;
         let truth = truth_at(&res.trace, t);
         let theta = prep.plant.motion().at(t).0;
-        let (enc, hp, lp, motor) = synth.read(theta, &truth);
+        let Readings {
+            encoder_count: enc,
+            hp_bar: hp,
+            lp_bar: lp,
+            motor_rpm: motor,
+        } = synth.read(theta, &truth);
         log.t.push(t);
         log.theta_deg
             .push(f64::from(enc) * 360.0 / f64::from(spec.counts_per_rev));

@@ -7,7 +7,7 @@
 //! checks of each processor-in-the-loop run, which read its rows.
 
 use crate::hil::qemu::Qemu;
-use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::Eval;
 use crate::sim::solver::{SimResult, ValveController};
@@ -184,7 +184,12 @@ impl FirmwareController {
     }
 
     fn frame(&mut self, theta: f64, truth: &Truth, inj: Injection) -> SensorFrame {
-        let (mut enc, mut hp, lp, mut motor) = self.synth.read_analog(theta, truth);
+        let Readings {
+            encoder_count: mut enc,
+            hp_bar: mut hp,
+            lp_bar: lp,
+            motor_rpm: mut motor,
+        } = self.synth.read_analog(theta, truth);
         match inj {
             Injection::EncoderStuck => enc = self.last_enc,
             Injection::HpNoise(a) => hp += if self.tick.is_multiple_of(2) { a } else { -a },

@@ -3,7 +3,7 @@
 
 use super::validate::target;
 use super::{duty_mask, inputs, model_config};
-use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::Eval;
 use crate::sim::solver::{self, Initial, Run, SolverOptions, ValveController, ValveSchedule};
@@ -88,7 +88,12 @@ impl ValveController for ModelController {
     }
 
     fn update(&mut self, t: f64, p: &Eval) -> f64 {
-        let (enc, hp, lp, motor) = self.synth.read(p.theta_rad, &Truth::of_eval(p));
+        let Readings {
+            encoder_count: enc,
+            hp_bar: hp,
+            lp_bar: lp,
+            motor_rpm: motor,
+        } = self.synth.read(p.theta_rad, &Truth::of_eval(p));
         let inp = inputs(
             Some(enc),
             Some(hp),

@@ -7,7 +7,7 @@
 //! (holding P2 at 100 bar) run from a known start.
 
 use super::{commanded_aperture_pct, duty_mask, inputs};
-use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::Bench;
 use crate::sim::trace::truth_at;
 use pto_model::estimator::{self, Estimate, Inputs, State};
@@ -74,7 +74,12 @@ pub fn scenario_inputs(
     for i in 0..steps {
         let t = t0 + i as f64 * dt;
         let truth = truth_at(&res.trace, t);
-        let (enc, hp, lp, motor) = synth.read(prep.plant.motion().at(t).0, &truth);
+        let Readings {
+            encoder_count: enc,
+            hp_bar: hp,
+            lp_bar: lp,
+            motor_rpm: motor,
+        } = synth.read(prep.plant.motion().at(t).0, &truth);
         let (enc, hp) = faults(i, Some(enc), hp);
         let ap = commanded_aperture_pct(&s, &res, t);
         v.push(inputs(

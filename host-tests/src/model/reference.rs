@@ -82,13 +82,13 @@ pub struct RefOut {
     /// P2, bar.
     pub p2_bar: f64,
     /// Torque, N·m.
-    pub torque: f64,
+    pub torque_nm: f64,
     /// Motor speed, rpm.
     pub motor_rpm: f64,
     /// Pump flow into HP, L/min.
-    pub q_pump: f64,
+    pub q_pump_lpm: f64,
     /// Valve (motor) flow out of HP, L/min.
-    pub q_valve: f64,
+    pub q_valve_lpm: f64,
 }
 
 impl Reference {
@@ -544,10 +544,10 @@ impl Reference {
         }
         RefOut {
             p2_bar: self.p2_bar,
-            torque,
+            torque_nm: torque,
             motor_rpm,
-            q_pump,
-            q_valve,
+            q_pump_lpm: q_pump,
+            q_valve_lpm: q_valve,
         }
     }
 }

@@ -38,6 +38,19 @@ impl Default for SensorSpec {
     }
 }
 
+/// One sample of the bench's sensors.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Readings {
+    /// Shaft encoder count.
+    pub encoder_count: i32,
+    /// HP transducer, bar.
+    pub hp_bar: f64,
+    /// LP transducer, bar.
+    pub lp_bar: f64,
+    /// Motor speed sensor, rpm.
+    pub motor_rpm: f64,
+}
+
 /// Makes sensor readings: quantised encoder, pressures with Gaussian noise read through the
 /// firmware's 4–20 mA front end (its 12-bit ADC counts and its conversion back to bar).
 pub struct SensorSynth {
@@ -88,24 +101,26 @@ impl SensorSynth {
     }
 
     /// Readings of the plant state `truth` at shaft angle `theta`.
-    pub fn read(&mut self, theta: f64, truth: &Truth) -> (i32, f64, f64, f64) {
-        let (enc, hp, lp, motor) = self.read_analog(theta, truth);
-        let hp = Self::through(&self.hp, &self.spec.hp_loop, hp);
-        let lp = Self::through(&self.lp, &self.spec.lp_loop, lp);
-        (enc, hp, lp, motor)
+    pub fn read(&mut self, theta: f64, truth: &Truth) -> Readings {
+        let r = self.read_analog(theta, truth);
+        Readings {
+            hp_bar: Self::through(&self.hp, &self.spec.hp_loop, r.hp_bar),
+            lp_bar: Self::through(&self.lp, &self.spec.lp_loop, r.lp_bar),
+            ..r
+        }
     }
 
     /// Like [`SensorSynth::read`] with the pressures noisy but not yet quantised (for a front
     /// end that quantises them itself, e.g. the firmware's 4–20 mA loops).
-    pub fn read_analog(&mut self, theta: f64, truth: &Truth) -> (i32, f64, f64, f64) {
+    pub fn read_analog(&mut self, theta: f64, truth: &Truth) -> Readings {
         let n_hp = self.hp_noise.sample(&mut self.rng);
         let n_lp = self.lp_noise.sample(&mut self.rng);
         let motor = (truth.motor_rpm + self.motor_noise.sample(&mut self.rng)).max(0.0);
-        (
-            self.encoder(theta),
-            truth.p2_bar + n_hp,
-            truth.lp_bar + n_lp,
-            motor,
-        )
+        Readings {
+            encoder_count: self.encoder(theta),
+            hp_bar: truth.p2_bar + n_hp,
+            lp_bar: truth.lp_bar + n_lp,
+            motor_rpm: motor,
+        }
     }
 }

@@ -4,7 +4,7 @@
 use super::closed_loop::{LoopRow, closed_loop_rows};
 use super::{commanded_aperture_pct, duty_mask, inputs, model_config};
 use crate::model::reference::Reference;
-use crate::model::sensors::{SensorSpec, SensorSynth};
+use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::scenario::Scenario;
 use crate::sim::solver::SolverOptions;
@@ -169,7 +169,12 @@ fn validate_scenario(
     for i in 0..n {
         let t = i as f64 * dt;
         let truth = truth_at(tr, t);
-        let (enc, hp, lp, motor) = synth.read(motion.at(t).0, &truth);
+        let Readings {
+            encoder_count: enc,
+            hp_bar: hp,
+            lp_bar: lp,
+            motor_rpm: motor,
+        } = synth.read(motion.at(t).0, &truth);
         let ap = commanded_aperture_pct(&s, &res, t);
         let inp = inputs(Some(enc), Some(hp), Some(lp), Some(motor), ap, duty, config);
         let e = estimator::step(k, &mut st, &inp);
@@ -181,8 +186,8 @@ fn validate_scenario(
             f64::from(e.motor_rpm.to_f32()),
         );
         d_p2 = d_p2.max((p2 - r.p2_bar).abs());
-        d_tq = d_tq.max((tq - r.torque).abs());
-        se_d_tq += (tq - r.torque).powi(2);
+        d_tq = d_tq.max((tq - r.torque_nm).abs());
+        se_d_tq += (tq - r.torque_nm).powi(2);
         // Judge after the first wave period's start-up transient of the tracker (1 s).
         if t >= 1.0 {
             max_p2 = max_p2.max((p2 - truth.p2_bar).abs());
@@ -215,7 +220,12 @@ fn validate_scenario(
     for i in 0..m {
         let t = i as f64 * dt;
         let truth: Truth = truth_at(tr, t);
-        let (enc, _, lp, motor) = synth.read(motion.at(t).0, &truth);
+        let Readings {
+            encoder_count: enc,
+            lp_bar: lp,
+            motor_rpm: motor,
+            ..
+        } = synth.read(motion.at(t).0, &truth);
         let ap = commanded_aperture_pct(&s, &res, t);
         let inp = inputs(Some(enc), None, Some(lp), Some(motor), ap, duty, config);
         let e = estimator::step(k, &mut st, &inp);
