@@ -335,3 +335,64 @@ pub(super) fn cylinder(
     // reversal, where the lever's speed and with it the drag are small).
     sd.qmul(f_hyd).saturating_neg().saturating_add(lever.seal)
 }
+
+/// The cylinders stage of a step: per cylinder on duty, its stroke and reversal work, its flows
+/// and torque; returns the total torque, the torque per cylinder and the step's shared sums
+/// (pump and suction flows, reversal work left). Inlined into the step, its only caller.
+#[inline(always)]
+pub(super) fn cylinders<'a>(
+    k: &'a Coefficients,
+    s: &mut State,
+    theta: Fx,
+    inp: &Inputs,
+    faults: &mut u16,
+) -> (Fx, [Torque; 4], Shared<'a>) {
+    let config = usize::from(inp.config);
+    let (arm_table, ext_table, duty) = match (k.arm.get(config), k.ext.get(config)) {
+        (Some(a), Some(e)) => (a, e, inp.on_duty),
+        _ => {
+            *faults |= fault::BAD_CONFIG;
+            (&k.arm[0], &k.ext[0], 0)
+        }
+    };
+    let mut torque_cyl = [Torque::ZERO; 4];
+    let mut torque = ZERO;
+    let mut sh = Shared {
+        k,
+        ext: ext_table,
+        lp: s.lp,
+        lo: s.lp.saturating_sub(k.check_drop),
+        hi: s.p2.saturating_add(k.check_drop),
+        budget: REVERSAL_UNITS_PER_STEP,
+        q_pump: ZERO,
+        q_lp: ZERO,
+    };
+    // The lever on each side of the shaft (s = ±1): the arm tables are per geometry, so every
+    // cylinder on one side shares s·θ, the signed arm s·d and the rod speed v = s·d·θ̇ (mm/s).
+    // The shaft speed to 2^−24 rad/s for the rod speed: in Q16.16 its LSB is 6·10^−5 of a
+    // 0.26 rad/s swing, and the pump flow on the empty HP node (≈ 0.18 bar per L/min a step)
+    // took that as a P2 LSB a step. |ω| ≤ 100 rad/s (`OMEGA_LIM_Q32`) is < 2^31 in Q8.24, so
+    // it is one word; times an arm (< 2^31 bits) < 2^62; the rod speed is held to the Q16.16
+    // range.
+    let omega24 = ((s.tracker.omega_q32 + (1 << 7)) >> 8) as i32;
+    let lever = |th: Fx, negative: bool| {
+        let d = arm_table.at(th);
+        let sd = if negative { d.saturating_neg() } else { d };
+        let v = mul_q24(sd, omega24);
+        Lever {
+            th,
+            sd,
+            v,
+            seal: sd.qmul(v.qmul(k.seal_kn_per_mm_s)),
+        }
+    };
+    let levers = [lever(theta, false), lever(theta.saturating_neg(), true)];
+    for (i, (c, cs)) in k.cyl.iter().zip(s.cyl.iter_mut()).enumerate() {
+        let on = duty & (1 << i) != 0;
+        let lv = &levers[usize::from(c.side < ZERO)];
+        let t = cylinder(&mut sh, c, cs, lv, on);
+        torque_cyl[i] = Torque(t);
+        torque = torque.saturating_add(t);
+    }
+    (torque, torque_cyl, sh)
+}

@@ -312,81 +312,19 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
             .saturating_add(mul_frac(k.spool_gain, cmd.saturating_sub(s.aperture)));
     }
     // --- Cylinders: delivered flow, suction flow, torque.
-    let config = usize::from(inp.config);
-    let (arm_table, ext_table, duty) = match (k.arm.get(config), k.ext.get(config)) {
-        (Some(a), Some(e)) => (a, e, inp.on_duty),
-        _ => {
-            faults |= fault::BAD_CONFIG;
-            (&k.arm[0], &k.ext[0], 0)
-        }
-    };
-    let mut torque_cyl = [Torque::ZERO; 4];
-    let mut torque = ZERO;
-    let mut sh = Shared {
-        k,
-        ext: ext_table,
-        lp: s.lp,
-        lo: s.lp.saturating_sub(k.check_drop),
-        hi: s.p2.saturating_add(k.check_drop),
-        budget: REVERSAL_UNITS_PER_STEP,
-        q_pump: ZERO,
-        q_lp: ZERO,
-    };
-    // The lever on each side of the shaft (s = ±1): the arm tables are per geometry, so every
-    // cylinder on one side shares s·θ, the signed arm s·d and the rod speed v = s·d·θ̇ (mm/s).
-    // The shaft speed to 2^−24 rad/s for the rod speed: in Q16.16 its LSB is 6·10^−5 of a
-    // 0.26 rad/s swing, and the pump flow on the empty HP node (≈ 0.18 bar per L/min a step)
-    // took that as a P2 LSB a step. |ω| ≤ 100 rad/s (`OMEGA_LIM_Q32`) is < 2^31 in Q8.24, so
-    // it is one word; times an arm (< 2^31 bits) < 2^62; the rod speed is held to the Q16.16
-    // range.
-    let omega24 = ((s.tracker.omega_q32 + (1 << 7)) >> 8) as i32;
-    let lever = |th: Fx, negative: bool| {
-        let d = arm_table.at(th);
-        let sd = if negative { d.saturating_neg() } else { d };
-        let v = mul_q24(sd, omega24);
-        Lever {
-            th,
-            sd,
-            v,
-            seal: sd.qmul(v.qmul(k.seal_kn_per_mm_s)),
-        }
-    };
-    let levers = [lever(theta, false), lever(theta.saturating_neg(), true)];
-    for (i, (c, cs)) in k.cyl.iter().zip(s.cyl.iter_mut()).enumerate() {
-        let on = duty & (1 << i) != 0;
-        let lv = &levers[usize::from(c.side < ZERO)];
-        let t = cylinder(&mut sh, c, cs, lv, on);
-        torque_cyl[i] = Torque(t);
-        torque = torque.saturating_add(t);
-    }
+    let (torque, torque_cyl, sh) = cylinders(k, s, theta, inp, &mut faults);
     let (q_pump, q_lp_net) = (sh.q_pump, sh.q_lp);
     let mut background_units = REVERSAL_UNITS_PER_STEP - sh.budget;
     // --- Valve, relief, motor.
-    // The rotor's inertia: L·dQ/dt = ΔP − F(Q) with F the branch's steady pressure drop
-    // (`ModelConfig::motor_inductance`). F(Q_ss) = ΔP, and F(Q_ss) − F(Q) = (Q_ss − Q)·(β +
-    // (Q_ss + Q)/K²) exactly for the turbulent valve, so one explicit step is a relaxation
-    // toward the steady flow with gain dt/L·(β + (Q_ss + Q)/K²). Held to 1 (where the valve's
-    // resistance makes the branch faster than a step, e.g. near closed), the flow takes its
-    // steady value: it never overshoots, so the step is stable at every aperture.
-    let dp = s.p2.saturating_sub(s.lp).max(ZERO);
-    let lp_dp = s.lp.saturating_add(dp);
-    let (q_ss, gain_valve) = k.valve_flow.at_with(s.aperture, dp, &k.motor_gain_valve);
-    if first {
-        (s.q_motor, s.q_motor_lo) = (q_ss, 0);
-    }
-    let g = k
-        .motor_gain0
-        .saturating_add(q_ss.saturating_add(s.q_motor).qmul(gain_valve))
-        .min(ONE);
-    relax(&mut s.q_motor, &mut s.q_motor_lo, g, q_ss);
-    let motor_rpm = s.q_motor.qmul(k.rpm_per_lpm);
-    // A coasting rotor that outruns the pressure across it (P2 down to LP: an empty HP node
-    // when the pump stops) draws the rest through the make-up valve from LP, not from HP.
-    let q_valve = if dp > ZERO { s.q_motor } else { ZERO };
-    let q_relief =
-        s.p2.saturating_sub(k.relief_setting)
-            .max(ZERO)
-            .qmul(k.relief_gain);
+    let Branch {
+        dp,
+        lp_dp,
+        q_ss,
+        g,
+        motor_rpm,
+        q_valve,
+        q_relief,
+    } = branch(k, s, first);
     // --- Predict.
     let net_hp = q_pump.saturating_sub(q_valve).saturating_sub(q_relief);
     let dp_per_flow = k.inv_c_hp.at(s.p2);

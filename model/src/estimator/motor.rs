@@ -1,4 +1,5 @@
-//! The motor speed read as a pressure, to correct P2 without the HP transducer.
+//! The valve/motor branch (the rotor's flow, the relief) and the motor speed read as a pressure,
+//! to correct P2 without the HP transducer.
 
 use super::*;
 
@@ -195,4 +196,62 @@ pub(super) fn lp_plus_f(lp_dp: Fx, q_ss: Fx, q_m: Fx, slope: Fx) -> Fx {
 pub(super) fn filter(x: Fx, a: Fx, target: Fx) -> Fx {
     let d = (i64::from(a.to_bits()) * i64::from((target - x).to_bits()) + (1 << 15)) >> 16;
     x + Fx::from_bits(d as i32)
+}
+
+/// The valve/motor branch and the relief after one step (flows L/min, pressures bar).
+pub(super) struct Branch {
+    /// P2 − LP, held ≥ 0.
+    pub(super) dp: Fx,
+    /// LP + (P2 − LP).
+    pub(super) lp_dp: Fx,
+    /// The branch's steady flow at `dp`.
+    pub(super) q_ss: Fx,
+    /// The relaxation gain of this step.
+    pub(super) g: Fx,
+    /// Motor speed, rpm.
+    pub(super) motor_rpm: Fx,
+    /// Flow out of HP through the valve.
+    pub(super) q_valve: Fx,
+    /// Relief flow.
+    pub(super) q_relief: Fx,
+}
+
+/// The valve/motor stage of a step: the rotor's flow relaxed toward the steady flow of the
+/// pressure across the branch, and the relief. Inlined into the step, its only caller.
+#[inline(always)]
+pub(super) fn branch(k: &Coefficients, s: &mut State, first: bool) -> Branch {
+    // The rotor's inertia: L·dQ/dt = ΔP − F(Q) with F the branch's steady pressure drop
+    // (`ModelConfig::motor_inductance`). F(Q_ss) = ΔP, and F(Q_ss) − F(Q) = (Q_ss − Q)·(β +
+    // (Q_ss + Q)/K²) exactly for the turbulent valve, so one explicit step is a relaxation
+    // toward the steady flow with gain dt/L·(β + (Q_ss + Q)/K²). Held to 1 (where the valve's
+    // resistance makes the branch faster than a step, e.g. near closed), the flow takes its
+    // steady value: it never overshoots, so the step is stable at every aperture.
+    let dp = s.p2.saturating_sub(s.lp).max(ZERO);
+    let lp_dp = s.lp.saturating_add(dp);
+    let (q_ss, gain_valve) = k.valve_flow.at_with(s.aperture, dp, &k.motor_gain_valve);
+    if first {
+        (s.q_motor, s.q_motor_lo) = (q_ss, 0);
+    }
+    let g = k
+        .motor_gain0
+        .saturating_add(q_ss.saturating_add(s.q_motor).qmul(gain_valve))
+        .min(ONE);
+    relax(&mut s.q_motor, &mut s.q_motor_lo, g, q_ss);
+    let motor_rpm = s.q_motor.qmul(k.rpm_per_lpm);
+    // A coasting rotor that outruns the pressure across it (P2 down to LP: an empty HP node
+    // when the pump stops) draws the rest through the make-up valve from LP, not from HP.
+    let q_valve = if dp > ZERO { s.q_motor } else { ZERO };
+    let q_relief =
+        s.p2.saturating_sub(k.relief_setting)
+            .max(ZERO)
+            .qmul(k.relief_gain);
+    Branch {
+        dp,
+        lp_dp,
+        q_ss,
+        g,
+        motor_rpm,
+        q_valve,
+        q_relief,
+    }
 }
