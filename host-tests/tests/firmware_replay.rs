@@ -74,7 +74,7 @@ fn firmware_matches_the_host_model_bit_for_bit() {
         golden::scenario_inputs(&bench, "test1-cfg1-c1", None, 12_000, golden::no_hp).unwrap();
     let host = golden::run(&k, &inputs, p2, lp).unwrap();
     let mut k_off = k.clone();
-    k_off.motor_reading_gain = pto_model::fx::Fx::ZERO;
+    k_off.reading.gain = pto_model::fx::Fx::ZERO;
     let off = golden::run(&k_off, &inputs, p2, lp).unwrap();
     let p2_span = host
         .iter()

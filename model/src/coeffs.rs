@@ -111,6 +111,44 @@ pub fn tracker_startup_gains(n: usize, d_q32: u32) -> (u32, u32) {
     )
 }
 
+/// The motor reading's coefficients (`estimator::motor_reading`), used without the HP
+/// transducer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReadingCoeffs {
+    /// Low-pass gain of the motor reading's filters (`estimator::motor_reading`), per second
+    /// step: 2·dt/τ.
+    pub filter: Fx,
+    /// The rotor's inductance per step, L/dt, bar per L/min (the branch's dF/dQ is the step's
+    /// relaxation gain times this).
+    pub ldt: Fx,
+    /// L/τ: the reading's pressure per L/min of measured flow above its low-passed value.
+    pub lt: Fx,
+    /// P2's gain toward the reading, per second step: 2·dt/T (0: the reading is not used).
+    pub gain: Fx,
+    /// Largest dF/dQ at which the reading is used, bar per L/min.
+    pub max_slope: Fx,
+    /// Smallest measured motor flow at which the reading is used, L/min.
+    pub min_lpm: Fx,
+    /// Largest |command − spool| at which the reading is used, %.
+    pub spool_tol: Fx,
+    /// The reading's dead band as a fraction of ΔP.
+    pub band: Fx,
+    /// Correction steps (every second step) the reading's filters run before P2 takes it:
+    /// three filter time constants.
+    pub warm_steps: u16,
+    /// The reading is used only while both the commanded and the modelled aperture are at
+    /// least this, %.
+    pub min_aperture: Fx,
+    /// Minimum motor speed for the reading, rpm (also: a motor turning faster than this behind
+    /// a closed valve contradicts the model).
+    pub min_rpm: Fx,
+    /// Variance of the reading's noise, bar².
+    pub r: Fx,
+    /// Highest P2 a plausible reading implies (beyond its band), bar: the relief setting plus
+    /// the gate's worth of the reading's noise.
+    pub p2_max: Fx,
+}
+
 /// Everything the step functions read.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Coefficients {
@@ -224,44 +262,14 @@ pub struct Coefficients {
     /// Motor flow per rpm, L/min per rpm, Q8.24 (1/[`Self::rpm_per_lpm`]: 0.0086 on the
     /// reference bench, to 6·10^−8).
     pub lpm_per_rpm_q24: i32,
-    /// Low-pass gain of the motor reading's filters (`estimator::motor_reading`), per second
-    /// step: 2·dt/τ.
-    pub motor_reading_filter: Fx,
-    /// The rotor's inductance per step, L/dt, bar per L/min (the branch's dF/dQ is the step's
-    /// relaxation gain times this).
-    pub motor_reading_ldt: Fx,
-    /// L/τ: the reading's pressure per L/min of measured flow above its low-passed value.
-    pub motor_reading_lt: Fx,
-    /// P2's gain toward the reading, per second step: 2·dt/T (0: the reading is not used).
-    pub motor_reading_gain: Fx,
-    /// Largest dF/dQ at which the reading is used, bar per L/min.
-    pub motor_reading_max_slope: Fx,
-    /// Smallest measured motor flow at which the reading is used, L/min.
-    pub motor_reading_min_lpm: Fx,
-    /// Largest |command − spool| at which the reading is used, %.
-    pub motor_reading_spool_tol: Fx,
-    /// The reading's dead band as a fraction of ΔP.
-    pub motor_reading_band: Fx,
-    /// Correction steps (every second step) the reading's filters run before P2 takes it:
-    /// three filter time constants.
-    pub motor_reading_warm_steps: u16,
-    /// The reading is used only while both the commanded and the modelled aperture are at
-    /// least this, %.
-    pub motor_reading_min_aperture: Fx,
-    /// Minimum motor speed for the reading, rpm (also: a motor turning faster than this behind
-    /// a closed valve contradicts the model).
-    pub motor_reading_min_rpm: Fx,
-    /// Variance of the reading's noise, bar².
-    pub motor_reading_r: Fx,
-    /// Highest P2 a plausible reading implies (beyond its band), bar: the relief setting plus
-    /// the gate's worth of the reading's noise.
-    pub motor_reading_p2_max: Fx,
+    /// The motor reading's settings (`estimator::motor_reading`).
+    pub reading: ReadingCoeffs,
     /// Top of the band above the HP precharge where model-only P2 may fall at any moment, bar.
     pub precharge_band_top: Fx,
     /// Least model-only P2 variance in that band, bar².
     pub var_precharge: Fx,
     /// Steps after which a rotor behind a closed valve has spun down (five of its time
-    /// constants J/c): a motor still turning faster than `motor_reading_min_rpm` then contradicts
+    /// constants J/c): a motor still turning faster than `ReadingCoeffs::min_rpm` then contradicts
     /// the model.
     pub spin_down_steps: u16,
 }
@@ -621,26 +629,26 @@ impl ModelConfig {
             // Float-to-integer casts saturate; ≥ 1/10 000 rpm per L/min by validation.
             lpm_per_rpm_q24: (16_777_216.0 / self.rpm_per_lpm()) as i32,
             // The reading's filters run every second step (`estimator::motor_reading`).
-            motor_reading_filter: fx((2.0 * dt / (self.motor_reading_filter_ms * 1e-3)).min(1.0)),
-            motor_reading_ldt: fx(inductance / dt),
-            motor_reading_lt: fx(inductance / (self.motor_reading_filter_ms * 1e-3)),
-            motor_reading_gain: if self.motor_reading_time_constant_ms > 0.0 {
-                fx((2.0 * dt / (self.motor_reading_time_constant_ms * 1e-3)).min(1.0))
-            } else {
-                Fx::ZERO
+            reading: ReadingCoeffs {
+                filter: fx((2.0 * dt / (self.motor_reading_filter_ms * 1e-3)).min(1.0)),
+                ldt: fx(inductance / dt),
+                lt: fx(inductance / (self.motor_reading_filter_ms * 1e-3)),
+                gain: if self.motor_reading_time_constant_ms > 0.0 {
+                    fx((2.0 * dt / (self.motor_reading_time_constant_ms * 1e-3)).min(1.0))
+                } else {
+                    Fx::ZERO
+                },
+                max_slope: fx(self.motor_reading_max_slope_bar_per_lpm),
+                min_lpm: fx(self.motor_reading_min_rpm / self.rpm_per_lpm()),
+                spool_tol: fx(self.motor_reading_spool_tolerance_pct),
+                band: fx(self.motor_reading_band_pct * 1e-2),
+                warm_steps: (1.5 * self.motor_reading_filter_ms * 1e-3 / dt).clamp(1.0, 60_000.0)
+                    as u16,
+                min_aperture: fx(self.motor_reading_min_aperture_pct),
+                min_rpm: fx(self.motor_reading_min_rpm),
+                r: fx(self.motor_reading_noise_bar * self.motor_reading_noise_bar),
+                p2_max: fx(self.relief_setting_bar + self.gate_sigma * self.motor_reading_noise_bar),
             },
-            motor_reading_max_slope: fx(self.motor_reading_max_slope_bar_per_lpm),
-            motor_reading_min_lpm: fx(self.motor_reading_min_rpm / self.rpm_per_lpm()),
-            motor_reading_spool_tol: fx(self.motor_reading_spool_tolerance_pct),
-            motor_reading_band: fx(self.motor_reading_band_pct * 1e-2),
-            motor_reading_warm_steps: (1.5 * self.motor_reading_filter_ms * 1e-3 / dt)
-                .clamp(1.0, 60_000.0) as u16,
-            motor_reading_min_aperture: fx(self.motor_reading_min_aperture_pct),
-            motor_reading_min_rpm: fx(self.motor_reading_min_rpm),
-            motor_reading_r: fx(self.motor_reading_noise_bar * self.motor_reading_noise_bar),
-            motor_reading_p2_max: fx(
-                self.relief_setting_bar + self.gate_sigma * self.motor_reading_noise_bar
-            ),
             precharge_band_top: fx(self.hp.precharge_bar + self.precharge_band_bar),
             var_precharge: fx(self.precharge_sigma_bar * self.precharge_sigma_bar),
             spin_down_steps: (5.0 * self.rotor_time_constant_s() / dt).clamp(1.0, 60_000.0) as u16,

@@ -127,7 +127,7 @@ fn config_errors_name_the_field() {
     let mut c = ModelConfig::reference();
     c.motor_reading_time_constant_ms = 0.0;
     let k = c.coefficients().unwrap();
-    assert_eq!(k.motor_reading_gain, Fx::ZERO);
+    assert_eq!(k.reading.gain, Fx::ZERO);
     c.motor_reading_time_constant_ms = 0.5;
     assert_eq!(
         c.validate().unwrap_err().field,

@@ -181,9 +181,9 @@ impl Reference {
         let k = &*self.k;
         let f = |x: Fx| x.to_num::<f64>();
         let q_m = (rpm * f64::from(k.lpm_per_rpm_q24) / 16_777_216.0).min(1000.0);
-        let slope = g * f(k.motor_reading_ldt);
+        let slope = g * f(k.reading.ldt);
         let fm = (lp_dp - slope * (q_ss - q_m)).clamp(P_MIN_BAR, P_MAX_BAR);
-        let a = f(k.motor_reading_filter);
+        let a = f(k.reading.filter);
         let Some(m) = self.meas.as_mut() else {
             self.meas = Some(RefMeas {
                 q: q_m,
@@ -198,35 +198,35 @@ impl Reference {
         if m.odd {
             let q_cap = k
                 .valve_flow
-                .at_f64(self.aperture, f(k.motor_reading_p2_max) - self.lp_bar);
-            if q_m > q_cap * (1.0 + f(k.motor_reading_band)) + f(k.motor_reading_min_lpm) {
+                .at_f64(self.aperture, f(k.reading.p2_max) - self.lp_bar);
+            if q_m > q_cap * (1.0 + f(k.reading.band)) + f(k.reading.min_lpm) {
                 self.meas = None;
-                self.meas_wait = u32::from(k.motor_reading_warm_steps);
+                self.meas_wait = u32::from(k.reading.warm_steps);
                 return;
             }
-            if slope > f(k.motor_reading_max_slope)
-                || (cmd - self.aperture).abs() > f(k.motor_reading_spool_tol)
+            if slope > f(k.reading.max_slope)
+                || (cmd - self.aperture).abs() > f(k.reading.spool_tol)
             {
                 self.meas = None;
-                self.meas_wait = u32::from(k.motor_reading_warm_steps);
+                self.meas_wait = u32::from(k.reading.warm_steps);
                 return;
             }
             m.f += a * (fm - m.f);
             m.q += a * (q_m - m.q);
-            m.band = dp * f(k.motor_reading_band);
-            m.var = m.band * m.band / 3.0 + f(k.motor_reading_r);
+            m.band = dp * f(k.reading.band);
+            m.var = m.band * m.band / 3.0 + f(k.reading.r);
             return;
         }
         if self.meas_wait > 0 {
             self.meas_wait -= 1;
-        } else if q_m >= f(k.motor_reading_min_lpm) {
-            let z = m.f + (q_m - m.q) * f(k.motor_reading_lt);
+        } else if q_m >= f(k.reading.min_lpm) {
+            let z = m.f + (q_m - m.q) * f(k.reading.lt);
             let e = z - self.p2_bar;
             let e = e - e.clamp(-m.band, m.band);
-            if z - m.band > f(k.motor_reading_p2_max) {
+            if z - m.band > f(k.reading.p2_max) {
                 return;
             }
-            let gain = f(k.motor_reading_gain);
+            let gain = f(k.reading.gain);
             self.p2_bar = (self.p2_bar + gain * e).clamp(P_MIN_BAR, P_MAX_BAR);
             if self.var > m.var {
                 self.var += gain * (m.var - self.var);
@@ -487,8 +487,7 @@ impl Reference {
             *p >= f64::from(c.hp_sensor_range_bar.0) && *p <= f64::from(c.hp_sensor_range_bar.1)
         });
         let f = |x: Fx| x.to_num::<f64>();
-        let closed = cmd < f(k.motor_reading_min_aperture)
-            || self.aperture < f(k.motor_reading_min_aperture);
+        let closed = cmd < f(k.reading.min_aperture) || self.aperture < f(k.reading.min_aperture);
         if let Some(z) = hp {
             if self.p2_bar >= f(k.relief_setting) {
                 self.var += f(k.q_relief);
@@ -526,7 +525,7 @@ impl Reference {
             Some(rpm) if !closed => self.motor_reading(rpm, cmd, lp_dp, dp, q_ss, g),
             Some(_) => {
                 self.meas = None;
-                self.meas_wait = u32::from(k.motor_reading_warm_steps);
+                self.meas_wait = u32::from(k.reading.warm_steps);
             }
             None => {
                 self.meas = None;

@@ -243,7 +243,7 @@ pub struct State {
     /// The motor reading, used without the HP transducer (`motor`).
     pub reading: ReadingState,
     /// Consecutive steps with the valve closed (commanded or modelled aperture below
-    /// `Coefficients::motor_reading_min_aperture`).
+    /// `ReadingCoeffs::min_aperture`).
     pub closed_steps: u16,
 }
 
@@ -347,12 +347,10 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let motor = inp.motor.filter(|m| m.0 >= ZERO && m.0 <= k.motor_max);
     // The valve closed (commanded or modelled): the branch's flow says nothing of P2, and once
     // the rotor has had the time to spin down a turning motor contradicts the model.
-    let closed = cmd < k.motor_reading_min_aperture || s.aperture < k.motor_reading_min_aperture;
+    let closed = cmd < k.reading.min_aperture || s.aperture < k.reading.min_aperture;
     if closed {
         s.closed_steps = s.closed_steps.saturating_add(1);
-        if s.closed_steps >= k.spin_down_steps
-            && motor.is_some_and(|m| m.0 > k.motor_reading_min_rpm)
-        {
+        if s.closed_steps >= k.spin_down_steps && motor.is_some_and(|m| m.0 > k.reading.min_rpm) {
             faults |= fault::MOTOR_IMPLAUSIBLE;
         }
     } else {
@@ -366,7 +364,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
             match motor {
                 Some(m) if !closed => faults |= motor_reading(k, s, m.0, cmd, lp_dp, dp, q_ss, g),
                 // Closed: no reading; the filters restart once it opens, P2 waiting for them.
-                Some(_) => (s.reading.live, s.reading.wait) = (false, k.motor_reading_warm_steps),
+                Some(_) => (s.reading.live, s.reading.wait) = (false, k.reading.warm_steps),
                 None => (s.reading.live, s.reading.wait) = (false, 0),
             }
             // Within the band above the precharge the accumulator's last cm³ decide when it

@@ -22,7 +22,7 @@ pub struct ReadingState {
     /// sensor after any of these changes.
     pub live: bool,
     /// Correction steps the reading still waits before P2 takes it: set to
-    /// [`Coefficients::motor_reading_warm_steps`] while the spool moves or the valve is near
+    /// [`ReadingCoeffs::warm_steps`](crate::coeffs::ReadingCoeffs::warm_steps) while the spool moves or the valve is near
     /// closed (the rotor may then be accelerating, which filters started from one sample do not
     /// know yet).
     pub wait: u16,
@@ -83,7 +83,7 @@ pub(super) fn motor_reading(
     );
     if !s.reading.live {
         s.reading.q = q_m;
-        s.reading.f = lp_plus_f(lp_dp, q_ss, q_m, mul_bounded(g, k.motor_reading_ldt));
+        s.reading.f = lp_plus_f(lp_dp, q_ss, q_m, mul_bounded(g, k.reading.ldt));
         (s.reading.live, s.reading.odd) = (true, false);
         return 0;
     }
@@ -101,45 +101,44 @@ pub(super) fn motor_reading(
         // reading restarts, so P2 never takes it.
         let q_cap = k
             .valve_flow
-            .at(s.aperture, k.motor_reading_p2_max.saturating_sub(s.lp));
+            .at(s.aperture, k.reading.p2_max.saturating_sub(s.lp));
         let q_cap = q_cap
-            .saturating_add(mul_bounded(q_cap, k.motor_reading_band))
-            .saturating_add(k.motor_reading_min_lpm);
+            .saturating_add(mul_bounded(q_cap, k.reading.band))
+            .saturating_add(k.reading.min_lpm);
         if q_m > q_cap {
-            (s.reading.live, s.reading.wait) = (false, k.motor_reading_warm_steps);
+            (s.reading.live, s.reading.wait) = (false, k.reading.warm_steps);
             return fault::MOTOR_IMPLAUSIBLE;
         }
-        let slope = mul_bounded(g, k.motor_reading_ldt);
-        if slope > k.motor_reading_max_slope
-            || cmd.saturating_sub(s.aperture).abs() > k.motor_reading_spool_tol
+        let slope = mul_bounded(g, k.reading.ldt);
+        if slope > k.reading.max_slope || cmd.saturating_sub(s.aperture).abs() > k.reading.spool_tol
         {
             // The valve near closed, or the spool moving: no reading; the filters restart
             // once both end, and P2 takes the reading after they have run a while.
-            (s.reading.live, s.reading.wait) = (false, k.motor_reading_warm_steps);
+            (s.reading.live, s.reading.wait) = (false, k.reading.warm_steps);
             return 0;
         }
         let f = lp_plus_f(lp_dp, q_ss, q_m, slope);
-        s.reading.f = filter(s.reading.f, k.motor_reading_filter, f);
+        s.reading.f = filter(s.reading.f, k.reading.filter, f);
         // The derivative L·(Q_m − Q̄)/τ of the next step takes Q̄ as of this one.
-        s.reading.q = filter(s.reading.q, k.motor_reading_filter, q_m);
+        s.reading.q = filter(s.reading.q, k.reading.filter, q_m);
         // ΔP ≤ 400 bar × a band ≤ 0.5: fits.
-        s.reading.band = mul_bounded(dp, k.motor_reading_band);
+        s.reading.band = mul_bounded(dp, k.reading.band);
         // band²/3 saturates above a 181 bar band: far beyond any P2 gate.
         s.reading.var = s
             .reading
             .band
             .qmul(s.reading.band)
             .qmul(ONE_THIRD)
-            .saturating_add(k.motor_reading_r);
+            .saturating_add(k.reading.r);
         return 0;
     }
     if s.reading.wait > 0 {
         s.reading.wait -= 1;
-    } else if q_m >= k.motor_reading_min_lpm {
+    } else if q_m >= k.reading.min_lpm {
         let z = s
             .reading
             .f
-            .saturating_add(q_m.saturating_sub(s.reading.q).qmul(k.motor_reading_lt));
+            .saturating_add(q_m.saturating_sub(s.reading.q).qmul(k.reading.lt));
         // Only the part of the innovation beyond the band counts: inside it the reading does
         // not know P2 better than the model does.
         let e = z.saturating_sub(s.p2);
@@ -151,25 +150,19 @@ pub(super) fn motor_reading(
         // speed sensor or the model is wrong: flagged, P2 not moved. (A gate on the distance
         // to P2 itself would refuse the readings the empty HP node needs most: there the
         // model can run empty 0.1 s before the bench, 17 bar below it.)
-        if z.saturating_sub(s.reading.band) > k.motor_reading_p2_max {
+        if z.saturating_sub(s.reading.band) > k.reading.p2_max {
             return fault::MOTOR_IMPLAUSIBLE;
         }
         // P2 += gain·e, exact in Q32.32 (|e| < 2^31 bits × gain ≤ 2^16 bits: < 2^47) and kept
         // to 2^−32 like the node's prediction (rounded to the LSB it was half an LSB a step
         // from its f64 form), held to the pressure range.
         (s.p2, s.p2_lo) = split(
-            (ext(s.p2, s.p2_lo)
-                + i64::from(k.motor_reading_gain.to_bits()) * i64::from(e.to_bits()))
-            .clamp(ext(P_MIN, 0), ext(P_MAX, 0)),
+            (ext(s.p2, s.p2_lo) + i64::from(k.reading.gain.to_bits()) * i64::from(e.to_bits()))
+                .clamp(ext(P_MIN, 0), ext(P_MAX, 0)),
         );
         // The reading brings P2's variance toward its own (never up to it).
         if s.var > s.reading.var {
-            relax(
-                &mut s.var,
-                &mut s.var_lo,
-                k.motor_reading_gain,
-                s.reading.var,
-            );
+            relax(&mut s.var, &mut s.var_lo, k.reading.gain, s.reading.var);
         }
     }
     0
