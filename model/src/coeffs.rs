@@ -111,6 +111,33 @@ pub fn tracker_startup_gains(n: usize, d_q32: u32) -> (u32, u32) {
     )
 }
 
+/// The shaft tracker's coefficients (`estimator::tracker`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrackerCoeffs {
+    /// Encoder count → rad, as the fraction bits of Q32.32 so a 16 384-count encoder keeps full
+    /// precision (< 2^29: ≥ 64 counts per revolution).
+    pub rad_per_count_q32: i32,
+    /// α of the α–β–γ shaft tracker, Q1.31 (< 1). The tracker runs in Q32.32: at 1 kHz a shaft
+    /// at 0.2 rad/s advances 2e-4 rad per step, 13 LSB of Q16.16, and truncating that every step
+    /// biased the speed by +0.026 rad/s (10 %).
+    pub alpha_q31: i32,
+    /// β/dt of the α–β–γ shaft tracker, 1/s, Q16.16 (< 2^23 over the validated bandwidth and dt).
+    pub beta_over_dt_q16: i32,
+    /// 2γ/dt² of the α–β–γ shaft tracker, 1/s², Q16.16 (< 2^28 likewise).
+    pub gamma_over_dt2_q16: i32,
+    /// Number of steps after the tracker's first encoder reading that take the
+    /// expanding-memory gains [`TRACKER_STARTUP`] (≤ [`TRACKER_STARTUP_MAX`]; 53 at 4 Hz and
+    /// 2^−10 s): while both exceed the fading-memory gains above.
+    pub tracker_startup_len: u8,
+    /// The rounding term of the tracker's × dt in Q32.32: 2^(dt_log2 − 1) (a run-time 64-bit
+    /// shift to build it costs ≈ 14 Cortex-M4 instructions a step).
+    pub round_dt_q32: i64,
+    /// The rounding term of its × dt²/2: 2^(2·dt_log2).
+    pub round_dt2_q32: i64,
+    /// Steps without an encoder change after which the encoder is suspected stuck.
+    pub stuck_steps: u16,
+}
+
 /// The motor reading's coefficients (`estimator::motor_reading`), used without the HP
 /// transducer.
 #[derive(Debug, Clone, PartialEq)]
@@ -154,26 +181,8 @@ pub struct ReadingCoeffs {
 pub struct Coefficients {
     /// dt = 2^−dt_log2 s.
     pub dt_log2: u8,
-    /// Encoder count → rad, as the fraction bits of Q32.32 so a 16 384-count encoder keeps full
-    /// precision (< 2^29: ≥ 64 counts per revolution).
-    pub rad_per_count_q32: i32,
-    /// α of the α–β–γ shaft tracker, Q1.31 (< 1). The tracker runs in Q32.32: at 1 kHz a shaft
-    /// at 0.2 rad/s advances 2e-4 rad per step, 13 LSB of Q16.16, and truncating that every step
-    /// biased the speed by +0.026 rad/s (10 %).
-    pub alpha_q31: i32,
-    /// β/dt of the α–β–γ shaft tracker, 1/s, Q16.16 (< 2^23 over the validated bandwidth and dt).
-    pub beta_over_dt_q16: i32,
-    /// 2γ/dt² of the α–β–γ shaft tracker, 1/s², Q16.16 (< 2^28 likewise).
-    pub gamma_over_dt2_q16: i32,
-    /// Number of steps after the tracker's first encoder reading that take the
-    /// expanding-memory gains [`TRACKER_STARTUP`] (≤ [`TRACKER_STARTUP_MAX`]; 53 at 4 Hz and
-    /// 2^−10 s): while both exceed the fading-memory gains above.
-    pub tracker_startup_len: u8,
-    /// The rounding term of the tracker's × dt in Q32.32: 2^(dt_log2 − 1) (a run-time 64-bit
-    /// shift to build it costs ≈ 14 Cortex-M4 instructions a step).
-    pub round_dt_q32: i64,
-    /// The rounding term of its × dt²/2: 2^(2·dt_log2).
-    pub round_dt2_q32: i64,
+    /// The shaft tracker's gains and constants (`estimator::tracker`).
+    pub tracker: TrackerCoeffs,
     /// Cylinders.
     pub cyl: [CylinderCoeffs; 4],
     /// Lever arm d (mm) vs s·θ (rad), per geometry. In mm so that d·F stays exact to
@@ -244,8 +253,6 @@ pub struct Coefficients {
     pub motor_max: Fx,
     /// Overpressure trip, bar.
     pub trip: Fx,
-    /// Steps without an encoder change after which the encoder is suspected stuck.
-    pub stuck_steps: u16,
     /// Minimum autonomy speed, rpm.
     pub autonomy_min_rpm: Fx,
     /// Pump-flow averaging gain per step (≈ one wave period), dt/τ.
@@ -560,15 +567,18 @@ impl ModelConfig {
         let pp = 0.5 * (q + sqrtf(q * q + 4.0 * q * r));
         Ok(Coefficients {
             dt_log2: k,
-            rad_per_count_q32,
-            // (Scaling an f32 by a power of two is exact, and float-to-integer casts saturate:
-            // α rounds to at most i32::MAX = 1 − 2^−31.)
-            tracker_startup_len,
-            alpha_q31: (alpha * 2_147_483_648.0) as i32,
-            beta_over_dt_q16: (beta / dt * 65_536.0) as i32,
-            gamma_over_dt2_q16: (2.0 * gamma / (dt * dt) * 65_536.0) as i32,
-            round_dt_q32: 1i64 << (k - 1),
-            round_dt2_q32: 1i64 << (2 * k),
+            tracker: TrackerCoeffs {
+                rad_per_count_q32,
+                // (Scaling an f32 by a power of two is exact, and float-to-integer casts
+                // saturate: α rounds to at most i32::MAX = 1 − 2^−31.)
+                tracker_startup_len,
+                alpha_q31: (alpha * 2_147_483_648.0) as i32,
+                beta_over_dt_q16: (beta / dt * 65_536.0) as i32,
+                gamma_over_dt2_q16: (2.0 * gamma / (dt * dt) * 65_536.0) as i32,
+                round_dt_q32: 1i64 << (k - 1),
+                round_dt2_q32: 1i64 << (2 * k),
+                stuck_steps: (2.0 / dt).min(60_000.0) as u16,
+            },
             cyl,
             arm,
             ext,
@@ -619,7 +629,6 @@ impl ModelConfig {
             ),
             motor_max: fx(self.motor_sensor_max_rpm),
             trip: fx(self.trip_bar),
-            stuck_steps: (2.0 / dt).min(60_000.0) as u16,
             autonomy_min_rpm: fx(self.autonomy_min_rpm),
             mean_gain: fx(dt / 10.0).max(Fx::DELTA),
             bar_per_rpm: fx(self.bar_per_rpm()),
@@ -704,11 +713,11 @@ mod tests {
         println!(
             "start-up gains within {:.2e} of the formula over {} entries; {} used at the \
              reference's 4 Hz and 2^-10 s",
-            worst, TRACKER_STARTUP_MAX, k.tracker_startup_len
+            worst, TRACKER_STARTUP_MAX, k.tracker.tracker_startup_len
         );
         assert_eq!(first, (1 << 31, 1 << 31));
         assert!(worst < 2f64.powi(-25), "{worst}");
-        assert_eq!(k.tracker_startup_len, 53);
+        assert_eq!(k.tracker.tracker_startup_len, 53);
     }
 
     /// Just above an accumulator's precharge the node tables give the accumulator's own dP/dV

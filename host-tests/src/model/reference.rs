@@ -130,7 +130,7 @@ impl Reference {
         r.accel = q32(s.tracker.accel_q32);
         r.init = s.tracker.phase != 0;
         // enc_phase: 1 tracking, n + 1 with n start-up steps left.
-        r.enc_n = u32::from(k.tracker_startup_len)
+        r.enc_n = u32::from(k.tracker.tracker_startup_len)
             .saturating_sub(u32::from(s.tracker.phase.saturating_sub(1)));
         r.var = ext(s.var, s.var_lo);
         r.aperture = f(s.aperture);
@@ -259,7 +259,7 @@ impl Reference {
                     self.accel = 0.0;
                     self.init = true;
                     self.enc_n = 0;
-                } else if self.enc_n < u32::from(k.tracker_startup_len) {
+                } else if self.enc_n < u32::from(k.tracker.tracker_startup_len) {
                     // The expanding-memory start-up gains, as the fixed-point model.
                     self.enc_n += 1;
                     let (ga, gb) = pto_model::coeffs::expanding_memory_gains(self.enc_n);

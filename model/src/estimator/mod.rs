@@ -296,7 +296,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let dtl = k.dt_log2;
     let mut faults = 0u16;
     // --- Shaft: α–β–γ tracker on the encoder angle.
-    let (theta, omega) = track(k, &mut s.tracker, s.p2, inp, &mut faults);
+    let (theta, omega) = track(&k.tracker, dtl, &mut s.tracker, s.p2, inp, &mut faults);
     // --- Spool lag.
     // The first step takes the spool as settled at the command and the valve/motor flow at its
     // steady value (a state started from known pressures is a bench at rest or in steady

@@ -103,7 +103,7 @@ fn shaft_tracker_reads_a_turning_shaft_from_its_first_readings() {
         worst
     };
     let mut fading = k.clone();
-    fading.tracker_startup_len = 0;
+    fading.tracker.tracker_startup_len = 0;
     let (with, without) = (run(&k, 0), run(&fading, 0));
     let after_dropout = run(&k, 400);
     println!(
@@ -111,11 +111,11 @@ fn shaft_tracker_reads_a_turning_shaft_from_its_first_readings() {
          gains alone {:.1} %; after a 0.1 s drop-out {:.2} %",
         settle as f64 * dt * 1e3,
         with * 100.0,
-        k.tracker_startup_len,
+        k.tracker.tracker_startup_len,
         without * 100.0,
         after_dropout * 100.0
     );
-    assert_eq!(k.tracker_startup_len, 53);
+    assert_eq!(k.tracker.tracker_startup_len, 53);
     assert!(with < 0.03, "{with}");
     assert!(after_dropout < 0.03, "{after_dropout}");
     assert!(without > 0.2, "{without}");

@@ -2,6 +2,7 @@
 //! expanding-memory start-up.
 
 use super::*;
+use crate::coeffs::TrackerCoeffs;
 
 /// The shaft tracker's state.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
@@ -15,7 +16,7 @@ pub struct TrackerState {
     pub accel_q32: i64,
     /// The tracker's phase: 0 before its first encoder reading (and after a drop-out), 1
     /// tracking with the fading-memory gains, n + 1 with n start-up steps left
-    /// ([`Coefficients::tracker_startup_len`], the expanding-memory gains [`TRACKER_STARTUP`]).
+    /// ([`TrackerCoeffs::tracker_startup_len`], the expanding-memory gains [`TRACKER_STARTUP`]).
     /// One byte, so that the steady step tests one value.
     pub phase: u8,
     /// Last encoder count.
@@ -34,7 +35,7 @@ pub(super) fn residual(theta_meas: i64, pred_theta: i64) -> i64 {
 }
 
 /// The shaft tracker's first reading (it starts there, at rest) and its first
-/// [`Coefficients::tracker_startup_len`] updates after it: the expanding-memory gains
+/// [`TrackerCoeffs::tracker_startup_len`] updates after it: the expanding-memory gains
 /// [`TRACKER_STARTUP`] (the least-squares line through every reading so far), the acceleration
 /// held at 0 until the fading-memory tracker takes over. Out of line: the steady step only
 /// tests its phase.
@@ -42,7 +43,8 @@ pub(super) fn residual(theta_meas: i64, pred_theta: i64) -> i64 {
 #[cold]
 pub(super) fn tracker_startup(
     t: &mut TrackerState,
-    k: &Coefficients,
+    c: &TrackerCoeffs,
+    dtl: u8,
     theta_meas: i64,
     count: i32,
     hp: Option<Pressure>,
@@ -53,19 +55,19 @@ pub(super) fn tracker_startup(
         t.theta_q32 = theta_meas;
         t.omega_q32 = 0;
         t.accel_q32 = 0;
-        t.phase = k.tracker_startup_len.saturating_add(ENC_TRACKING);
+        t.phase = c.tracker_startup_len.saturating_add(ENC_TRACKING);
         t.last_count = count;
         t.hp_at_change = hp.map_or(p2, |p| p.0);
         return;
     }
     // The prediction with the acceleration at 0, as it is all through the start-up.
-    let pred_theta = t.theta_q32 + shr64(t.omega_q32 + k.round_dt_q32, u32::from(k.dt_log2));
+    let pred_theta = t.theta_q32 + shr64(t.omega_q32 + c.round_dt_q32, u32::from(dtl));
     let pred_omega = t.omega_q32;
     let r = residual(theta_meas, pred_theta);
     // The n-th update since the start, n − 1 the table's index; its length is a power of two,
     // so the masked index cannot leave it.
     let i = usize::from(
-        k.tracker_startup_len
+        c.tracker_startup_len
             .wrapping_add(ENC_TRACKING)
             .wrapping_sub(t.phase),
     ) & (TRACKER_STARTUP_MAX - 1);
@@ -73,7 +75,7 @@ pub(super) fn tracker_startup(
     t.phase = t.phase.saturating_sub(1).max(ENC_TRACKING);
     // β_n/dt in Q16.16: β_n (Q1.31) · 2^dt_log2 / 2^15; dt_log2 ≤ 12 (validated), so the shift
     // is 3..=9 bits and β_n/dt < 2^29 as the fading-memory β/dt.
-    let b = b >> (15u8.saturating_sub(k.dt_log2) & 31);
+    let b = b >> (15u8.saturating_sub(dtl) & 31);
     t.theta_q32 =
         (pred_theta + ((r * i64::from(a) + (1 << 30)) >> 31)).clamp(-THETA_LIM_Q32, THETA_LIM_Q32);
     t.omega_q32 =
@@ -85,7 +87,8 @@ pub(super) fn tracker_startup(
 /// (rad/s) in Q16.16. Inlined into the step, its only caller.
 #[inline(always)]
 pub(super) fn track(
-    k: &Coefficients,
+    c: &TrackerCoeffs,
+    dtl: u8,
     t: &mut TrackerState,
     p2: Fx,
     inp: &Inputs,
@@ -99,29 +102,29 @@ pub(super) fn track(
     // core) are not needed. Plain operators: the test builds' overflow checks (and the property
     // tests' extreme inputs) verify this budget; the release build emits the same code.
     // The run-time shifts by dt (1..=25 bits) go through the two-word `shr64`.
-    let n = u32::from(k.dt_log2);
-    let half = k.round_dt_q32;
+    let n = u32::from(dtl);
+    let half = c.round_dt_q32;
     let pred_theta = t.theta_q32
         + shr64(t.omega_q32 + half, n)
-        + shr64(t.accel_q32 + k.round_dt2_q32, 2 * n + 1);
+        + shr64(t.accel_q32 + c.round_dt2_q32, 2 * n + 1);
     let pred_omega = t.omega_q32 + shr64(t.accel_q32 + half, n);
     match inp.encoder {
         Some(count) => {
-            let theta_meas = i64::from(count) * i64::from(k.rad_per_count_q32);
+            let theta_meas = i64::from(count) * i64::from(c.rad_per_count_q32);
             if t.phase == ENC_TRACKING {
                 // The residual held to ±0.5 rad fits an i32, so each gain product is one
                 // 32 × 32 → 64 multiply.
                 let r = residual(theta_meas, pred_theta);
-                t.theta_q32 = (pred_theta + ((r * i64::from(k.alpha_q31) + (1 << 30)) >> 31))
+                t.theta_q32 = (pred_theta + ((r * i64::from(c.alpha_q31) + (1 << 30)) >> 31))
                     .clamp(-THETA_LIM_Q32, THETA_LIM_Q32);
                 t.omega_q32 = (pred_omega
-                    + ((r * i64::from(k.beta_over_dt_q16) + (1 << 15)) >> 16))
+                    + ((r * i64::from(c.beta_over_dt_q16) + (1 << 15)) >> 16))
                     .clamp(-OMEGA_LIM_Q32, OMEGA_LIM_Q32);
                 t.accel_q32 = (t.accel_q32
-                    + ((r * i64::from(k.gamma_over_dt2_q16) + (1 << 15)) >> 16))
+                    + ((r * i64::from(c.gamma_over_dt2_q16) + (1 << 15)) >> 16))
                     .clamp(-ACCEL_LIM_Q32, ACCEL_LIM_Q32);
             } else {
-                tracker_startup(t, k, theta_meas, count, inp.hp, p2);
+                tracker_startup(t, c, dtl, theta_meas, count, inp.hp, p2);
             }
             if count != t.last_count {
                 t.last_count = count;
@@ -129,7 +132,7 @@ pub(super) fn track(
                 t.hp_at_change = inp.hp.map_or(p2, |p| p.0);
             } else {
                 t.still_steps = t.still_steps.saturating_add(1);
-                if t.still_steps >= k.stuck_steps
+                if t.still_steps >= c.stuck_steps
                     && inp
                         .hp
                         .is_some_and(|p| p.0.saturating_sub(t.hp_at_change) > ONE)
