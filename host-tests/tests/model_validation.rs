@@ -242,8 +242,8 @@ fn scheduler_holds_p2_and_motor_speed_in_closed_loop_with_the_full_simulation() 
 #[test]
 fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
     use pto_host::model::reference::Reference;
-    use pto_host::model::sensors::{Readings, SensorSpec, SensorSynth};
-    use pto_host::model::{commanded_aperture_pct, duty_mask, inputs, model_config};
+    use pto_host::model::sensors::{SensorSpec, SensorSynth};
+    use pto_host::model::{commanded_aperture_pct, duty_mask, model_config};
     use pto_host::sim::solver::SolverOptions;
     use pto_host::sim::trace::truth_at;
     use pto_model::estimator::{self, State};
@@ -292,22 +292,12 @@ fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
             for i in 0..(20.0 / dt) as usize {
                 let t = t_from + i as f64 * dt;
                 let truth = truth_at(&res.trace, t);
-                let Readings {
-                    encoder_count: enc,
-                    hp_bar: hp,
-                    lp_bar: lp,
-                    motor_rpm: motor,
-                } = synth.read(motion.at(t).0, &truth);
                 let ap = commanded_aperture_pct(&s, &res, t);
-                let inp = inputs(
-                    Some(enc),
-                    with_hp.then_some(hp),
-                    Some(lp),
-                    Some(motor),
-                    ap,
-                    duty,
-                    prep.config as u8,
-                );
+                let r = synth.read(motion.at(t).0, &truth);
+                let mut inp = r.to_inputs(ap, duty, prep.config as u8);
+                if !with_hp {
+                    inp.hp = None;
+                }
                 let mut rf = Reference::from_state(&mcfg, &k, &st);
                 let e = estimator::step(&k, &mut st, &inp);
                 let r = rf.step(&inp);

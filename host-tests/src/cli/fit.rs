@@ -155,14 +155,12 @@ pub(crate) fn fit_cmd(
         .iter()
         .filter_map(|f| f.file_name().map(|n| out.join(n)))
         .collect();
-    std::fs::write(
-        stage.path().join("fit.json"),
-        serde_json::to_string_pretty(&o.report)?,
-    )?;
+    let report_json = serde_json::to_string_pretty(&o.report)?;
+    std::fs::write(stage.path().join("fit.json"), &report_json)?;
     stage.commit().map_err(anyhow::Error::msg)?;
     let r = &o.report;
     if json {
-        println!("{}", serde_json::to_string_pretty(r)?);
+        println!("{report_json}");
     } else {
         println!(
             "{:<14} {:>10} {:>10} {:>10}  unit  field",

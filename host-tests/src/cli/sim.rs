@@ -169,16 +169,18 @@ pub(crate) fn paper_cmd(
             rayon::current_num_threads()
         );
     }
-    let bars = super::ScenarioBars::new(all.len());
+    let bars = std::io::stderr()
+        .is_terminal()
+        .then(|| super::ScenarioBars::new(all.len()));
     let outcomes = runner::run_all(
         &bench,
         &all,
         SolverOptions::default(),
-        std::io::stderr()
-            .is_terminal()
-            .then_some(&bars as &dyn runner::RunProgress),
+        bars.as_ref().map(|b| b as &dyn runner::RunProgress),
     );
-    bars.finish();
+    if let Some(b) = &bars {
+        b.finish();
+    }
     let wall = start.elapsed().as_secs_f64();
     let facts = paper::check(&bench, &outcomes);
     let pass = facts.iter().all(|f| f.pass);

@@ -2,8 +2,8 @@
 //! firmware) as the plant's valve controller in a Test III-like run, and the checks that judge it.
 
 use super::validate::target;
-use super::{duty_mask, inputs, model_config};
-use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
+use super::{duty_mask, model_config};
+use crate::model::sensors::{SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::Eval;
 use crate::sim::solver::{self, Initial, Run, SolverOptions, ValveController, ValveSchedule};
@@ -88,17 +88,7 @@ impl ValveController for ModelController {
     }
 
     fn update(&mut self, t: f64, p: &Eval) -> f64 {
-        let Readings {
-            encoder_count: enc,
-            hp_bar: hp,
-            lp_bar: lp,
-            motor_rpm: motor,
-        } = self.synth.read(p.theta_rad, &Truth::of_eval(p));
-        let inp = inputs(
-            Some(enc),
-            Some(hp),
-            Some(lp),
-            Some(motor),
+        let inp = self.synth.read(p.theta_rad, &Truth::of_eval(p)).to_inputs(
             self.cmd,
             self.duty,
             self.config,

@@ -2,6 +2,7 @@
 
 use crate::sim::trace::Truth;
 use pto_firmware::frontend::{LoopSpec, Transducer};
+use pto_model::estimator::Inputs;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
@@ -49,6 +50,23 @@ pub struct Readings {
     pub lp_bar: f64,
     /// Motor speed sensor, rpm.
     pub motor_rpm: f64,
+}
+
+impl Readings {
+    /// The model's inputs of this sample, every sensor present (set `hp: None` for a run
+    /// without the HP transducer), with the commanded aperture (%), the cylinders on duty and
+    /// the geometry.
+    pub fn to_inputs(&self, aperture_pct: f64, on_duty: u8, config: u8) -> Inputs {
+        super::inputs(
+            Some(self.encoder_count),
+            Some(self.hp_bar),
+            Some(self.lp_bar),
+            Some(self.motor_rpm),
+            aperture_pct,
+            on_duty,
+            config,
+        )
+    }
 }
 
 /// Makes sensor readings: quantised encoder, pressures with Gaussian noise read through the

@@ -2,14 +2,14 @@
 //! σ coverage, the empty flag, the f64 mirror), and the closed-loop rows of [`super::closed_loop`].
 
 use super::closed_loop::{LoopRow, closed_loop_rows};
-use super::{commanded_aperture_pct, duty_mask, inputs, model_config};
+use super::{commanded_aperture_pct, duty_mask, model_config};
 use crate::model::reference::Reference;
-use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
+use crate::model::sensors::{SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::scenario::Scenario;
 use crate::sim::solver::SolverOptions;
 use crate::sim::trace::{Truth, truth_at};
-use pto_model::estimator::{self, Estimate, State};
+use pto_model::estimator::{self, Estimate, Inputs, State};
 use pto_model::fx::Pressure;
 use pto_model::table::Table1;
 use pto_model::{Coefficients, ModelConfig, coeffs};
@@ -169,14 +169,10 @@ fn validate_scenario(
     for i in 0..n {
         let t = i as f64 * dt;
         let truth = truth_at(tr, t);
-        let Readings {
-            encoder_count: enc,
-            hp_bar: hp,
-            lp_bar: lp,
-            motor_rpm: motor,
-        } = synth.read(motion.at(t).0, &truth);
         let ap = commanded_aperture_pct(&s, &res, t);
-        let inp = inputs(Some(enc), Some(hp), Some(lp), Some(motor), ap, duty, config);
+        let inp = synth
+            .read(motion.at(t).0, &truth)
+            .to_inputs(ap, duty, config);
         let e = estimator::step(k, &mut st, &inp);
         let r = rf.step(&inp);
         crosses_cell |= in_cell(r.p2_bar);
@@ -220,14 +216,13 @@ fn validate_scenario(
     for i in 0..m {
         let t = i as f64 * dt;
         let truth: Truth = truth_at(tr, t);
-        let Readings {
-            encoder_count: enc,
-            lp_bar: lp,
-            motor_rpm: motor,
-            ..
-        } = synth.read(motion.at(t).0, &truth);
         let ap = commanded_aperture_pct(&s, &res, t);
-        let inp = inputs(Some(enc), None, Some(lp), Some(motor), ap, duty, config);
+        let inp = Inputs {
+            hp: None,
+            ..synth
+                .read(motion.at(t).0, &truth)
+                .to_inputs(ap, duty, config)
+        };
         let e = estimator::step(k, &mut st, &inp);
         let p2 = f64::from(e.p2.to_f32());
         max_mo = max_mo.max((p2 - truth.p2_bar).abs());
