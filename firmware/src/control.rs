@@ -169,7 +169,7 @@ impl Controller {
         )?;
         check("boot_sigma_bar", cc.boot_sigma_bar, 0.1, 200.0)?;
         let release = k
-            .trip
+            .trip_bar
             .saturating_sub(Fx::saturating_from_num(cc.trip_release_margin_bar));
         let steps_per_s = f32::from(1u16 << k.dt_log2);
         // 1 ms to 60 s, and within what the hold's u16 step count holds at the configured dt.
@@ -180,7 +180,7 @@ impl Controller {
             (65_535e3 / steps_per_s).min(60_000.0),
         )?;
         let hold_steps = (cc.trip_release_hold_ms * 1e-3 * steps_per_s + 0.5) as u16;
-        let latch = TripLatch::new(Pressure(k.trip), Pressure(release), hold_steps);
+        let latch = TripLatch::new(Pressure(k.trip_bar), Pressure(release), hold_steps);
         let slew_step = mul_dt(Fx::saturating_from_num(cc.valve_slew_pct_per_s), k.dt_log2);
         let mut c = Controller {
             sc,
@@ -217,7 +217,7 @@ impl Controller {
 
     /// Trip pressure, bar.
     pub fn trip(&self) -> Pressure {
-        Pressure(self.k.trip)
+        Pressure(self.k.trip_bar)
     }
 
     /// Scheduler mode.
@@ -314,12 +314,12 @@ impl Controller {
         if reading.is_none() {
             self.status.hp_loop_faults = self.status.hp_loop_faults.wrapping_add(1);
         }
-        let (lo, hi) = self.k.hp_range;
+        let (lo, hi) = self.k.observer.hp_range_bar;
         let in_range = reading.is_some_and(|p| p.0 >= lo && p.0 <= hi);
-        if !self.confirmed && !in_range && self.st.var < self.boot_var {
+        if !self.confirmed && !in_range && self.st.node.var < self.boot_var {
             // Not yet confirmed by a reading (since boot or the host's reset): as unknown as
             // at boot while there is none.
-            (self.st.var, self.st.var_lo) = (self.boot_var, 0);
+            (self.st.node.var, self.st.node.var_lo) = (self.boot_var, 0);
         }
         let inp = Inputs {
             encoder: Some(f.encoder),

@@ -41,12 +41,12 @@ pub fn mean_torque(
     p2: Pressure,
     lp: Pressure,
 ) -> Torque {
-    let Some(arm) = k.arm.get(usize::from(config)) else {
+    let Some(arm) = k.pump.arm.get(usize::from(config)) else {
         return Torque::ZERO;
     };
     let dp = p2.0.saturating_sub(lp.0).max(ZERO);
     let mut total = ZERO;
-    for (i, c) in k.cyl.iter().enumerate() {
+    for (i, c) in k.pump.cyl.iter().enumerate() {
         if on_duty & (1 << i) == 0 {
             continue;
         }

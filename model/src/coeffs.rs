@@ -29,7 +29,7 @@ pub const P_MAX_BAR: f32 = 160.0;
 pub const LP_MAX_BAR: f32 = 32.0;
 /// Points of the LP capacitance table over 0..[`LP_MAX_BAR`] (1 bar steps).
 pub const N_LP: usize = 33;
-/// Ceiling of [`Coefficients::motor_gain_valve`], per L/min: at the closed valve 1/K² is
+/// Ceiling of [`BranchCoeffs::motor_gain_valve`], per L/min: at the closed valve 1/K² is
 /// infinite; any value ≥ 1 per L/min already makes a 1 L/min flow settle within the step.
 pub const MOTOR_GAIN_VALVE_CAP: f32 = 256.0;
 /// Autonomy reported when the motor would never slow below the minimum speed, s.
@@ -176,13 +176,10 @@ pub struct ReadingCoeffs {
     pub p2_max: Fx,
 }
 
-/// Everything the step functions read.
+/// The cylinders stage's coefficients (`estimator::cylinder`): per cylinder, the lever
+/// geometry's tables and the oil's strain law in the chambers.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Coefficients {
-    /// dt = 2^−dt_log2 s.
-    pub dt_log2: u8,
-    /// The shaft tracker's gains and constants (`estimator::tracker`).
-    pub tracker: TrackerCoeffs,
+pub struct PumpCoeffs {
     /// Cylinders.
     pub cyl: [CylinderCoeffs; 4],
     /// Lever arm d (mm) vs s·θ (rad), per geometry. In mm so that d·F stays exact to
@@ -194,16 +191,23 @@ pub struct Coefficients {
     pub ms_of_p: Table1<N_NODE>,
     /// Its inverse: p (bar) vs milli-strain.
     pub p_of_ms: Table1<N_NODE>,
+    /// Rod-fixation free play, mm.
+    pub play_mm: Fx,
+    /// Seal friction, kN per mm/s (2 kN·s/m = 0.002 kN per mm/s on the reference bench: 131
+    /// LSB, 0.05 % resolution).
+    pub seal_kn_per_mm_s: Fx,
+    /// Open check-valve pressure drop, bar.
+    pub check_drop_bar: Fx,
+}
+
+/// The valve/motor branch's coefficients (`estimator::motor`): the spool, the rotor's flow
+/// and the relief.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BranchCoeffs {
     /// Valve (= motor) flow, L/min, vs (aperture %, P2 − LP bar), motor on its load line.
     pub valve_flow: Table2<N_APERTURE, N_PRESSURE>,
-    /// Autonomy, s, vs (aperture %, P2 bar), input blocked, LP nominal.
-    pub autonomy: Table2<N_APERTURE, N_PRESSURE>,
-    /// dP2/dt per net HP inflow, bar/s per L/min, vs P2.
-    pub inv_c_hp: Table1<N_NODE>,
-    /// dLP/dt per net LP inflow, bar/s per L/min, vs LP.
-    pub inv_c_lp: Table1<N_LP>,
-    /// Motor speed per valve flow, rpm per L/min (Eq. 9 with the load line).
-    pub rpm_per_lpm: Fx,
+    /// Spool lag gain per step, dt/τ (1 = ideal valve).
+    pub spool_gain: Fx,
     /// The valve/motor flow's relaxation per step toward the steady flow, from the motor's own
     /// load line: dt·β/L (≈ dt/τ with τ = J/c the rotor's time constant, 0.134 s on the
     /// reference bench). See [`ModelConfig::motor_inductance`].
@@ -213,23 +217,39 @@ pub struct Coefficients {
     /// near the closed valve. The step's gain is `motor_gain0 + (Q_ss + Q)·motor_gain_valve(a)`
     /// (≤ 1).
     pub motor_gain_valve: [Fx; N_APERTURE],
-    /// Spool lag gain per step, dt/τ (1 = ideal valve).
-    pub spool_gain: Fx,
+    /// Motor speed per valve flow, rpm per L/min (Eq. 9 with the load line).
+    pub rpm_per_lpm: Fx,
+    /// Motor flow per rpm, L/min per rpm, Q8.24 (1/[`Self::rpm_per_lpm`]: 0.0086 on the
+    /// reference bench, to 6·10^−8).
+    pub lpm_per_rpm_q24: i32,
     /// Relief setting, bar.
-    pub relief_setting: Fx,
-    /// Below this P2 the estimate reports the HP accumulator empty, bar: the precharge plus
-    /// `ModelConfig::hp_empty_margin_bar`.
-    pub hp_empty_below: Fx,
-    /// Process noise added to the P2 variance per step while P2 is at or above the relief
-    /// setting and the HP transducer corrects it, bar²: the reduced relief law's own error
-    /// (`ModelConfig::relief_process_noise_bar_per_sqrt_s`).
-    pub q_relief: Fx,
+    pub relief_setting_bar: Fx,
     /// Relief gain, L/min per bar.
-    pub relief_gain: Fx,
+    pub relief_gain_lpm_per_bar: Fx,
+    /// Steps after which a rotor behind a closed valve has spun down (five of its time
+    /// constants J/c): a motor still turning faster than `ReadingCoeffs::min_rpm` then contradicts
+    /// the model.
+    pub spin_down_steps: u16,
+}
+
+/// The observer's coefficients (`estimator::observer`): the nodes' prediction, the Kalman
+/// update of P2 with the HP transducer and the fixed-gain correction of LP.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ObserverCoeffs {
+    /// dP2/dt per net HP inflow, bar/s per L/min, vs P2.
+    pub inv_c_hp: Table1<N_NODE>,
+    /// dLP/dt per net LP inflow, bar/s per L/min, vs LP.
+    pub inv_c_lp: Table1<N_LP>,
     /// Process noise added to the P2 variance per step vs P2, bar²: the model's flow
     /// uncertainty times the node's dP2/dV, so an empty accumulator (tiny capacitance) makes the
     /// filter follow the transducer.
     pub q_step: Table1<N_NODE>,
+    /// Process noise added to the P2 variance per step while P2 is at or above the relief
+    /// setting and the HP transducer corrects it, bar²: the reduced relief law's own error
+    /// (`ModelConfig::relief_process_noise_bar_per_sqrt_s`).
+    pub q_relief: Fx,
+    /// Relief setting, bar (where [`Self::q_relief`] starts).
+    pub relief_setting_bar: Fx,
     /// Measurement variance, bar².
     pub r: Fx,
     /// Kalman gain vs prior variance on [0, r].
@@ -246,39 +266,42 @@ pub struct Coefficients {
     /// 4 measurement σ, so the gate never opens wider than ≈ 20 measurement σ.
     pub var_fade_max: Fx,
     /// HP sensor range, bar.
-    pub hp_range: (Fx, Fx),
+    pub hp_range_bar: (Fx, Fx),
     /// LP sensor range, bar.
-    pub lp_range: (Fx, Fx),
-    /// Motor sensor full scale, rpm.
-    pub motor_max: Fx,
-    /// Overpressure trip, bar.
-    pub trip: Fx,
-    /// Minimum autonomy speed, rpm.
-    pub autonomy_min_rpm: Fx,
-    /// Pump-flow averaging gain per step (≈ one wave period), dt/τ.
-    pub mean_gain: Fx,
-    /// Motor speed → motor pressure drop, bar per rpm (load line).
-    pub bar_per_rpm: Fx,
-    /// Rod-fixation free play, mm.
-    pub play_mm: Fx,
-    /// Seal friction, kN per mm/s (2 kN·s/m = 0.002 kN per mm/s on the reference bench: 131
-    /// LSB, 0.05 % resolution).
-    pub seal_kn_per_mm_s: Fx,
-    /// Open check-valve pressure drop, bar.
-    pub check_drop: Fx,
-    /// Motor flow per rpm, L/min per rpm, Q8.24 (1/[`Self::rpm_per_lpm`]: 0.0086 on the
-    /// reference bench, to 6·10^−8).
-    pub lpm_per_rpm_q24: i32,
-    /// The motor reading's settings (`estimator::motor_reading`).
-    pub reading: ReadingCoeffs,
+    pub lp_range_bar: (Fx, Fx),
     /// Top of the band above the HP precharge where model-only P2 may fall at any moment, bar.
-    pub precharge_band_top: Fx,
+    pub precharge_band_top_bar: Fx,
     /// Least model-only P2 variance in that band, bar².
     pub var_precharge: Fx,
-    /// Steps after which a rotor behind a closed valve has spun down (five of its time
-    /// constants J/c): a motor still turning faster than `ReadingCoeffs::min_rpm` then contradicts
-    /// the model.
-    pub spin_down_steps: u16,
+}
+
+/// Everything the step functions read: the configuration turned into fixed-point constants
+/// and tables, one struct per stage of the step (`estimator::step`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Coefficients {
+    /// dt = 2^−dt_log2 s.
+    pub dt_log2: u8,
+    /// The shaft tracker's gains and constants (`estimator::tracker`).
+    pub tracker: TrackerCoeffs,
+    /// The cylinders (`estimator::cylinder`).
+    pub pump: PumpCoeffs,
+    /// The valve/motor branch and the relief (`estimator::motor`).
+    pub branch: BranchCoeffs,
+    /// The motor reading's settings (`estimator::motor_reading`).
+    pub reading: ReadingCoeffs,
+    /// The nodes' prediction and the corrections by the transducers (`estimator::observer`).
+    pub observer: ObserverCoeffs,
+    /// Autonomy, s, vs (aperture %, P2 bar), input blocked, LP nominal.
+    pub autonomy: Table2<N_APERTURE, N_PRESSURE>,
+    /// Pump-flow averaging gain per step (≈ one wave period), dt/τ.
+    pub mean_gain: Fx,
+    /// Motor sensor full scale, rpm.
+    pub motor_max_rpm: Fx,
+    /// Overpressure trip, bar.
+    pub trip_bar: Fx,
+    /// Below this P2 the estimate reports the HP accumulator empty, bar: the precharge plus
+    /// `ModelConfig::hp_empty_margin_bar`.
+    pub hp_empty_below_bar: Fx,
 }
 
 /// An f32 coefficient in Q16.16, saturated. Out of line: the conversion is ≈ 100 bytes of
@@ -294,7 +317,7 @@ const TWO_PI_Q32: u64 = 26_986_075_409;
 
 /// Trapped-air bulk modulus (`docs/physics.md` §2), bar.
 fn modulus_bar(cfg: &ModelConfig, p: f32) -> f32 {
-    let el = cfg.oil_bulk_modulus_mpa * 10.0;
+    let el = cfg.oil_liquid_bulk_modulus_mpa * 10.0;
     let a = cfg.trapped_air_fraction;
     let n = cfg.air_polytropic_index;
     let pabs = (P_ATM_BAR + p).max(1e-3);
@@ -376,18 +399,24 @@ impl ModelConfig {
         }
         let area = ys[i - 1] + (ys[i] - ys[i - 1]) * (a - xs[i - 1]) / (xs[i] - xs[i - 1]);
         // Cd·A·sqrt(2/ρ) in m³/s per √Pa → L/min per √bar.
-        self.valve_cd * area * 1e-6 * sqrtf(2.0 / self.oil_density_kg_m3) * 6e4 * sqrtf(1e5)
+        self.valve_discharge_coefficient
+            * area
+            * 1e-6
+            * sqrtf(2.0 / self.oil_density_kg_m3)
+            * 6e4
+            * sqrtf(1e5)
     }
 
     /// Motor pressure drop per rpm on the load line, bar/rpm.
     pub fn bar_per_rpm(&self) -> f32 {
-        let nm_per_bar = self.motor_displacement_cm3 * 1e-6 / (2.0 * core::f32::consts::PI) * 1e5;
+        let nm_per_bar =
+            self.motor_displacement_cm3_per_rev * 1e-6 / (2.0 * core::f32::consts::PI) * 1e5;
         self.load_nm_per_rpm / (nm_per_bar * self.motor_mech_efficiency)
     }
 
     /// Motor speed per motor flow, rpm per L/min (Eq. 9 with the load line's pressure drop).
     pub fn rpm_per_lpm(&self) -> f32 {
-        1.0 / (self.motor_displacement_cm3 * 1e-3
+        1.0 / (self.motor_displacement_cm3_per_rev * 1e-3
             + self.motor_leak_lpm_per_bar * self.bar_per_rpm())
     }
 
@@ -402,7 +431,7 @@ impl ModelConfig {
     /// L·dQ/dt = ΔP − F(Q), F(Q) = Q²/K² + β·Q the steady pressure drop of [`Self::steady_flow`]
     /// (1.03 bar per L/min/s on the reference bench).
     pub fn motor_inductance(&self) -> f32 {
-        let d_rad = self.motor_displacement_cm3 * 1e-6 / (2.0 * core::f32::consts::PI);
+        let d_rad = self.motor_displacement_cm3_per_rev * 1e-6 / (2.0 * core::f32::consts::PI);
         let kappa = 60.0 / (2.0 * core::f32::consts::PI) * d_rad * self.motor_mech_efficiency * 1e5
             / self.motor_inertia_kg_m2;
         self.rpm_per_lpm() / kappa
@@ -450,7 +479,8 @@ impl ModelConfig {
         let mut t = 0.0;
         for k in 0..n {
             let p = hi + (k as f32 + 0.5) * h;
-            t += 60.0 * capacitance(self, &self.hp, p) / self.steady_flow(a, p - lp) * h;
+            t +=
+                60.0 * capacitance(self, &self.hp_accumulator, p) / self.steady_flow(a, p - lp) * h;
         }
         t.min(AUTONOMY_CAP_S)
     }
@@ -547,10 +577,10 @@ impl ModelConfig {
             Table1::<N_LP>::spacing(0.0, LP_MAX_BAR),
         );
         let inv_c_hp = Table1::sample(0.0, P_MAX_BAR, |p| {
-            1.0 / (60.0 * capacitance_node(self, &self.hp, p, h_hp))
+            1.0 / (60.0 * capacitance_node(self, &self.hp_accumulator, p, h_hp))
         });
         let inv_c_lp = Table1::sample(0.0, LP_MAX_BAR, |p| {
-            1.0 / (60.0 * capacitance_node(self, &self.lp, p, h_lp))
+            1.0 / (60.0 * capacitance_node(self, &self.lp_accumulator, p, h_lp))
         });
         let spool_gain = if self.spool_time_constant_ms <= 0.0 {
             1.0
@@ -560,7 +590,7 @@ impl ModelConfig {
         let inductance = self.motor_inductance();
         let r = self.pressure_noise_bar * self.pressure_noise_bar;
         // LP: steady-state gain for the flow uncertainty at nominal LP.
-        let ic_lp = 1.0 / (60.0 * capacitance(self, &self.lp, lp_nom));
+        let ic_lp = 1.0 / (60.0 * capacitance(self, &self.lp_accumulator, lp_nom));
         let qf = self.process_noise_lpm_per_sqrt_s * ic_lp;
         let q = qf * qf * dt;
         let gain = |v: f32| v / (v + r);
@@ -579,64 +609,38 @@ impl ModelConfig {
                 round_dt2_q32: 1i64 << (2 * k),
                 stuck_steps: (2.0 / dt).min(60_000.0) as u16,
             },
-            cyl,
-            arm,
-            ext,
-            ms_of_p,
-            p_of_ms,
-            valve_flow,
-            autonomy,
-            inv_c_hp,
-            inv_c_lp,
-            rpm_per_lpm: fx(self.rpm_per_lpm()),
-            motor_gain0: fx(dt * self.motor_bar_per_lpm() / inductance),
-            // Sampled on the valve table's aperture rows (0..100 %, N_APERTURE nodes).
-            motor_gain_valve: Table1::<N_APERTURE>::sample(0.0, 100.0, |a| {
-                let kv = self.valve_k(a);
-                if kv <= 0.0 {
-                    MOTOR_GAIN_VALVE_CAP
-                } else {
-                    (dt / (inductance * kv * kv)).min(MOTOR_GAIN_VALVE_CAP)
-                }
-            })
-            .y,
-            spool_gain: fx(spool_gain),
-            relief_setting: fx(self.relief_setting_bar),
-            hp_empty_below: fx(self.hp.precharge_bar + self.hp_empty_margin_bar),
-            q_relief: fx(self.relief_process_noise_bar_per_sqrt_s
-                * self.relief_process_noise_bar_per_sqrt_s
-                * dt),
-            relief_gain: fx(self.relief_gain_lpm_per_bar),
-            q_step: Table1::sample(0.0, P_MAX_BAR, |p| {
-                let ic = 1.0 / (60.0 * capacitance_node(self, &self.hp, p, h_hp));
-                let qf = self.process_noise_lpm_per_sqrt_s * ic;
-                (qf * qf * dt).max(1.0 / 65_536.0)
-            }),
-            r: fx(r),
-            gain_fine: Table1::sample(0.0, r, gain),
-            gain_coarse: Table1::sample(0.0, 32.0 * r, gain),
-            gain_lp: fx(pp / (pp + r)),
-            gate_sq: fx(self.gate_sigma * self.gate_sigma),
-            gate_reset_steps: (self.gate_reset_ms * 1e-3 / dt).clamp(1.0, 60_000.0) as u16,
-            var_fade_max: fx(16.0 * r),
-            hp_range: (
-                fx(self.hp_sensor_range_bar.0),
-                fx(self.hp_sensor_range_bar.1),
-            ),
-            lp_range: (
-                fx(self.lp_sensor_range_bar.0),
-                fx(self.lp_sensor_range_bar.1),
-            ),
-            motor_max: fx(self.motor_sensor_max_rpm),
-            trip: fx(self.trip_bar),
-            autonomy_min_rpm: fx(self.autonomy_min_rpm),
-            mean_gain: fx(dt / 10.0).max(Fx::DELTA),
-            bar_per_rpm: fx(self.bar_per_rpm()),
-            play_mm: fx(self.free_play_mm),
-            seal_kn_per_mm_s: fx(self.seal_friction_n_s_per_m * 1e-6),
-            check_drop: fx(self.check_valve_drop_bar),
-            // Float-to-integer casts saturate; ≥ 1/10 000 rpm per L/min by validation.
-            lpm_per_rpm_q24: (16_777_216.0 / self.rpm_per_lpm()) as i32,
+            pump: PumpCoeffs {
+                cyl,
+                arm,
+                ext,
+                ms_of_p,
+                p_of_ms,
+                play_mm: fx(self.free_play_mm),
+                seal_kn_per_mm_s: fx(self.seal_friction_n_s_per_m * 1e-6),
+                check_drop_bar: fx(self.check_valve_drop_bar),
+            },
+            branch: BranchCoeffs {
+                valve_flow,
+                spool_gain: fx(spool_gain),
+                motor_gain0: fx(dt * self.motor_bar_per_lpm() / inductance),
+                // Sampled on the valve table's aperture rows (0..100 %, N_APERTURE nodes).
+                motor_gain_valve: Table1::<N_APERTURE>::sample(0.0, 100.0, |a| {
+                    let kv = self.valve_k(a);
+                    if kv <= 0.0 {
+                        MOTOR_GAIN_VALVE_CAP
+                    } else {
+                        (dt / (inductance * kv * kv)).min(MOTOR_GAIN_VALVE_CAP)
+                    }
+                })
+                .y,
+                rpm_per_lpm: fx(self.rpm_per_lpm()),
+                // Float-to-integer casts saturate; ≥ 1/10 000 rpm per L/min by validation.
+                lpm_per_rpm_q24: (16_777_216.0 / self.rpm_per_lpm()) as i32,
+                relief_setting_bar: fx(self.relief_setting_bar),
+                relief_gain_lpm_per_bar: fx(self.relief_gain_lpm_per_bar),
+                spin_down_steps: (5.0 * self.rotor_time_constant_s() / dt).clamp(1.0, 60_000.0)
+                    as u16,
+            },
             // The reading's filters run every second step (`estimator::motor_reading`).
             reading: ReadingCoeffs {
                 filter: fx((2.0 * dt / (self.motor_reading_filter_ms * 1e-3)).min(1.0)),
@@ -658,14 +662,48 @@ impl ModelConfig {
                 r: fx(self.motor_reading_noise_bar * self.motor_reading_noise_bar),
                 p2_max: fx(self.relief_setting_bar + self.gate_sigma * self.motor_reading_noise_bar),
             },
-            precharge_band_top: fx(self.hp.precharge_bar + self.precharge_band_bar),
-            var_precharge: fx(self.precharge_sigma_bar * self.precharge_sigma_bar),
-            spin_down_steps: (5.0 * self.rotor_time_constant_s() / dt).clamp(1.0, 60_000.0) as u16,
+            observer: ObserverCoeffs {
+                inv_c_hp,
+                inv_c_lp,
+                q_step: Table1::sample(0.0, P_MAX_BAR, |p| {
+                    let ic = 1.0 / (60.0 * capacitance_node(self, &self.hp_accumulator, p, h_hp));
+                    let qf = self.process_noise_lpm_per_sqrt_s * ic;
+                    (qf * qf * dt).max(1.0 / 65_536.0)
+                }),
+                q_relief: fx(self.relief_process_noise_bar_per_sqrt_s
+                    * self.relief_process_noise_bar_per_sqrt_s
+                    * dt),
+                relief_setting_bar: fx(self.relief_setting_bar),
+                r: fx(r),
+                gain_fine: Table1::sample(0.0, r, gain),
+                gain_coarse: Table1::sample(0.0, 32.0 * r, gain),
+                gain_lp: fx(pp / (pp + r)),
+                gate_sq: fx(self.gate_sigma * self.gate_sigma),
+                gate_reset_steps: (self.gate_reset_ms * 1e-3 / dt).clamp(1.0, 60_000.0) as u16,
+                var_fade_max: fx(16.0 * r),
+                hp_range_bar: (
+                    fx(self.hp_sensor_range_bar.0),
+                    fx(self.hp_sensor_range_bar.1),
+                ),
+                lp_range_bar: (
+                    fx(self.lp_sensor_range_bar.0),
+                    fx(self.lp_sensor_range_bar.1),
+                ),
+                precharge_band_top_bar: fx(
+                    self.hp_accumulator.precharge_bar + self.precharge_band_bar
+                ),
+                var_precharge: fx(self.precharge_sigma_bar * self.precharge_sigma_bar),
+            },
+            autonomy,
+            mean_gain: fx(dt / 10.0).max(Fx::DELTA),
+            motor_max_rpm: fx(self.motor_sensor_max_rpm),
+            trip_bar: fx(self.trip_bar),
+            hp_empty_below_bar: fx(self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar),
         })
     }
 }
 
-impl Coefficients {
+impl ObserverCoeffs {
     /// Kalman gain for the prior variance `var` with its 16 bits below the LSB (`var_lo`), in
     /// units of 2^−32, held to [0, 1]. A Q16.16 gain near its steady ≈ 0.008 is good to 0.2 %:
     /// times a 2 bar innovation that was 2.5 P2 LSBs a step, and the variance's own rounding
@@ -750,7 +788,19 @@ mod tests {
             );
             assert!(worst < 0.05, "{name}: {worst}");
         }
-        check(&cfg, "HP", &cfg.hp, &k.inv_c_hp, P_MAX_BAR);
-        check(&cfg, "LP", &cfg.lp, &k.inv_c_lp, LP_MAX_BAR);
+        check(
+            &cfg,
+            "HP",
+            &cfg.hp_accumulator,
+            &k.observer.inv_c_hp,
+            P_MAX_BAR,
+        );
+        check(
+            &cfg,
+            "LP",
+            &cfg.lp_accumulator,
+            &k.observer.inv_c_lp,
+            LP_MAX_BAR,
+        );
     }
 }

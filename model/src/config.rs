@@ -63,7 +63,7 @@ pub struct ModelConfig {
     /// Chamber dead volume incl. its hose, cm³.
     pub chamber_dead_volume_cm3: f32,
     /// Oil liquid bulk modulus, MPa.
-    pub oil_bulk_modulus_mpa: f32,
+    pub oil_liquid_bulk_modulus_mpa: f32,
     /// Oil density, kg/m³.
     pub oil_density_kg_m3: f32,
     /// Trapped air fraction at atmospheric pressure.
@@ -71,11 +71,11 @@ pub struct ModelConfig {
     /// Polytropic index of the trapped air (1 isothermal … 1.4 adiabatic).
     pub air_polytropic_index: f32,
     /// HP accumulator (+ HP line).
-    pub hp: AccumulatorConfig,
+    pub hp_accumulator: AccumulatorConfig,
     /// LP accumulator (+ LP lines).
-    pub lp: AccumulatorConfig,
+    pub lp_accumulator: AccumulatorConfig,
     /// Control valve discharge coefficient.
-    pub valve_cd: f32,
+    pub valve_discharge_coefficient: f32,
     /// Control valve table: aperture, %.
     pub valve_aperture_pct: [f32; 11],
     /// Control valve table: area, mm².
@@ -90,7 +90,7 @@ pub struct ModelConfig {
     /// Relief flow gained per bar above the setting, L/min/bar.
     pub relief_gain_lpm_per_bar: f32,
     /// Motor displacement, cm³/rev.
-    pub motor_displacement_cm3: f32,
+    pub motor_displacement_cm3_per_rev: f32,
     /// Motor leakage, L/min per bar.
     pub motor_leak_lpm_per_bar: f32,
     /// Motor mechanical efficiency.
@@ -98,7 +98,7 @@ pub struct ModelConfig {
     /// Generator load, N·m per rpm (torque ∝ speed).
     pub load_nm_per_rpm: f32,
     /// Inertia of the motor and generator rotor, kg·m² (the valve/motor flow's lag behind the
-    /// pressure across it, `coeffs::Coefficients::motor_gain0`).
+    /// pressure across it, `coeffs::BranchCoeffs::motor_gain0`).
     pub motor_inertia_kg_m2: f32,
     /// HP transducer range, bar (readings outside are a sensor fault).
     pub hp_sensor_range_bar: (f32, f32),
@@ -245,24 +245,24 @@ impl ModelConfig {
             seal_friction_n_s_per_m: 2000.0,
             // 15 cm³ + 1 m of 9.5 mm hose.
             chamber_dead_volume_cm3: 85.88,
-            oil_bulk_modulus_mpa: 1600.0,
+            oil_liquid_bulk_modulus_mpa: 1600.0,
             oil_density_kg_m3: 870.0,
             trapped_air_fraction: 0.06,
             air_polytropic_index: 1.4,
             // HP line 3 m × 12.7 mm; LP lines 6 m × 12.7 mm.
-            hp: AccumulatorConfig {
+            hp_accumulator: AccumulatorConfig {
                 volume_l: 10.0,
                 precharge_bar: 25.0,
                 polytropic_index: 1.4,
                 line_volume_l: 0.38,
             },
-            lp: AccumulatorConfig {
+            lp_accumulator: AccumulatorConfig {
                 volume_l: 20.0,
                 precharge_bar: 4.0,
                 polytropic_index: 1.4,
                 line_volume_l: 0.76,
             },
-            valve_cd: 0.154,
+            valve_discharge_coefficient: 0.154,
             valve_aperture_pct: [
                 0.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 70.0, 80.0, 90.0, 100.0,
             ],
@@ -276,7 +276,7 @@ impl ModelConfig {
             // Cd·A_max/range·sqrt(2·Δp/ρ) with Δp = 130 − 8 bar:
             // 0.7 × 10 mm² / 3 bar × sqrt(2 × 122 bar / 870 kg/m³), in L/min per bar.
             relief_gain_lpm_per_bar: 23.4457,
-            motor_displacement_cm3: 8.0,
+            motor_displacement_cm3_per_rev: 8.0,
             // D·ω_nom·(1 − η_v)/p_nom = 12 L/min × 0.08 / 100 bar.
             motor_leak_lpm_per_bar: 0.0096,
             motor_mech_efficiency: 0.923_913,
@@ -383,15 +383,15 @@ impl ModelConfig {
             5000.0,
         )?;
         check(
-            "oil_bulk_modulus_mpa",
-            self.oil_bulk_modulus_mpa,
+            "oil_liquid_bulk_modulus_mpa",
+            self.oil_liquid_bulk_modulus_mpa,
             100.0,
             5000.0,
         )?;
         check("oil_density_kg_m3", self.oil_density_kg_m3, 600.0, 1200.0)?;
         check("trapped_air_fraction", self.trapped_air_fraction, 0.0, 0.5)?;
         check("air_polytropic_index", self.air_polytropic_index, 1.0, 1.67)?;
-        for a in [&self.hp, &self.lp] {
+        for a in [&self.hp_accumulator, &self.lp_accumulator] {
             check("accumulator.volume_l", a.volume_l, 0.1, 500.0)?;
             check("accumulator.precharge_bar", a.precharge_bar, 0.5, 400.0)?;
             check(
@@ -402,7 +402,12 @@ impl ModelConfig {
             )?;
             check("accumulator.line_volume_l", a.line_volume_l, 0.001, 100.0)?;
         }
-        check("valve_cd", self.valve_cd, 0.01, 1.0)?;
+        check(
+            "valve_discharge_coefficient",
+            self.valve_discharge_coefficient,
+            0.01,
+            1.0,
+        )?;
         for w in self.valve_aperture_pct.windows(2) {
             check("valve_aperture_pct", w[1], w[0] + 0.01, 100.0)?;
         }
@@ -436,8 +441,8 @@ impl ModelConfig {
             1000.0,
         )?;
         check(
-            "motor_displacement_cm3",
-            self.motor_displacement_cm3,
+            "motor_displacement_cm3_per_rev",
+            self.motor_displacement_cm3_per_rev,
             0.1,
             1000.0,
         )?;

@@ -187,7 +187,7 @@ impl SchedulerConfig {
                 100.0,
             )?,
             fault_var: sigma.qmul(sigma),
-            lpm_per_rpm: Fx::saturating_from_num(1.0 / k.rpm_per_lpm.to_num::<f32>()),
+            lpm_per_rpm: Fx::saturating_from_num(1.0 / k.branch.rpm_per_lpm.to_num::<f32>()),
         })
     }
 }
@@ -212,7 +212,7 @@ pub struct SchedulerState {
 #[inline(always)]
 fn feed_forward(k: &Coefficients, st: &mut SchedulerState, refresh: bool, dp: Fx, q: Fx) -> Fx {
     if refresh {
-        st.ff = k.valve_flow.invert_r_tracking(dp, q, &mut st.ff_row);
+        st.ff = k.branch.valve_flow.invert_r_tracking(dp, q, &mut st.ff_row);
     }
     st.ff
 }
@@ -221,7 +221,7 @@ fn feed_forward(k: &Coefficients, st: &mut SchedulerState, refresh: bool, dp: Fx
 /// inverse of the valve table along its aperture axis ([`crate::table::Table2::invert_r`]; the
 /// step uses its bounded-work form, [`crate::table::Table2::invert_r_tracking`]).
 pub fn aperture_for_flow(k: &Coefficients, q: Fx, dp: Fx) -> Fx {
-    k.valve_flow.invert_r(dp, q)
+    k.branch.valve_flow.invert_r(dp, q)
 }
 
 /// One scheduler step after the estimator's. `measured_rpm` is the motor speed sensor (the

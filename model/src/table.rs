@@ -99,7 +99,7 @@ impl<const N: usize> Table1<N> {
     /// the estimator's nodes keep them), in units of 2^−32 (Q16.32 in an `i64`): the position
     /// with all 32 bits of its fraction, the product with the node difference exact. For the
     /// values whose one-step rounding matters (the Kalman gain and the process noise:
-    /// `Coefficients::gain_q32`). Bit budget: the offset's Q16.16 part times the reciprocal
+    /// `ObserverCoeffs::gain_q32`). Bit budget: the offset's Q16.16 part times the reciprocal
     /// spacing is < 2^62 as in `locate`, its 16 low bits times it < 2^47; the 32-bit fraction
     /// times a node difference (a saturated Q16.16 difference, < 2^31 in magnitude) is < 2^63.
     /// Every product is of two 32-bit words (one `smull`/`umull` each on a Cortex-M4). Out of

@@ -93,7 +93,7 @@ proptest! {
     #[test]
     fn valve_table_is_monotone(a in 0.0f32..99.0, da in 0.01f32..20.0, dp in 0.0f32..150.0, ddp in 0.01f32..20.0) {
         let k = coeffs();
-        let f = |a: f32, dp: f32| k.valve_flow.at(Fx::from_num(a), Fx::from_num(dp));
+        let f = |a: f32, dp: f32| k.branch.valve_flow.at(Fx::from_num(a), Fx::from_num(dp));
         prop_assert!(f((a + da).min(100.0), dp) >= f(a, dp));
         prop_assert!(f(a, dp + ddp) >= f(a, dp));
     }
@@ -103,9 +103,9 @@ proptest! {
     fn inverse_valve_table_round_trips(a in 2.0f32..100.0, dp in 20.0f32..150.0) {
         let k = coeffs();
         let (a, dp) = (Fx::from_num(a), Fx::from_num(dp));
-        let q = k.valve_flow.at(a, dp);
+        let q = k.branch.valve_flow.at(a, dp);
         let back = aperture_for_flow(k, q, dp);
-        let q_back = k.valve_flow.at(back, dp);
+        let q_back = k.branch.valve_flow.at(back, dp);
         prop_assert!((q_back - q).abs() < Fx::from_num(0.002), "q {} back {}", q, q_back);
         prop_assert!((back - a).abs() < Fx::from_num(0.05));
     }

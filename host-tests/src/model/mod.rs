@@ -13,7 +13,7 @@
 //! file.set_field("hp_accumulator.precharge_bar", "45")?;
 //! let bench = Bench::from_file(file, "my bench").map_err(|e| e.to_string())?;
 //! let cfg = model_config(&bench)?;
-//! assert_eq!(cfg.hp.precharge_bar, 45.0);
+//! assert_eq!(cfg.hp_accumulator.precharge_bar, 45.0);
 //! let k = cfg.coefficients().map_err(|e| e.to_string())?;
 //! assert_eq!(k.dt_log2, 10);
 //! # Ok::<(), String>(())
@@ -80,19 +80,19 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
         free_play_mm: (b.free_play_m * 1e3) as f32,
         seal_friction_n_s_per_m: b.seal_friction_n_s_per_m as f32,
         chamber_dead_volume_cm3: (b.chamber_dead_volume_m3 * 1e6) as f32,
-        oil_bulk_modulus_mpa: (b.oil.liquid_modulus_pa * 1e-6) as f32,
+        oil_liquid_bulk_modulus_mpa: (b.oil.liquid_modulus_pa * 1e-6) as f32,
         oil_density_kg_m3: b.oil.density_kg_m3 as f32,
         trapped_air_fraction: b.oil.trapped_air_fraction as f32,
         air_polytropic_index: b.oil.air_polytropic_index as f32,
-        hp: acc(&b.hp_acc, b.hp_line_volume_m3),
-        lp: acc(&b.lp_acc, b.lp_line_volume_m3),
-        valve_cd: b.valve_cd as f32,
+        hp_accumulator: acc(&b.hp_acc, b.hp_line_volume_m3),
+        lp_accumulator: acc(&b.lp_acc, b.lp_line_volume_m3),
+        valve_discharge_coefficient: b.valve_cd as f32,
         valve_aperture_pct: table(&f.control_valve.aperture_pct)?,
         valve_area_mm2: table(&f.control_valve.area_mm2)?,
         spool_time_constant_ms: (b.spool_tau_s * 1e3) as f32,
         relief_setting_bar: (b.relief_setting_pa / BAR) as f32,
         relief_gain_lpm_per_bar: relief_gain as f32,
-        motor_displacement_cm3: f.motor.displacement_cm3_per_rev as f32,
+        motor_displacement_cm3_per_rev: f.motor.displacement_cm3_per_rev as f32,
         motor_leak_lpm_per_bar: (b.motor_leak_m3_per_s_pa * 6e4 * BAR) as f32,
         motor_mech_efficiency: b.motor_eta_mech as f32,
         load_nm_per_rpm: load_nm_per_rpm as f32,

@@ -124,7 +124,13 @@ impl Reference {
         let ext =
             |p: Fx, lo: u16| (f64::from(p.to_bits()) * 65_536.0 + f64::from(lo)) / 4_294_967_296.0;
         let f = |x: Fx| x.to_num::<f64>();
-        let mut r = Reference::new(cfg, k, ext(s.p2, s.p2_lo), ext(s.lp, s.lp_lo), 0.0);
+        let mut r = Reference::new(
+            cfg,
+            k,
+            ext(s.node.p2, s.node.p2_lo),
+            ext(s.node.lp, s.node.lp_lo),
+            0.0,
+        );
         r.theta = q32(s.tracker.theta_q32);
         r.omega = q32(s.tracker.omega_q32);
         r.accel = q32(s.tracker.accel_q32);
@@ -132,10 +138,13 @@ impl Reference {
         // enc_phase: 1 tracking, n + 1 with n start-up steps left.
         r.enc_n = u32::from(k.tracker.tracker_startup_len)
             .saturating_sub(u32::from(s.tracker.phase.saturating_sub(1)));
-        r.var = ext(s.var, s.var_lo);
-        r.aperture = f(s.aperture);
-        r.q_motor = s.started.then(|| ext(s.q_motor, s.q_motor_lo));
-        r.rejected = u32::from(s.rejected);
+        r.var = ext(s.node.var, s.node.var_lo);
+        r.aperture = f(s.branch.aperture);
+        r.q_motor = s
+            .branch
+            .started
+            .then(|| ext(s.branch.q_motor, s.branch.q_motor_lo));
+        r.rejected = u32::from(s.node.rejected);
         for (rc, c) in r.cyl.iter_mut().zip(&s.cyl) {
             *rc = RefCyl {
                 dir: c.dir,
@@ -180,7 +189,7 @@ impl Reference {
     fn motor_reading(&mut self, rpm: f64, cmd: f64, lp_dp: f64, dp: f64, q_ss: f64, g: f64) {
         let k = &*self.k;
         let f = |x: Fx| x.to_num::<f64>();
-        let q_m = (rpm * f64::from(k.lpm_per_rpm_q24) / 16_777_216.0).min(1000.0);
+        let q_m = (rpm * f64::from(k.branch.lpm_per_rpm_q24) / 16_777_216.0).min(1000.0);
         let slope = g * f(k.reading.ldt);
         let fm = (lp_dp - slope * (q_ss - q_m)).clamp(P_MIN_BAR, P_MAX_BAR);
         let a = f(k.reading.filter);
@@ -197,6 +206,7 @@ impl Reference {
         m.odd = !m.odd;
         if m.odd {
             let q_cap = k
+                .branch
                 .valve_flow
                 .at_f64(self.aperture, f(k.reading.p2_max) - self.lp_bar);
             if q_m > q_cap * (1.0 + f(k.reading.band)) + f(k.reading.min_lpm) {
@@ -294,10 +304,10 @@ impl Reference {
         let (mut q_pump, mut q_lp, mut torque) = (0.0, 0.0, 0.0);
         let mut budget = pto_model::estimator::REVERSAL_UNITS_PER_STEP;
         for i in 0..4 {
-            let cc = &k.cyl[i];
+            let cc = &k.pump.cyl[i];
             let f = |x: Fx| x.to_num::<f64>();
             let side = f(cc.side);
-            let d = k.arm[config].at_f64(side * self.theta); // mm
+            let d = k.pump.arm[config].at_f64(side * self.theta); // mm
             let v = side * d * self.omega; // mm/s
             if inp.on_duty & (1 << i) != 0 {
                 use pto_model::estimator::{BISECT_ITERATIONS, SETUP_UNITS};
@@ -309,20 +319,20 @@ impl Reference {
                 } else {
                     cs.dir
                 };
-                let seal = v * f(k.seal_kn_per_mm_s);
-                let drop = f(k.check_drop);
+                let seal = v * f(k.pump.seal_kn_per_mm_s);
+                let drop = f(k.pump.check_drop_bar);
                 let (lo, hi) = (self.lp_bar - drop, self.p2_bar + drop);
                 let pressures = |st: &(f64, f64, f64, f64), u: f64| {
                     let (ms_n0, ms_o0, kn, ko) = *st;
-                    let pn = k.p_of_ms.at_f64(ms_n0 + u * kn).max(lo).min(hi);
-                    let po = k.p_of_ms.at_f64(ms_o0 - u * ko).max(lo).min(hi);
+                    let pn = k.pump.p_of_ms.at_f64(ms_n0 + u * kn).max(lo).min(hi);
+                    let po = k.pump.p_of_ms.at_f64(ms_o0 - u * ko).max(lo).min(hi);
                     (pn, po)
                 };
                 if dir != cs.dir {
                     cs.from_rest = cs.dir == 0;
                     cs.dir = dir;
                     cs.travel = 0.0;
-                    cs.play = f(k.play_mm);
+                    cs.play = f(k.pump.play_mm);
                     cs.setup_left = SETUP_UNITS;
                     cs.bisect_left = 0;
                 }
@@ -343,7 +353,7 @@ impl Reference {
                 if (cs.setup_left > 0 || cs.bisect_left > 0) && budget > 0 {
                     budget -= 1;
                     if cs.setup_left == SETUP_UNITS {
-                        let pos = k.ext[config].at_f64(side * self.theta);
+                        let pos = k.pump.ext[config].at_f64(side * self.theta);
                         let l_cap = f(cc.dead_cap_mm) + pos;
                         let l_rod = f(cc.dead_rod_mm) + f(cc.stroke_mm) - pos;
                         cs.len = if dir >= 0 {
@@ -361,7 +371,7 @@ impl Reference {
                             // A quarter of the play inside the band, ramps at its edges.
                             let band = f(pto_model::estimator::FLOAT_BAND);
                             let ramp = f(pto_model::estimator::FLOAT_RAMP);
-                            let play = f(k.play_mm);
+                            let play = f(k.pump.play_mm);
                             cs.play = if net <= -band {
                                 0.0
                             } else if net >= band {
@@ -377,17 +387,17 @@ impl Reference {
                         cs.setup_left -= 1;
                     } else if cs.setup_left == SETUP_UNITS - 2 {
                         let (p_new0, p_old0) = held(cs);
-                        cs.strain.0 = k.ms_of_p.at_f64(p_new0);
-                        cs.strain.1 = k.ms_of_p.at_f64(p_old0);
+                        cs.strain.0 = k.pump.ms_of_p.at_f64(p_new0);
+                        cs.strain.1 = k.pump.ms_of_p.at_f64(p_old0);
                         cs.setup_left -= 1;
                     } else if cs.setup_left > 0 {
-                        let to_hi = (k.ms_of_p.at_f64(hi) - cs.strain.0).max(0.0);
-                        let to_lo = (cs.strain.1 - k.ms_of_p.at_f64(lo)).max(0.0);
+                        let to_hi = (k.pump.ms_of_p.at_f64(hi) - cs.strain.0).max(0.0);
+                        let to_lo = (cs.strain.1 - k.pump.ms_of_p.at_f64(lo)).max(0.0);
                         cs.u_end = to_hi * cs.len.0 / 1000.0;
                         cs.u_suc = to_lo * cs.len.1 / 1000.0;
                         cs.u_bal = 0.0;
                         cs.u_bal_hi = cs.u_end.max(cs.u_suc);
-                        if cs.from_rest || cs.play == f(k.play_mm) {
+                        if cs.from_rest || cs.play == f(k.pump.play_mm) {
                             cs.bisect_left = BISECT_ITERATIONS;
                         }
                         cs.setup_left = 0;
@@ -402,7 +412,7 @@ impl Reference {
                         cs.bisect_left -= 1;
                         if cs.bisect_left == 0 {
                             if cs.from_rest {
-                                cs.travel += 0.5 * f(k.play_mm);
+                                cs.travel += 0.5 * f(k.pump.play_mm);
                             } else if cs.u_bal_hi == cs.u_end.max(cs.u_suc) {
                                 cs.play = 0.0;
                             }
@@ -464,40 +474,44 @@ impl Reference {
             }
         }
         let dp = (self.p2_bar - self.lp_bar).max(0.0);
-        let q_ss = k.valve_flow.at_f64(self.aperture, dp);
+        let q_ss = k.branch.valve_flow.at_f64(self.aperture, dp);
         let q = self.q_motor.unwrap_or(q_ss);
-        let gain_valve = Self::row_lerp(&k.valve_flow, &k.motor_gain_valve, self.aperture);
-        let g = (k.motor_gain0.to_num::<f64>() + (q_ss + q) * gain_valve).min(1.0);
+        let gain_valve = Self::row_lerp(
+            &k.branch.valve_flow,
+            &k.branch.motor_gain_valve,
+            self.aperture,
+        );
+        let g = (k.branch.motor_gain0.to_num::<f64>() + (q_ss + q) * gain_valve).min(1.0);
         let lp_dp = self.lp_bar + dp;
         let q = q + g * (q_ss - q);
         self.q_motor = Some(q);
-        let motor_rpm = q * k.rpm_per_lpm.to_num::<f64>();
+        let motor_rpm = q * k.branch.rpm_per_lpm.to_num::<f64>();
         let q_valve = if dp > 0.0 { q } else { 0.0 };
-        let q_relief = (self.p2_bar - k.relief_setting.to_num::<f64>()).max(0.0)
-            * k.relief_gain.to_num::<f64>();
-        let inv_c_hp = k.inv_c_hp.at_f64(self.p2_bar);
+        let q_relief = (self.p2_bar - k.branch.relief_setting_bar.to_num::<f64>()).max(0.0)
+            * k.branch.relief_gain_lpm_per_bar.to_num::<f64>();
+        let inv_c_hp = k.observer.inv_c_hp.at_f64(self.p2_bar);
         self.p2_bar = (self.p2_bar + (q_pump - q_valve - q_relief) * inv_c_hp * dt)
             .clamp(P_MIN_BAR, P_MAX_BAR);
         self.lp_bar = (self.lp_bar
-            + (q_valve + q_relief - q_lp) * k.inv_c_lp.at_f64(self.lp_bar) * dt)
+            + (q_valve + q_relief - q_lp) * k.observer.inv_c_lp.at_f64(self.lp_bar) * dt)
             .clamp(P_MIN_BAR, P_MAX_BAR);
         let r = f64::from(c.pressure_noise_bar).powi(2);
-        self.var += k.q_step.at_f64(self.p2_bar);
+        self.var += k.observer.q_step.at_f64(self.p2_bar);
         let hp = inp.hp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.hp_sensor_range_bar.0) && *p <= f64::from(c.hp_sensor_range_bar.1)
         });
         let f = |x: Fx| x.to_num::<f64>();
         let closed = cmd < f(k.reading.min_aperture) || self.aperture < f(k.reading.min_aperture);
         if let Some(z) = hp {
-            if self.p2_bar >= f(k.relief_setting) {
-                self.var += f(k.q_relief);
+            if self.p2_bar >= f(k.observer.relief_setting_bar) {
+                self.var += f(k.observer.q_relief);
             }
             let innov = z - self.p2_bar;
             if innov * innov <= f64::from(c.gate_sigma).powi(2) * (self.var + r) {
-                let g = if self.var < k.r.to_num::<f64>() {
-                    k.gain_fine.at_f64(self.var)
+                let g = if self.var < k.observer.r.to_num::<f64>() {
+                    k.observer.gain_fine.at_f64(self.var)
                 } else {
-                    k.gain_coarse.at_f64(self.var).clamp(0.0, 1.0)
+                    k.observer.gain_coarse.at_f64(self.var).clamp(0.0, 1.0)
                 };
                 // The reading held to the model's pressure range, as in the fixed-point model.
                 self.p2_bar += g * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.p2_bar);
@@ -532,14 +546,14 @@ impl Reference {
                 self.meas_wait = 0;
             }
         }
-        if hp.is_none() && self.p2_bar <= f(k.precharge_band_top) {
-            self.var = self.var.max(f(k.var_precharge));
+        if hp.is_none() && self.p2_bar <= f(k.observer.precharge_band_top_bar) {
+            self.var = self.var.max(f(k.observer.var_precharge));
         }
         if let Some(z) = inp.lp.map(|p| f64::from(p.to_f32())).filter(|p| {
             *p >= f64::from(c.lp_sensor_range_bar.0) && *p <= f64::from(c.lp_sensor_range_bar.1)
         }) {
             self.lp_bar +=
-                k.gain_lp.to_num::<f64>() * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.lp_bar);
+                k.observer.gain_lp.to_num::<f64>() * (z.clamp(P_MIN_BAR, P_MAX_BAR) - self.lp_bar);
         }
         RefOut {
             p2_bar: self.p2_bar,

@@ -160,7 +160,7 @@ fn validate_scenario(
         0.0,
         coeffs::P_MAX_BAR,
     ));
-    let pre_model = f64::from(mcfg.hp.precharge_bar);
+    let pre_model = f64::from(mcfg.hp_accumulator.precharge_bar);
     // The cells on either side of the precharge (its dP/dV jump is interpolated over the one
     // below it, and P2 settles in the one above).
     let cell = (pre_model - h, pre_model + h);

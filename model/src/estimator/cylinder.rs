@@ -6,18 +6,18 @@ use super::*;
 /// Pressures of the new (compressing) and old (relaxing) chambers after `u` mm of rod travel
 /// since the reversal, bar: the strain moves by u·(strain per mm) from its value at the reversal.
 #[inline]
-pub(super) fn p_new_at(k: &Coefficients, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> Fx {
+pub(super) fn p_new_at(k: &PumpCoeffs, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> Fx {
     p_at_strain(k, cs.ms_new0.saturating_add(u.qmul(cs.ms_per_mm_n)), lo, hi)
 }
 
 #[inline]
-pub(super) fn p_old_at(k: &Coefficients, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> Fx {
+pub(super) fn p_old_at(k: &PumpCoeffs, cs: &CylState, u: Fx, lo: Fx, hi: Fx) -> Fx {
     p_at_strain(k, cs.ms_old0.saturating_sub(u.qmul(cs.ms_per_mm_o)), lo, hi)
 }
 
 /// Oil pressure at a milli-strain, held between the check valves' limits.
 #[inline]
-pub(super) fn p_at_strain(k: &Coefficients, ms: Fx, lo: Fx, hi: Fx) -> Fx {
+pub(super) fn p_at_strain(k: &PumpCoeffs, ms: Fx, lo: Fx, hi: Fx) -> Fx {
     clamp(k.p_of_ms.at(ms), lo, hi)
 }
 
@@ -44,7 +44,9 @@ pub(super) struct Lever {
 
 /// What the cylinders of one step share.
 pub(super) struct Shared<'a> {
-    pub(super) k: &'a Coefficients,
+    pub(super) k: &'a PumpCoeffs,
+    /// dt = 2^−dtl s.
+    pub(super) dtl: u8,
     /// Rod-eye extension table of the geometry on duty.
     pub(super) ext: &'a Table1<N_ARM>,
     /// LP, bar.
@@ -166,7 +168,7 @@ pub(super) fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, 
 /// compression; a linear play over the whole band gave 0.6 N·m RMS in the irregular sea).
 /// Both widths are powers of two: two shifts and a multiply.
 pub(super) fn play_to_cross(
-    k: &Coefficients,
+    k: &PumpCoeffs,
     c: &CylinderCoeffs,
     cs: &CylState,
     lo: Fx,
@@ -234,8 +236,7 @@ pub(super) fn cylinder(
     lever: &Lever,
     on: bool,
 ) -> Fx {
-    let (k, lo, hi) = (sh.k, sh.lo, sh.hi);
-    let dtl = k.dt_log2;
+    let (k, lo, hi, dtl) = (sh.k, sh.lo, sh.hi, sh.dtl);
     let (th, sd, v) = (lever.th, lever.sd, lever.v);
     if !on {
         // Idle: bypassed to LP; LP·A_rod pushes the rod out, the rod volume flows to LP.
@@ -337,13 +338,20 @@ pub(super) fn cylinder(
 }
 
 /// The cylinders stage of a step: per cylinder on duty, its stroke and reversal work, its flows
-/// and torque; returns the total torque, the torque per cylinder and the step's shared sums
-/// (pump and suction flows, reversal work left). Inlined into the step, its only caller.
+/// and torque, from P2 and LP (bar), the shaft angle (rad, Q16.16) and speed (rad/s, Q32.32);
+/// returns the total torque, the torque per cylinder and the step's shared sums (pump and
+/// suction flows, reversal work left). Inlined into the step, its only caller.
+// The step's own values, passed as they are (inlined into the step: its only caller).
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
 pub(super) fn cylinders<'a>(
-    k: &'a Coefficients,
-    s: &mut State,
+    k: &'a PumpCoeffs,
+    dtl: u8,
+    cyl: &mut [CylState; 4],
+    p2: Fx,
+    lp: Fx,
     theta: Fx,
+    omega_q32: i64,
     inp: &Inputs,
     faults: &mut u16,
 ) -> (Fx, [Torque; 4], Shared<'a>) {
@@ -359,10 +367,11 @@ pub(super) fn cylinders<'a>(
     let mut torque = ZERO;
     let mut sh = Shared {
         k,
+        dtl,
         ext: ext_table,
-        lp: s.lp,
-        lo: s.lp.saturating_sub(k.check_drop),
-        hi: s.p2.saturating_add(k.check_drop),
+        lp,
+        lo: lp.saturating_sub(k.check_drop_bar),
+        hi: p2.saturating_add(k.check_drop_bar),
         budget: REVERSAL_UNITS_PER_STEP,
         q_pump: ZERO,
         q_lp: ZERO,
@@ -374,7 +383,7 @@ pub(super) fn cylinders<'a>(
     // took that as a P2 LSB a step. |ω| ≤ 100 rad/s (`OMEGA_LIM_Q32`) is < 2^31 in Q8.24, so
     // it is one word; times an arm (< 2^31 bits) < 2^62; the rod speed is held to the Q16.16
     // range.
-    let omega24 = ((s.tracker.omega_q32 + (1 << 7)) >> 8) as i32;
+    let omega24 = ((omega_q32 + (1 << 7)) >> 8) as i32;
     let lever = |th: Fx, negative: bool| {
         let d = arm_table.at(th);
         let sd = if negative { d.saturating_neg() } else { d };
@@ -387,7 +396,7 @@ pub(super) fn cylinders<'a>(
         }
     };
     let levers = [lever(theta, false), lever(theta.saturating_neg(), true)];
-    for (i, (c, cs)) in k.cyl.iter().zip(s.cyl.iter_mut()).enumerate() {
+    for (i, (c, cs)) in k.cyl.iter().zip(cyl.iter_mut()).enumerate() {
         let on = duty & (1 << i) != 0;
         let lv = &levers[usize::from(c.side < ZERO)];
         let t = cylinder(&mut sh, c, cs, lv, on);

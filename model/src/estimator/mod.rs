@@ -21,8 +21,8 @@
 //! in order.
 
 use crate::coeffs::{
-    Coefficients, CylinderCoeffs, N_ARM, TRACKER_STARTUP, TRACKER_STARTUP_MAX,
-    tracker_startup_gains,
+    BranchCoeffs, Coefficients, CylinderCoeffs, N_ARM, ObserverCoeffs, PumpCoeffs, ReadingCoeffs,
+    TRACKER_STARTUP, TRACKER_STARTUP_MAX, tracker_startup_gains,
 };
 use crate::fx::{
     Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, PressureVariance, QMul, Rpm, Seconds,
@@ -199,52 +199,27 @@ pub const REVERSAL_UNITS_PER_STEP: u8 = 1;
 /// Steps between autonomy refreshes (8 ms at 2^−10 s; more while reversals hold the slot).
 pub const AUTONOMY_EVERY: u8 = 8;
 
-/// Estimator state (360 bytes together with the scheduler's; `pto model-cost` prints it).
+/// Estimator state (360 bytes together with the scheduler's; `pto model-cost` prints it), a
+/// sub-state per stage of [`step`].
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
 pub struct State {
     /// The shaft tracker (`tracker`).
     pub tracker: TrackerState,
-    /// P2, bar.
-    pub p2: Fx,
-    /// The 16 bits of P2 below its Q16.16 LSB (units of 2^−32 bar): see `node_step`.
-    pub p2_lo: u16,
-    /// P2 variance, bar².
-    pub var: Fx,
-    /// The 16 bits of the P2 variance below its Q16.16 LSB (units of 2^−32 bar²). Near its
-    /// steady value (≈ 0.002 bar², 130 LSBs) the Kalman update's shrink (1 − g)·var is ≈ 1 LSB
-    /// per step: floored to the LSB, the variance ran 20 % below the f64 model's, its gain with
-    /// it, and P2 up to 0.15 bar away from the f64 model where it crosses the precharge.
-    pub var_lo: u16,
-    /// LP, bar.
-    pub lp: Fx,
-    /// The 16 bits of LP below its Q16.16 LSB (units of 2^−32 bar).
-    pub lp_lo: u16,
-    /// Effective spool aperture, %.
-    pub aperture: Fx,
-    /// Valve/motor flow, L/min: the rotor's speed as the flow it passes (it lags the steady
-    /// flow of the pressure across the branch by the rotor's inertia).
-    pub q_motor: Fx,
-    /// The 16 bits of the valve/motor flow below its Q16.16 LSB.
-    pub q_motor_lo: u16,
-    /// The first step has run: it set the spool to the command and the valve/motor flow to its
-    /// steady value.
-    pub started: bool,
+    /// The HP and LP nodes and P2's variance (`observer`).
+    pub node: NodeState,
+    /// The spool and the valve/motor flow (`motor`).
+    pub branch: BranchState,
     /// Autonomy at the last refresh, s.
     pub autonomy: Fx,
     /// Steps since the last autonomy refresh (wraps).
     pub autonomy_tick: u8,
     /// Averaged pump flow, L/min.
     pub q_mean: Fx,
-    /// Cylinders.
+    /// Cylinders (`cylinder`).
     pub cyl: [CylState; 4],
-    /// Consecutive rejected HP readings.
-    pub rejected: u16,
     /// The motor reading, used without the HP transducer (`motor`).
     pub reading: ReadingState,
-    /// Consecutive steps with the valve closed (commanded or modelled aperture below
-    /// `ReadingCoeffs::min_aperture`).
-    pub closed_steps: u16,
 }
 
 impl State {
@@ -252,9 +227,12 @@ impl State {
     /// pressure state) with the given P2 standard deviation.
     pub fn new(p2: Pressure, lp: Pressure, sigma: Pressure) -> Self {
         State {
-            p2: clamp(p2.0, P_MIN, P_MAX),
-            lp: clamp(lp.0, P_MIN, P_MAX),
-            var: sigma.0.qmul(sigma.0),
+            node: NodeState {
+                p2: clamp(p2.0, P_MIN, P_MAX),
+                lp: clamp(lp.0, P_MIN, P_MAX),
+                var: sigma.0.qmul(sigma.0),
+                ..NodeState::default()
+            },
             ..State::default()
         }
     }
@@ -285,8 +263,9 @@ mod tracker;
 use cylinder::*;
 pub use cylinder::{FLOAT_BAND, FLOAT_RAMP};
 use fine::*;
-pub use motor::ReadingState;
 use motor::*;
+pub use motor::{BranchState, ReadingState};
+pub use observer::NodeState;
 use observer::*;
 pub use tracker::TrackerState;
 use tracker::*;
@@ -296,101 +275,84 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let dtl = k.dt_log2;
     let mut faults = 0u16;
     // --- Shaft: α–β–γ tracker on the encoder angle.
-    let (theta, omega) = track(&k.tracker, dtl, &mut s.tracker, s.p2, inp, &mut faults);
+    let (theta, omega) = track(&k.tracker, dtl, &mut s.tracker, s.node.p2, inp, &mut faults);
     // --- Spool lag.
-    // The first step takes the spool as settled at the command and the valve/motor flow at its
-    // steady value (a state started from known pressures is a bench at rest or in steady
-    // running, not a valve or a rotor half way through a change).
-    let first = !s.started;
-    s.started = true;
-    let cmd = clamp(inp.aperture_cmd.0, ZERO, Fx::from_num(100));
-    if first {
-        s.aperture = cmd;
-    } else {
-        s.aperture = s
-            .aperture
-            .saturating_add(mul_frac(k.spool_gain, cmd.saturating_sub(s.aperture)));
-    }
+    let (cmd, first) = spool(&k.branch, &mut s.branch, inp.aperture_cmd.0);
     // --- Cylinders: delivered flow, suction flow, torque.
-    let (torque, torque_cyl, sh) = cylinders(k, s, theta, inp, &mut faults);
+    let (torque, torque_cyl, sh) = cylinders(
+        &k.pump,
+        dtl,
+        &mut s.cyl,
+        s.node.p2,
+        s.node.lp,
+        theta,
+        s.tracker.omega_q32,
+        inp,
+        &mut faults,
+    );
     let (q_pump, q_lp_net) = (sh.q_pump, sh.q_lp);
     let mut background_units = REVERSAL_UNITS_PER_STEP - sh.budget;
     // --- Valve, relief, motor.
-    let Branch {
-        dp,
-        lp_dp,
-        q_ss,
-        g,
-        motor_rpm,
-        q_valve,
-        q_relief,
-    } = branch(k, s, first);
+    let br = branch(&k.branch, &mut s.branch, s.node.p2, s.node.lp, first);
     // --- Predict.
-    let net_hp = q_pump.saturating_sub(q_valve).saturating_sub(q_relief);
-    let dp_per_flow = k.inv_c_hp.at(s.p2);
-    node_step(&mut s.p2, &mut s.p2_lo, net_hp, dp_per_flow, dtl);
-    let net_lp = q_valve.saturating_add(q_relief).saturating_sub(q_lp_net);
-    let dp_per_flow = k.inv_c_lp.at(s.lp);
-    node_step(&mut s.lp, &mut s.lp_lo, net_lp, dp_per_flow, dtl);
-    // The process noise to 2^−32 bar² (`Table1::at_ext`): on the empty node it is ≈ 0.08 bar²
-    // a step, and its Q16.16 rounding moved the Kalman gain by 3·10^−5 — a few P2 LSBs per
-    // bar of innovation. Held below the variance's Q16.16 top.
-    (s.var, s.var_lo) = split((ext(s.var, s.var_lo) + k.q_step.at_ext(s.p2)).min(ext(Fx::MAX, 0)));
+    predict(
+        &k.observer,
+        dtl,
+        &mut s.node,
+        q_pump,
+        br.q_valve,
+        br.q_relief,
+        q_lp_net,
+    );
     s.q_mean = s
         .q_mean
         .saturating_add(mul_frac(k.mean_gain, q_pump.saturating_sub(s.q_mean)));
-    // --- Correct P2 with the HP transducer.
-    let hp = inp
-        .hp
-        .map(|p| p.0)
-        .filter(|p| *p >= k.hp_range.0 && *p <= k.hp_range.1);
-    let motor = inp.motor.filter(|m| m.0 >= ZERO && m.0 <= k.motor_max);
-    // The valve closed (commanded or modelled): the branch's flow says nothing of P2, and once
-    // the rotor has had the time to spin down a turning motor contradicts the model.
-    let closed = cmd < k.reading.min_aperture || s.aperture < k.reading.min_aperture;
-    if closed {
-        s.closed_steps = s.closed_steps.saturating_add(1);
-        if s.closed_steps >= k.spin_down_steps && motor.is_some_and(|m| m.0 > k.reading.min_rpm) {
-            faults |= fault::MOTOR_IMPLAUSIBLE;
-        }
-    } else {
-        s.closed_steps = 0;
-    }
+    // --- Correct P2: with the HP transducer, else with the motor speed.
+    let (hp_lo, hp_hi) = k.observer.hp_range_bar;
+    let hp = inp.hp.map(|p| p.0).filter(|p| *p >= hp_lo && *p <= hp_hi);
+    let motor = inp.motor.filter(|m| m.0 >= ZERO && m.0 <= k.motor_max_rpm);
+    let closed = valve_closed(
+        &k.reading,
+        &k.branch,
+        &mut s.branch,
+        cmd,
+        motor,
+        &mut faults,
+    );
     match hp {
-        Some(z) => kalman(k, s, z, &mut faults),
+        Some(z) => {
+            // The motor reading restarts when the transducer goes missing again.
+            (s.reading.live, s.reading.wait) = (false, 0);
+            kalman(&k.observer, &mut s.node, z, &mut faults);
+        }
         None => {
             faults |= fault::HP_SENSOR;
-            // Without it, correct P2 with the motor speed.
             match motor {
-                Some(m) if !closed => faults |= motor_reading(k, s, m.0, cmd, lp_dp, dp, q_ss, g),
+                Some(m) if !closed => {
+                    faults |= motor_reading(
+                        &k.reading,
+                        &k.branch,
+                        &mut s.reading,
+                        &mut s.node,
+                        s.branch.aperture,
+                        m.0,
+                        cmd,
+                        &br,
+                    )
+                }
                 // Closed: no reading; the filters restart once it opens, P2 waiting for them.
                 Some(_) => (s.reading.live, s.reading.wait) = (false, k.reading.warm_steps),
                 None => (s.reading.live, s.reading.wait) = (false, 0),
             }
-            // Within the band above the precharge the accumulator's last cm³ decide when it
-            // runs empty, and P2 then falls to the empty node's level (5–15 bar lower) within
-            // tens of ms, faster than any reading of the motor follows; on the empty node P2
-            // follows the pump flow, and rises back as fast when it refills. P2's standard
-            // deviation is at least `ModelConfig::precharge_sigma_bar` in both, after the
-            // motor reading has had its say.
-            if s.p2 <= k.precharge_band_top && s.var < k.var_precharge {
-                (s.var, s.var_lo) = (k.var_precharge, 0);
-            }
+            model_only_floor(&k.observer, &mut s.node);
         }
     }
     // --- Correct LP with a fixed gain.
-    match inp
-        .lp
-        .map(|p| p.0)
-        .filter(|p| *p >= k.lp_range.0 && *p <= k.lp_range.1)
-    {
-        Some(z) => correct(&mut s.lp, &mut s.lp_lo, k.gain_lp, z),
-        None => faults |= fault::LP_SENSOR,
-    }
+    correct_lp(&k.observer, &mut s.node, inp.lp, &mut faults);
     if motor.is_none() {
         faults |= fault::MOTOR_SENSOR;
     }
-    if s.p2 > k.trip || hp.is_some_and(|z| z > k.trip) {
+    if s.node.p2 > k.trip_bar || hp.is_some_and(|z| z > k.trip_bar) {
         faults |= fault::OVERPRESSURE;
     }
     // Autonomy changes over seconds: it is refreshed in the background slot, every
@@ -398,27 +360,27 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     // its table lookup adds to neither a reversal's work nor the scheduler's feed-forward.
     s.autonomy_tick = s.autonomy_tick.wrapping_add(1);
     if background_units == 0 && s.autonomy_tick >= AUTONOMY_EVERY {
-        s.autonomy = k.autonomy.at(s.aperture, s.p2);
+        s.autonomy = k.autonomy.at(s.branch.aperture, s.node.p2);
         s.autonomy_tick = 0;
         background_units = 1;
     }
     Estimate {
-        p2: Pressure(s.p2),
-        p2_var: PressureVariance(s.var),
-        lp: Pressure(s.lp),
+        p2: Pressure(s.node.p2),
+        p2_var: PressureVariance(s.node.var),
+        lp: Pressure(s.node.lp),
         theta: Angle(theta),
         omega: AngularSpeed(omega),
         q_pump: Flow(q_pump),
         q_pump_mean: Flow(s.q_mean),
-        q_valve: Flow(q_valve),
-        q_relief: Flow(q_relief),
+        q_valve: Flow(br.q_valve),
+        q_relief: Flow(br.q_relief),
         torque: Torque(torque),
         torque_cyl,
-        motor_rpm: Rpm(motor_rpm),
+        motor_rpm: Rpm(br.motor_rpm),
         autonomy: Seconds(s.autonomy),
-        aperture: Aperture(s.aperture),
+        aperture: Aperture(s.branch.aperture),
         faults,
         background_units,
-        hp_empty: s.p2 < k.hp_empty_below,
+        hp_empty: s.node.p2 < k.hp_empty_below_bar,
     }
 }

@@ -32,6 +32,25 @@ pub struct ReadingState {
     pub var: Fx,
 }
 
+/// The valve/motor branch's state: the spool and the rotor's flow.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]
+pub struct BranchState {
+    /// Effective spool aperture, %.
+    pub aperture: Fx,
+    /// Valve/motor flow, L/min: the rotor's speed as the flow it passes (it lags the steady
+    /// flow of the pressure across the branch by the rotor's inertia).
+    pub q_motor: Fx,
+    /// The 16 bits of the valve/motor flow below its Q16.16 LSB.
+    pub q_motor_lo: u16,
+    /// The first step has run: it set the spool to the command and the valve/motor flow to its
+    /// steady value.
+    pub started: bool,
+    /// Consecutive steps with the valve closed (commanded or modelled aperture below
+    /// `ReadingCoeffs::min_aperture`).
+    pub closed_steps: u16,
+}
+
 /// P2 read from the motor speed, for a step without the HP transducer.
 ///
 /// The rotor's equation L·dQ/dt = P2 − LP − F(Q) (see the valve/motor step in [`step`]) read
@@ -66,32 +85,35 @@ pub struct ReadingState {
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 pub(super) fn motor_reading(
-    k: &Coefficients,
-    s: &mut State,
+    k: &ReadingCoeffs,
+    kb: &BranchCoeffs,
+    r: &mut ReadingState,
+    n: &mut NodeState,
+    aperture: Fx,
     rpm: Fx,
     cmd: Fx,
-    lp_dp: Fx,
-    dp: Fx,
-    q_ss: Fx,
-    g: Fx,
+    br: &Branch,
 ) -> u16 {
+    let Branch {
+        lp_dp, dp, q_ss, g, ..
+    } = *br;
     // 0 ≤ rpm ≤ 10 000 (< 2^30 bits; the caller range-checks it) × L/min per rpm (< 2^31
     // bits): < 2^61; held to the flow range like every flow the nodes take.
     let q_m = Fx::from_bits(
-        ((i64::from(rpm.to_bits()) * i64::from(k.lpm_per_rpm_q24) + (1 << 23)) >> 24)
+        ((i64::from(rpm.to_bits()) * i64::from(kb.lpm_per_rpm_q24) + (1 << 23)) >> 24)
             .min(i64::from(FLOW_LIM.to_bits())) as i32,
     );
-    if !s.reading.live {
-        s.reading.q = q_m;
-        s.reading.f = lp_plus_f(lp_dp, q_ss, q_m, mul_bounded(g, k.reading.ldt));
-        (s.reading.live, s.reading.odd) = (true, false);
+    if !r.live {
+        r.q = q_m;
+        r.f = lp_plus_f(lp_dp, q_ss, q_m, mul_bounded(g, k.ldt));
+        (r.live, r.odd) = (true, false);
         return 0;
     }
     // The work alternates between two steps, each filter running at half rate, so that a
     // step costs about what the HP transducer's Kalman update it replaces does: the guards, F
     // and both filters in one, P2's correction in the other.
-    s.reading.odd = !s.reading.odd;
-    if s.reading.odd {
+    r.odd = !r.odd;
+    if r.odd {
         // dF/dQ = g·L/dt: g ≤ 1 and L/dt < 2^15 bar per L/min (a saturated coefficient), so
         // the product fits.
         // Plausibility: the flow read must be one the valve can pass at the modelled aperture
@@ -99,50 +121,39 @@ pub(super) fn motor_reading(
         // — the valve table at that ΔP, plus the reading's band and the sensor's floor. A
         // faster motor contradicts the model (or the sensor is wrong): flagged, and the
         // reading restarts, so P2 never takes it.
-        let q_cap = k
-            .valve_flow
-            .at(s.aperture, k.reading.p2_max.saturating_sub(s.lp));
+        let q_cap = kb.valve_flow.at(aperture, k.p2_max.saturating_sub(n.lp));
         let q_cap = q_cap
-            .saturating_add(mul_bounded(q_cap, k.reading.band))
-            .saturating_add(k.reading.min_lpm);
+            .saturating_add(mul_bounded(q_cap, k.band))
+            .saturating_add(k.min_lpm);
         if q_m > q_cap {
-            (s.reading.live, s.reading.wait) = (false, k.reading.warm_steps);
+            (r.live, r.wait) = (false, k.warm_steps);
             return fault::MOTOR_IMPLAUSIBLE;
         }
-        let slope = mul_bounded(g, k.reading.ldt);
-        if slope > k.reading.max_slope || cmd.saturating_sub(s.aperture).abs() > k.reading.spool_tol
-        {
+        let slope = mul_bounded(g, k.ldt);
+        if slope > k.max_slope || cmd.saturating_sub(aperture).abs() > k.spool_tol {
             // The valve near closed, or the spool moving: no reading; the filters restart
             // once both end, and P2 takes the reading after they have run a while.
-            (s.reading.live, s.reading.wait) = (false, k.reading.warm_steps);
+            (r.live, r.wait) = (false, k.warm_steps);
             return 0;
         }
         let f = lp_plus_f(lp_dp, q_ss, q_m, slope);
-        s.reading.f = filter(s.reading.f, k.reading.filter, f);
+        r.f = filter(r.f, k.filter, f);
         // The derivative L·(Q_m − Q̄)/τ of the next step takes Q̄ as of this one.
-        s.reading.q = filter(s.reading.q, k.reading.filter, q_m);
+        r.q = filter(r.q, k.filter, q_m);
         // ΔP ≤ 400 bar × a band ≤ 0.5: fits.
-        s.reading.band = mul_bounded(dp, k.reading.band);
+        r.band = mul_bounded(dp, k.band);
         // band²/3 saturates above a 181 bar band: far beyond any P2 gate.
-        s.reading.var = s
-            .reading
-            .band
-            .qmul(s.reading.band)
-            .qmul(ONE_THIRD)
-            .saturating_add(k.reading.r);
+        r.var = r.band.qmul(r.band).qmul(ONE_THIRD).saturating_add(k.r);
         return 0;
     }
-    if s.reading.wait > 0 {
-        s.reading.wait -= 1;
-    } else if q_m >= k.reading.min_lpm {
-        let z = s
-            .reading
-            .f
-            .saturating_add(q_m.saturating_sub(s.reading.q).qmul(k.reading.lt));
+    if r.wait > 0 {
+        r.wait -= 1;
+    } else if q_m >= k.min_lpm {
+        let z = r.f.saturating_add(q_m.saturating_sub(r.q).qmul(k.lt));
         // Only the part of the innovation beyond the band counts: inside it the reading does
         // not know P2 better than the model does.
-        let e = z.saturating_sub(s.p2);
-        let e = e - clamp(e, -s.reading.band, s.reading.band);
+        let e = z.saturating_sub(n.p2);
+        let e = e - clamp(e, -r.band, r.band);
         // Plausibility: the flow read must be one the valve can pass at a P2 the relief allows,
         // i.e. the P2 it implies, less its band, at most the relief setting plus the gate's
         // worth of the reading's noise (F is monotone in the flow, so this is the valve's
@@ -150,19 +161,19 @@ pub(super) fn motor_reading(
         // speed sensor or the model is wrong: flagged, P2 not moved. (A gate on the distance
         // to P2 itself would refuse the readings the empty HP node needs most: there the
         // model can run empty 0.1 s before the bench, 17 bar below it.)
-        if z.saturating_sub(s.reading.band) > k.reading.p2_max {
+        if z.saturating_sub(r.band) > k.p2_max {
             return fault::MOTOR_IMPLAUSIBLE;
         }
         // P2 += gain·e, exact in Q32.32 (|e| < 2^31 bits × gain ≤ 2^16 bits: < 2^47) and kept
         // to 2^−32 like the node's prediction (rounded to the LSB it was half an LSB a step
         // from its f64 form), held to the pressure range.
-        (s.p2, s.p2_lo) = split(
-            (ext(s.p2, s.p2_lo) + i64::from(k.reading.gain.to_bits()) * i64::from(e.to_bits()))
+        (n.p2, n.p2_lo) = split(
+            (ext(n.p2, n.p2_lo) + i64::from(k.gain.to_bits()) * i64::from(e.to_bits()))
                 .clamp(ext(P_MIN, 0), ext(P_MAX, 0)),
         );
         // The reading brings P2's variance toward its own (never up to it).
-        if s.var > s.reading.var {
-            relax(&mut s.var, &mut s.var_lo, k.reading.gain, s.reading.var);
+        if n.var > r.var {
+            relax(&mut n.var, &mut n.var_lo, k.gain, r.var);
         }
     }
     0
@@ -192,6 +203,7 @@ pub(super) fn filter(x: Fx, a: Fx, target: Fx) -> Fx {
 }
 
 /// The valve/motor branch and the relief after one step (flows L/min, pressures bar).
+#[derive(Clone, Copy)]
 pub(super) struct Branch {
     /// P2 − LP, held ≥ 0.
     pub(super) dp: Fx,
@@ -209,35 +221,55 @@ pub(super) struct Branch {
     pub(super) q_relief: Fx,
 }
 
-/// The valve/motor stage of a step: the rotor's flow relaxed toward the steady flow of the
-/// pressure across the branch, and the relief. Inlined into the step, its only caller.
+/// The spool's lag behind the command (% , held to 0..100); returns the held command and
+/// whether this is the state's first step. The first step takes the spool as settled at the
+/// command (a state started from known pressures is a bench at rest or in steady running, not a
+/// valve half way through a change). Inlined into the step, its only caller.
 #[inline(always)]
-pub(super) fn branch(k: &Coefficients, s: &mut State, first: bool) -> Branch {
+pub(super) fn spool(k: &BranchCoeffs, b: &mut BranchState, aperture_cmd: Fx) -> (Fx, bool) {
+    let first = !b.started;
+    b.started = true;
+    let cmd = clamp(aperture_cmd, ZERO, Fx::from_num(100));
+    if first {
+        b.aperture = cmd;
+    } else {
+        b.aperture = b
+            .aperture
+            .saturating_add(mul_frac(k.spool_gain, cmd.saturating_sub(b.aperture)));
+    }
+    (cmd, first)
+}
+
+/// The valve/motor stage of a step at P2 and LP (bar): the rotor's flow relaxed toward the
+/// steady flow of the pressure across the branch, and the relief. On the first step the flow
+/// starts at its steady value. Inlined into the step, its only caller.
+#[inline(always)]
+pub(super) fn branch(k: &BranchCoeffs, b: &mut BranchState, p2: Fx, lp: Fx, first: bool) -> Branch {
     // The rotor's inertia: L·dQ/dt = ΔP − F(Q) with F the branch's steady pressure drop
     // (`ModelConfig::motor_inductance`). F(Q_ss) = ΔP, and F(Q_ss) − F(Q) = (Q_ss − Q)·(β +
     // (Q_ss + Q)/K²) exactly for the turbulent valve, so one explicit step is a relaxation
     // toward the steady flow with gain dt/L·(β + (Q_ss + Q)/K²). Held to 1 (where the valve's
     // resistance makes the branch faster than a step, e.g. near closed), the flow takes its
     // steady value: it never overshoots, so the step is stable at every aperture.
-    let dp = s.p2.saturating_sub(s.lp).max(ZERO);
-    let lp_dp = s.lp.saturating_add(dp);
-    let (q_ss, gain_valve) = k.valve_flow.at_with(s.aperture, dp, &k.motor_gain_valve);
+    let dp = p2.saturating_sub(lp).max(ZERO);
+    let lp_dp = lp.saturating_add(dp);
+    let (q_ss, gain_valve) = k.valve_flow.at_with(b.aperture, dp, &k.motor_gain_valve);
     if first {
-        (s.q_motor, s.q_motor_lo) = (q_ss, 0);
+        (b.q_motor, b.q_motor_lo) = (q_ss, 0);
     }
     let g = k
         .motor_gain0
-        .saturating_add(q_ss.saturating_add(s.q_motor).qmul(gain_valve))
+        .saturating_add(q_ss.saturating_add(b.q_motor).qmul(gain_valve))
         .min(ONE);
-    relax(&mut s.q_motor, &mut s.q_motor_lo, g, q_ss);
-    let motor_rpm = s.q_motor.qmul(k.rpm_per_lpm);
+    relax(&mut b.q_motor, &mut b.q_motor_lo, g, q_ss);
+    let motor_rpm = b.q_motor.qmul(k.rpm_per_lpm);
     // A coasting rotor that outruns the pressure across it (P2 down to LP: an empty HP node
     // when the pump stops) draws the rest through the make-up valve from LP, not from HP.
-    let q_valve = if dp > ZERO { s.q_motor } else { ZERO };
-    let q_relief =
-        s.p2.saturating_sub(k.relief_setting)
-            .max(ZERO)
-            .qmul(k.relief_gain);
+    let q_valve = if dp > ZERO { b.q_motor } else { ZERO };
+    let q_relief = p2
+        .saturating_sub(k.relief_setting_bar)
+        .max(ZERO)
+        .qmul(k.relief_gain_lpm_per_bar);
     Branch {
         dp,
         lp_dp,
@@ -247,4 +279,28 @@ pub(super) fn branch(k: &Coefficients, s: &mut State, first: bool) -> Branch {
         q_valve,
         q_relief,
     }
+}
+
+/// The valve closed, commanded (`cmd`, %) or modelled: the branch's flow then says nothing of
+/// P2, and once the rotor has had the time to spin down a turning motor (`motor`, rpm, if read)
+/// contradicts the model ([`fault::MOTOR_IMPLAUSIBLE`]). Inlined into the step, its only caller.
+#[inline(always)]
+pub(super) fn valve_closed(
+    k: &ReadingCoeffs,
+    kb: &BranchCoeffs,
+    b: &mut BranchState,
+    cmd: Fx,
+    motor: Option<Rpm>,
+    faults: &mut u16,
+) -> bool {
+    let closed = cmd < k.min_aperture || b.aperture < k.min_aperture;
+    if closed {
+        b.closed_steps = b.closed_steps.saturating_add(1);
+        if b.closed_steps >= kb.spin_down_steps && motor.is_some_and(|m| m.0 > k.min_rpm) {
+            *faults |= fault::MOTOR_IMPLAUSIBLE;
+        }
+    } else {
+        b.closed_steps = 0;
+    }
+    closed
 }

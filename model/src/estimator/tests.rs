@@ -37,15 +37,20 @@ fn motor_flow_lags_by_the_rotor_time_constant_and_stops_with_the_valve() {
         Pressure::from_num(8.0),
         Pressure::ZERO,
     );
-    s.aperture = Fx::from_num(100);
-    s.started = true;
+    s.branch.aperture = Fx::from_num(100);
+    s.branch.started = true;
     let inp = Inputs {
         aperture_cmd: Aperture::from_num(100.0),
         ..Inputs::default()
     };
-    let q_ss = f64::from(k.valve_flow.at(s.aperture, s.p2 - s.lp).to_num::<f32>());
+    let q_ss = f64::from(
+        k.branch
+            .valve_flow
+            .at(s.branch.aperture, s.node.p2 - s.node.lp)
+            .to_num::<f32>(),
+    );
     let mut steps = 0u32;
-    while f64::from(s.q_motor.to_num::<f32>()) < (1.0 - (-1f64).exp()) * q_ss {
+    while f64::from(s.branch.q_motor.to_num::<f32>()) < (1.0 - (-1f64).exp()) * q_ss {
         step(&k, &mut s, &inp);
         steps += 1;
         assert!(steps < 10_000);
@@ -56,13 +61,13 @@ fn motor_flow_lags_by_the_rotor_time_constant_and_stops_with_the_valve() {
     println!("flow reaches 63 % of {q_ss:.3} L/min after {tau:.4} s; rotor J/c = {tau_rotor:.4} s");
     assert!((tau / tau_rotor - 1.0).abs() < 0.05, "{tau} vs {tau_rotor}");
     // Close the valve at once (no spool lag in this state): the flow stops in one step.
-    s.aperture = ZERO;
+    s.branch.aperture = ZERO;
     let inp = Inputs {
         aperture_cmd: Aperture::ZERO,
         ..Inputs::default()
     };
     let e = step(&k, &mut s, &inp);
-    assert_eq!(s.q_motor, ZERO);
+    assert_eq!(s.branch.q_motor, ZERO);
     assert_eq!(e.motor_rpm.0, ZERO);
 }
 
@@ -91,7 +96,7 @@ fn shaft_tracker_reads_a_turning_shaft_from_its_first_readings() {
         let mut worst = 0.0f64;
         for i in 0..from + 512 {
             let theta = 0.05 + w * i as f64 * dt;
-            let mut inp = held_inputs(&cfg, theta, Pressure(s.p2), Pressure(s.lp), 0, 0);
+            let mut inp = held_inputs(&cfg, theta, Pressure(s.node.p2), Pressure(s.node.lp), 0, 0);
             if i < from && i + 100 >= from {
                 inp.encoder = None;
             }
@@ -157,7 +162,7 @@ fn run_without_hp(k: &Coefficients, p2: f32, aperture: f32, rpm: Option<f32>, st
     for _ in 0..steps {
         step(k, &mut s, &inp);
     }
-    s.p2
+    s.node.p2
 }
 
 /// Without the HP reading, the motor speed of a rotor held steady by P2 = 40 bar (LP 8, the
@@ -171,6 +176,7 @@ fn motor_speed_reads_p2_without_the_hp_transducer() {
     let k = cfg.coefficients().unwrap();
     let (p_true, lp) = (40.0f32, 8.0f32);
     let q = k
+        .branch
         .valve_flow
         .at(Fx::from_num(100.0), Fx::from_num(p_true - lp))
         .to_num::<f32>();
@@ -222,7 +228,7 @@ fn contradicting_motor_readings_are_flagged_not_followed() {
                 first = first.or(Some(i));
             }
         }
-        (s.p2, first)
+        (s.node.p2, first)
     };
     let steps = 3 << k.dt_log2;
     let (alone, none) = run(0.0, None, steps);
@@ -234,13 +240,16 @@ fn contradicting_motor_readings_are_flagged_not_followed() {
              from step {first:?} (spin-down {} steps)",
             p2.to_num::<f32>(),
             alone.to_num::<f32>(),
-            k.spin_down_steps
+            k.branch.spin_down_steps
         );
         assert_eq!(p2, alone, "P2 followed the reading");
-        assert_eq!(first, Some(usize::from(k.spin_down_steps) - 1));
+        assert_eq!(first, Some(usize::from(k.branch.spin_down_steps) - 1));
     }
     // The valve fully open, the motor reading the flow of ΔP = 160 bar: above the relief.
-    let q = k.valve_flow.at(Fx::from_num(100.0), Fx::from_num(160.0));
+    let q = k
+        .branch
+        .valve_flow
+        .at(Fx::from_num(100.0), Fx::from_num(160.0));
     let rpm = q.to_num::<f32>() * cfg.rpm_per_lpm();
     let (p2, first) = run(100.0, Some(rpm), steps);
     let (p2_alone, _) = run(100.0, None, steps);
@@ -292,7 +301,7 @@ fn model_only_sigma_is_wide_where_the_accumulator_empties() {
 /// The Kalman variance follows its f64 recursion var ← (var + q)·(1 − g(var)) (the same
 /// tables, interpolated in f64) over 4 s of HP readings at 100 bar from σ = 1 bar: within
 /// 10^−4 all the way down, its bits below the LSB counted (the gain is looked up with them,
-/// `Coefficients::gain_q32`; read at the Q16.16 value, near the steady ≈ 130 LSBs, one LSB
+/// `ObserverCoeffs::gain_q32`; read at the Q16.16 value, near the steady ≈ 130 LSBs, one LSB
 /// was 0.8 %). Floored to its Q16.16 LSB, the shrink lost up to 1 LSB a step on the way
 /// down and the variance ran up to 17 % below the f64 one (in `pto validate`, after each
 /// crossing of the precharge, 20 %: P2 up to 0.15 bar away from the f64 model). The process
@@ -301,21 +310,21 @@ fn model_only_sigma_is_wide_where_the_accumulator_empties() {
 fn kalman_variance_keeps_its_sub_lsb_bits() {
     let cfg = crate::ModelConfig::reference();
     let k = cfg.coefficients().unwrap();
-    let r = k.r.to_num::<f64>();
+    let r = k.observer.r.to_num::<f64>();
     let (p2, lp) = (Pressure::from_num(100.0), Pressure::from_num(8.0));
     let mut s = State::new(p2, lp, Pressure::from_num(1.0));
     let inp = held_inputs(&cfg, 0.0, p2, lp, 0, 0);
     let mut var = 1.0f64;
     let mut worst = 0.0f64;
     // The variance with its bits below the LSB (the step's gain reads them too).
-    let fixed = |s: &State| s.var.to_num::<f64>() + f64::from(s.var_lo) / 4_294_967_296.0;
+    let fixed = |s: &State| s.node.var.to_num::<f64>() + f64::from(s.node.var_lo) / 4_294_967_296.0;
     for _ in 0..4 << k.dt_log2 {
         step(&k, &mut s, &inp);
-        var += k.q_step.at_ext(s.p2) as f64 / 4_294_967_296.0;
+        var += k.observer.q_step.at_ext(s.node.p2) as f64 / 4_294_967_296.0;
         let g = if var < r {
-            k.gain_fine.at_f64(var)
+            k.observer.gain_fine.at_f64(var)
         } else {
-            k.gain_coarse.at_f64(var).clamp(0.0, 1.0)
+            k.observer.gain_coarse.at_f64(var).clamp(0.0, 1.0)
         };
         var *= 1.0 - g;
         worst = worst.max((fixed(&s) / var - 1.0).abs());
@@ -360,7 +369,10 @@ fn both_chambers_reach_their_check_valves_by_mid_stroke() {
                 let inp = held_inputs(&cfg, theta, p2, lp, 0b1111, config);
                 let e = step(&k, &mut s, &inp);
                 if i == 10 * n || i == 15 * n {
-                    let (lo, hi) = (e.lp.0 - k.check_drop, e.p2.0 + k.check_drop);
+                    let (lo, hi) = (
+                        e.lp.0 - k.pump.check_drop_bar,
+                        e.p2.0 + k.pump.check_drop_bar,
+                    );
                     for cs in &s.cyl {
                         let (p_hi, p_lo) = if cs.p_cap > cs.p_rod {
                             (cs.p_cap, cs.p_rod)
@@ -389,11 +401,11 @@ fn the_play_to_cross_follows_the_rods_net_force_at_the_reversal() {
     let cfg = crate::ModelConfig::reference();
     let k = cfg.coefficients().unwrap();
     let (lo, hi) = (7.5f64, 30.5f64);
-    let play: f64 = k.play_mm.to_num();
+    let play: f64 = k.pump.play_mm.to_num();
     let band: f64 = FLOAT_BAND.to_num();
     let mut count = [0u32; 3]; // none, within the band, all of it
     let mut worst = 0.0f64;
-    for (c, cc) in k.cyl.iter().zip(cfg.cylinders.iter()) {
+    for (c, cc) in k.pump.cyl.iter().zip(cfg.cylinders.iter()) {
         let a_cap = core::f64::consts::PI / 4.0 * f64::from(cc.bore_mm).powi(2);
         let a_ann = a_cap - core::f64::consts::PI / 4.0 * f64::from(cc.rod_mm).powi(2);
         for dir in [1i8, -1] {
@@ -415,7 +427,7 @@ fn the_play_to_cross_follows_the_rods_net_force_at_the_reversal() {
                         ..CylState::default()
                     };
                     let got: f64 =
-                        play_to_cross(&k, c, &cs, Fx::from_num(lo), Fx::from_num(hi)).to_num();
+                        play_to_cross(&k.pump, c, &cs, Fx::from_num(lo), Fx::from_num(hi)).to_num();
                     let ramp: f64 = FLOAT_RAMP.to_num();
                     let (expected, class) = if net <= -band {
                         (0.0, 0)
@@ -480,13 +492,13 @@ fn seal_friction_adds_c_d2_omega_per_rod_on_duty() {
             let (e, e0) = (step(&k, &mut s, &inp), step(&k0, &mut s0, &inp));
             if i == 5 * n || i == 10 * n {
                 let omega: f64 = e.omega.0.to_num();
-                for (j, cyl) in k.cyl.iter().enumerate() {
+                for (j, cyl) in k.pump.cyl.iter().enumerate() {
                     let sth = if cyl.side < ZERO {
                         -e.theta.0
                     } else {
                         e.theta.0
                     };
-                    let d: f64 = k.arm[usize::from(config)].at(sth).to_num();
+                    let d: f64 = k.pump.arm[usize::from(config)].at(sth).to_num();
                     let expected = if inp.on_duty & (1 << j) != 0 {
                         c * d * d * omega
                     } else {
