@@ -120,7 +120,7 @@ pub const FIT_SOLVER: SolverOptions = SolverOptions {
 };
 
 /// Simulated (P2 bar, motor rpm) at every log sample.
-pub fn simulate_log(bench: &Bench, p: &Prepared) -> Result<Vec<Truth>, String> {
+pub fn simulate_log(bench: &Bench, p: &Prepared) -> Result<Vec<Truth>, FitError> {
     simulate_log_from(bench, p, 0.0)
 }
 
@@ -129,7 +129,7 @@ pub fn simulate_log_from(
     bench: &Bench,
     p: &Prepared,
     p2_offset: f64,
-) -> Result<Vec<Truth>, String> {
+) -> Result<Vec<Truth>, FitError> {
     let log = &p.log;
     let on: [bool; 4] = log.on_duty;
     let plant = Plant::new(bench, log.config - 1, on, p.motion.clone());
@@ -147,7 +147,10 @@ pub fn simulate_log_from(
         solver: FIT_SOLVER,
         progress: None,
     })
-    .map_err(|e| format!("{}: {e}", log.name()))?;
+    .map_err(|source| FitError::Simulation {
+        log: log.name(),
+        source,
+    })?;
     Ok(log.t.iter().map(|t| truth_at(&res.trace, t - t0)).collect())
 }
 
