@@ -299,7 +299,7 @@ pub fn fit(
                 name: p.log.name(),
                 p2_rms_bar: (pb, pa),
                 rpm_rms: (rb, ra),
-                start_p2_bar: (p.p2_start, p.p2_start + c),
+                start_p2_bar: (p.p2_start_bar, p.p2_start_bar + c),
             }
         })
         .collect();

@@ -24,17 +24,25 @@ use std::path::Path;
 pub struct LoopRow {
     /// What was held.
     pub name: String,
-    /// Setpoint (bar or rpm).
+    /// Setpoint, in `setpoint_unit`.
     pub setpoint: f64,
+    /// Unit of the setpoint: `bar` (P2) or `rpm` (motor speed).
+    pub setpoint_unit: &'static str,
     /// Window judged, s.
     pub window_s: (f64, f64),
-    /// Largest deviation in the window (bar, or fraction of the setpoint).
+    /// Largest deviation from the setpoint in the window, in `deviation_unit`.
     pub max_deviation: f64,
-    /// Target for it.
+    /// Target for it, in `deviation_unit`.
     pub target: f64,
+    /// Unit of the deviation and its target: the setpoint's (`bar`), or
+    /// [`FRACTION_OF_SETPOINT`].
+    pub deviation_unit: &'static str,
     /// Met.
     pub pass: bool,
 }
+
+/// [`LoopRow::deviation_unit`] of a deviation relative to the setpoint.
+pub const FRACTION_OF_SETPOINT: &str = "fraction of setpoint";
 
 /// Why a closed-loop run could not be made (the controller's own errors aside: see
 /// [`test3_like_loop`]).
@@ -182,10 +190,15 @@ pub fn closed_loop(
     })
 }
 
+/// The row of a run holding `setpoint` (in `setpoint_unit`): the largest deviation of `f`
+/// from it from `settle_from` s to the end, in the setpoint's unit or, if `rel`, as a fraction
+/// of it.
+#[allow(clippy::too_many_arguments)]
 fn judge_loop(
     name: &str,
     res: &crate::sim::solver::SimResult,
     setpoint: f64,
+    setpoint_unit: &'static str,
     settle_from: f64,
     rel: bool,
     target: f64,
@@ -202,9 +215,15 @@ fn judge_loop(
     LoopRow {
         name: name.into(),
         setpoint,
+        setpoint_unit,
         window_s: (settle_from, end),
         max_deviation: worst,
         target,
+        deviation_unit: if rel {
+            FRACTION_OF_SETPOINT
+        } else {
+            setpoint_unit
+        },
         pass: worst <= target,
     }
 }
@@ -236,6 +255,7 @@ pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, LoopError>> {
                         name,
                         &res,
                         sp,
+                        "bar",
                         reach + 60.0,
                         false,
                         target::HOLD_P2_BAR,
@@ -244,9 +264,16 @@ pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, LoopError>> {
                 }
                 Mode::HoldSpeed(r) => {
                     let sp = f64::from(r.to_f32());
-                    judge_loop(name, &res, sp, 150.0, true, target::HOLD_SPEED_REL, |k| {
-                        tr.omega_rad_s[k] * 30.0 / std::f64::consts::PI
-                    })
+                    judge_loop(
+                        name,
+                        &res,
+                        sp,
+                        "rpm",
+                        150.0,
+                        true,
+                        target::HOLD_SPEED_REL,
+                        |k| tr.omega_rad_s[k] * 30.0 / std::f64::consts::PI,
+                    )
                 }
                 _ => unreachable!(),
             })

@@ -139,21 +139,23 @@ pub fn commanded_aperture_pct(s: &Scenario, res: &SimResult, t: f64) -> f64 {
     }
 }
 
-/// One step's inputs, in the model's types.
+/// One step's inputs, in the model's types: the sensor readings (`None`: that sensor missing),
+/// the commanded aperture (%), the cylinders on duty (bit i = HC3.(i+1)) and the geometry
+/// (0..=3 = Config 1..4).
 pub fn inputs(
-    enc: Option<i32>,
-    hp: Option<f64>,
-    lp: Option<f64>,
-    motor: Option<f64>,
+    encoder_count: Option<i32>,
+    hp_bar: Option<f64>,
+    lp_bar: Option<f64>,
+    motor_rpm: Option<f64>,
     aperture_pct: f64,
     on_duty: u8,
     config: u8,
 ) -> Inputs {
     Inputs {
-        encoder: enc,
-        hp: hp.map(|v| Pressure::from_num(v as f32)),
-        lp: lp.map(|v| Pressure::from_num(v as f32)),
-        motor: motor.map(|v| Rpm::from_num(v as f32)),
+        encoder: encoder_count,
+        hp: hp_bar.map(|v| Pressure::from_num(v as f32)),
+        lp: lp_bar.map(|v| Pressure::from_num(v as f32)),
+        motor: motor_rpm.map(|v| Rpm::from_num(v as f32)),
         aperture_cmd: Aperture::from_num(aperture_pct as f32),
         on_duty,
         config,
