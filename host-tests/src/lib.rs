@@ -25,3 +25,21 @@ pub mod perf;
 pub mod plot;
 pub mod runner;
 pub mod sim;
+
+/// An error and its causes on one line, `error: cause: cause's cause` (what `anyhow` prints
+/// for `{:#}`), for reports that keep errors as text.
+///
+/// The library's errors follow one rule: a wrapped error is either part of the wrapper's
+/// message or its [`source`](std::error::Error::source), never both. A wrapper that adds
+/// context (`cannot write out/a.csv`) leaves the cause (`Permission denied (os error 13)`) to
+/// `source()`: print errors with this function or `anyhow`'s `{:#}`, not with `{}` alone.
+pub fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut s = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        s.push_str(": ");
+        s.push_str(&c.to_string());
+        cause = c.source();
+    }
+    s
+}

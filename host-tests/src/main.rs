@@ -260,7 +260,7 @@ fn main() -> ExitCode {
     if let Err(e) =
         pto_host::output::install_interrupt_handler(pto_host::hil::qemu::end_all_children)
     {
-        eprintln!("warning: {e}");
+        eprintln!("warning: {}", pto_host::error_chain(&e));
     }
     let result = match cli.cmd {
         Cmd::Scenarios { json } => scenarios(json),

@@ -9,12 +9,101 @@
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 
+/// Why an output could not be written, named with its file or folder (the OS error as the
+/// source).
+#[derive(Debug, thiserror::Error)]
+pub enum OutputError {
+    /// A file could not be written (or renamed into place).
+    #[error("cannot write {path}")]
+    Write {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// A folder could not be created.
+    #[error("cannot create {path}")]
+    Create {
+        /// The folder.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The staging folder's marker file could not be written.
+    #[error("cannot write in {dir}")]
+    WriteIn {
+        /// The staging folder.
+        dir: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// `--out` exists but cannot be listed.
+    #[error("--out {out}")]
+    ReadOut {
+        /// The output folder.
+        out: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// `--out` has no folder name (`/`, `..`).
+    #[error("--out {out}: not a folder name")]
+    NotAFolderName {
+        /// The output folder as given.
+        out: PathBuf,
+    },
+    /// `--out` holds files pto did not write: it is never replaced.
+    #[error(
+        "--out {out}: the folder exists, is not empty and was not made by pto (no {MARKER} \
+         file); pto replaces its output folder whole: choose a new or empty folder"
+    )]
+    NotOurs {
+        /// The output folder.
+        out: PathBuf,
+    },
+    /// The staged folder could not be swapped in for the output folder.
+    #[error("cannot replace {out}")]
+    Exchange {
+        /// The output folder.
+        out: PathBuf,
+        /// The OS error of `renameat2`.
+        source: nix::errno::Errno,
+    },
+    /// The output folder (or the previous one, swapped out) could not be moved or removed.
+    #[error("cannot replace {out}")]
+    Replace {
+        /// The output folder.
+        out: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// Files of someone else's appeared in the output folder during the run: swapped back.
+    #[error(
+        "{out}: files that pto did not write appeared there during the run: left as they were; \
+         this run's output is in {kept}"
+    )]
+    Appeared {
+        /// The output folder.
+        out: PathBuf,
+        /// Where this run's output was left.
+        kept: PathBuf,
+    },
+    /// The SIGINT/SIGTERM handler could not be installed.
+    #[error("cannot install the interrupt handler")]
+    Interrupt(#[source] ctrlc::Error),
+}
+
 /// Writes `bytes` to a temporary name next to `path`, then renames it: a file is never left
 /// half-written.
-pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<(), String> {
+pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<(), OutputError> {
     let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).map_err(|e| format!("cannot write {}: {e}", tmp.display()))?;
-    std::fs::rename(&tmp, path).map_err(|e| format!("cannot write {}: {e}", path.display()))
+    std::fs::write(&tmp, bytes).map_err(|source| OutputError::Write {
+        path: tmp.clone(),
+        source,
+    })?;
+    std::fs::rename(&tmp, path).map_err(|source| OutputError::Write {
+        path: path.to_path_buf(),
+        source,
+    })
 }
 
 /// The file that marks a folder as a `pto` output (so it may be replaced whole).
@@ -34,32 +123,37 @@ pub struct StagedDir {
 impl StagedDir {
     /// Stages `out`: checks that it is new, empty or a `pto` output, and makes the hidden
     /// sibling folder the run writes into.
-    pub fn new(out: &Path) -> Result<Self, String> {
+    pub fn new(out: &Path) -> Result<Self, OutputError> {
         if out.exists() {
             let is_ours = out.join(MARKER).exists();
             let empty = std::fs::read_dir(out)
-                .map_err(|e| format!("--out {}: {e}", out.display()))?
+                .map_err(|source| OutputError::ReadOut {
+                    out: out.to_path_buf(),
+                    source,
+                })?
                 .next()
                 .is_none();
             if !is_ours && !empty {
-                return Err(format!(
-                    "--out {}: the folder exists, is not empty and was not made by pto (no {MARKER} \
-                     file); pto replaces its output folder whole: choose a new or empty folder",
-                    out.display()
-                ));
+                return Err(OutputError::NotOurs {
+                    out: out.to_path_buf(),
+                });
             }
         }
         let name = out
             .file_name()
-            .ok_or_else(|| format!("--out {}: not a folder name", out.display()))?
+            .ok_or_else(|| OutputError::NotAFolderName {
+                out: out.to_path_buf(),
+            })?
             .to_string_lossy()
             .into_owned();
         let parent = match out.parent() {
             Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
             _ => PathBuf::from("."),
         };
-        std::fs::create_dir_all(&parent)
-            .map_err(|e| format!("cannot create {}: {e}", parent.display()))?;
+        std::fs::create_dir_all(&parent).map_err(|source| OutputError::Create {
+            path: parent.clone(),
+            source,
+        })?;
         // Staging folders of earlier runs that were killed before they could clean up.
         let prefix = format!(".{name}.partial-");
         if let Ok(entries) = std::fs::read_dir(&parent) {
@@ -70,12 +164,18 @@ impl StagedDir {
             }
         }
         let tmp = parent.join(format!("{prefix}{}", std::process::id()));
-        std::fs::create_dir(&tmp).map_err(|e| format!("cannot create {}: {e}", tmp.display()))?;
+        std::fs::create_dir(&tmp).map_err(|source| OutputError::Create {
+            path: tmp.clone(),
+            source,
+        })?;
         std::fs::write(
             tmp.join(MARKER),
             b"written by pto; replaced whole by its next run\n",
         )
-        .map_err(|e| format!("cannot write in {}: {e}", tmp.display()))?;
+        .map_err(|source| OutputError::WriteIn {
+            dir: tmp.clone(),
+            source,
+        })?;
         if let Ok(mut s) = STAGED.lock() {
             s.push(tmp.clone());
         }
@@ -97,9 +197,12 @@ impl StagedDir {
     }
 
     /// Swaps the staged folder in for the output folder, the old one removed after.
-    pub fn commit(mut self) -> Result<(), String> {
+    pub fn commit(mut self) -> Result<(), OutputError> {
         use nix::fcntl::{AT_FDCWD, RenameFlags, renameat2};
-        let err = |e: &dyn std::fmt::Display| format!("cannot replace {}: {e}", self.out.display());
+        let err = |source: std::io::Error| OutputError::Replace {
+            out: self.out.clone(),
+            source,
+        };
         if self.out.exists() {
             let exchange = || {
                 renameat2(
@@ -109,7 +212,10 @@ impl StagedDir {
                     &self.out,
                     RenameFlags::RENAME_EXCHANGE,
                 )
-                .map_err(|e| err(&e))
+                .map_err(|source| OutputError::Exchange {
+                    out: self.out.clone(),
+                    source,
+                })
             };
             exchange()?;
             // `tmp` now holds the previous output. Checked again (the run took a while): only a
@@ -121,16 +227,14 @@ impl StagedDir {
                 // Kept where it is for the user to look at (the next run removes it).
                 self.committed = true;
                 forget(&self.tmp);
-                return Err(format!(
-                    "{}: files that pto did not write appeared there during the run: left as \
-                     they were; this run's output is in {}",
-                    self.out.display(),
-                    self.tmp.display()
-                ));
+                return Err(OutputError::Appeared {
+                    out: self.out.clone(),
+                    kept: self.tmp.clone(),
+                });
             }
-            std::fs::remove_dir_all(&self.tmp).map_err(|e| err(&e))?;
+            std::fs::remove_dir_all(&self.tmp).map_err(err)?;
         } else {
-            std::fs::rename(&self.tmp, &self.out).map_err(|e| err(&e))?;
+            std::fs::rename(&self.tmp, &self.out).map_err(err)?;
         }
         self.committed = true;
         forget(&self.tmp);
@@ -164,14 +268,14 @@ pub fn remove_staged() {
 /// On SIGINT (Ctrl-C) or SIGTERM: run `end_children` (the caller's child processes, e.g.
 /// `hil::qemu::end_all_children`), remove the staging folders, exit with 130. Call once at the
 /// start of the program.
-pub fn install_interrupt_handler(end_children: fn()) -> Result<(), String> {
+pub fn install_interrupt_handler(end_children: fn()) -> Result<(), OutputError> {
     ctrlc::set_handler(move || {
         end_children();
         remove_staged();
         eprintln!("interrupted: nothing left half-written, child processes stopped");
         std::process::exit(130);
     })
-    .map_err(|e| format!("cannot install the interrupt handler: {e}"))
+    .map_err(OutputError::Interrupt)
 }
 
 #[cfg(test)]
@@ -207,7 +311,7 @@ mod tests {
         let s = StagedDir::new(&late).unwrap();
         std::fs::create_dir_all(&late).unwrap();
         std::fs::write(late.join("mine.txt"), "x").unwrap();
-        let e = s.commit().unwrap_err();
+        let e = s.commit().unwrap_err().to_string();
         assert!(e.contains("did not write"), "{e}");
         assert!(late.join("mine.txt").exists());
         let kept = base.join(format!(".late.partial-{}", std::process::id()));
@@ -227,7 +331,7 @@ mod tests {
         let mine = base.join("mine");
         std::fs::create_dir_all(&mine).unwrap();
         std::fs::write(mine.join("thesis.tex"), "x").unwrap();
-        let e = StagedDir::new(&mine).unwrap_err();
+        let e = StagedDir::new(&mine).unwrap_err().to_string();
         assert!(e.contains("not made by pto"), "{e}");
         assert!(mine.join("thesis.tex").exists());
         std::fs::remove_dir_all(&base).unwrap();

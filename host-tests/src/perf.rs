@@ -1,7 +1,7 @@
 //! `pto bench`: wall time, real-time factor and accuracy of the reference runs.
 
 use crate::sim::bench::{BAR, Bench};
-use crate::sim::scenario;
+use crate::sim::scenario::{self, RunError};
 use crate::sim::solver::{SimResult, SolverOptions};
 use serde::Serialize;
 
@@ -47,20 +47,19 @@ pub struct BenchReport {
     pub targets: Vec<String>,
 }
 
-fn run(bench: &Bench, name: &str, solver: SolverOptions) -> Result<SimResult, String> {
-    let (s, base) = scenario::resolve(name).map_err(|e| e.to_string())?;
+fn run(bench: &Bench, name: &str, solver: SolverOptions) -> Result<SimResult, RunError> {
+    let (s, base) = scenario::resolve(name)?;
     s.simulate(bench, &base, solver, None).map(|(_, r)| r)
 }
 
-fn timed(bench: &Bench, name: &str, repeats: usize, compare: bool) -> Result<BenchRow, String> {
-    let mut walls = Vec::new();
-    let mut last = None;
-    for _ in 0..repeats.max(1) {
-        let r = run(bench, name, SolverOptions::default())?;
+fn timed(bench: &Bench, name: &str, repeats: usize, compare: bool) -> Result<BenchRow, RunError> {
+    // At least one run; the last one's trace is compared.
+    let mut r = run(bench, name, SolverOptions::default())?;
+    let mut walls = vec![r.stats.wall_s];
+    for _ in 1..repeats {
+        r = run(bench, name, SolverOptions::default())?;
         walls.push(r.stats.wall_s);
-        last = Some(r);
     }
-    let r = last.ok_or("no run")?;
     walls.sort_by(f64::total_cmp);
     let wall = walls[walls.len() / 2];
     let p2_max_err_bar = if compare {
@@ -89,7 +88,7 @@ fn timed(bench: &Bench, name: &str, repeats: usize, compare: bool) -> Result<Ben
 }
 
 /// Runs the benchmark: Test III at 10 % (compared with a tight run) and the 1000 s irregular sea.
-pub fn measure(bench: &Bench, repeats: usize) -> Result<BenchReport, String> {
+pub fn measure(bench: &Bench, repeats: usize) -> Result<BenchReport, RunError> {
     let t3 = timed(bench, "test3-ap10", repeats, true)?;
     let irr = timed(bench, "irregular-sea", repeats.min(3), false)?;
     let err = t3.p2_max_err_bar.unwrap_or(f64::INFINITY);

@@ -5,6 +5,30 @@ use plotters::prelude::*;
 use std::path::{Path, PathBuf};
 use std::sync::Once;
 
+/// Why a figure could not be written, named with its file.
+#[derive(Debug, thiserror::Error)]
+pub enum PlotError {
+    /// Plotting failed (the backend's error as the source).
+    #[error("{path}")]
+    Draw {
+        /// The file.
+        path: PathBuf,
+        /// The plotting library's error.
+        source: DrawError,
+    },
+    /// The rendered file could not be renamed into place.
+    #[error("{path}")]
+    Rename {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+}
+
+/// A plotting backend's error.
+pub type DrawError = Box<dyn std::error::Error + Send + Sync>;
+
 /// One line.
 #[derive(Debug, Clone)]
 pub struct Series {
@@ -121,7 +145,10 @@ fn draw_panel<DB: DrawingBackend>(
     area: &DrawingArea<DB, Shift>,
     p: &Panel,
     width: u32,
-) -> Result<(), String> {
+) -> Result<(), DrawError>
+where
+    DB::ErrorType: 'static,
+{
     let ((x0, x1), (y0, y1)) = bounds(p);
     let legend = p.series.len() > 1 || p.series.first().is_some_and(|s| !s.label.is_empty());
     // Headroom for the legend, so it sits above the data instead of on it: one line of it is
@@ -137,22 +164,19 @@ fn draw_panel<DB: DrawingBackend>(
         .margin_right(22)
         .x_label_area_size(38)
         .y_label_area_size(62)
-        .build_cartesian_2d(x0..x1, y0..y1)
-        .map_err(|e| e.to_string())?;
+        .build_cartesian_2d(x0..x1, y0..y1)?;
     chart
         .configure_mesh()
         .x_desc(&p.x_label)
         .y_desc(&p.y_label)
         .label_style(("sans-serif", 13))
         .light_line_style(RGBColor(235, 235, 235))
-        .draw()
-        .map_err(|e| e.to_string())?;
+        .draw()?;
     for (i, s) in p.series.iter().enumerate() {
         let color = Palette99::pick(i).to_rgba();
         let pts = decimate(&s.x, &s.y, 4000);
         chart
-            .draw_series(LineSeries::new(pts, color.stroke_width(width)))
-            .map_err(|e| e.to_string())?
+            .draw_series(LineSeries::new(pts, color.stroke_width(width)))?
             .label(&s.label)
             .legend(move |(x, y)| {
                 PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
@@ -165,8 +189,7 @@ fn draw_panel<DB: DrawingBackend>(
             .border_style(BLACK.mix(0.3))
             .label_font(("sans-serif", 12))
             .position(SeriesLabelPosition::UpperRight)
-            .draw()
-            .map_err(|e| e.to_string())?;
+            .draw()?;
     }
     Ok(())
 }
@@ -175,18 +198,19 @@ fn draw<DB: DrawingBackend>(
     root: DrawingArea<DB, Shift>,
     fig: &Figure,
     width: u32,
-) -> Result<(), String> {
-    root.fill(&WHITE).map_err(|e| e.to_string())?;
-    let root = root
-        .titled(&fig.title, ("sans-serif", 22))
-        .map_err(|e| e.to_string())?;
+) -> Result<(), DrawError>
+where
+    DB::ErrorType: 'static,
+{
+    root.fill(&WHITE)?;
+    let root = root.titled(&fig.title, ("sans-serif", 22))?;
     let cols = fig.cols.max(1);
     let rows = fig.panels.len().div_ceil(cols).max(1);
     let areas = root.split_evenly((rows, cols));
     for (area, p) in areas.iter().zip(&fig.panels) {
         draw_panel(area, p, width)?;
     }
-    root.present().map_err(|e| e.to_string())
+    Ok(root.present()?)
 }
 
 /// Line width of the data in the PNG (see [`draw_panel`]) and in the SVG.
@@ -202,7 +226,7 @@ impl Figure {
     }
 
     /// Writes `<dir>/<name>.png` and `.svg`; returns the PNG path.
-    pub fn write(&self, dir: &Path) -> Result<PathBuf, String> {
+    pub fn write(&self, dir: &Path) -> Result<PathBuf, PlotError> {
         register_font();
         let size = self.size();
         // Render to temporary names and rename, so a failed run leaves no half-written figure.
@@ -215,15 +239,27 @@ impl Figure {
             self,
             PNG_LINE_PX,
         )
-        .map_err(|e| format!("{}: {e}", png.display()))?;
+        .map_err(|source| PlotError::Draw {
+            path: png.clone(),
+            source,
+        })?;
         draw(
             SVGBackend::new(&svg_tmp, size).into_drawing_area(),
             self,
             SVG_LINE_PX,
         )
-        .map_err(|e| format!("{}: {e}", svg.display()))?;
-        std::fs::rename(&png_tmp, &png).map_err(|e| format!("{}: {e}", png.display()))?;
-        std::fs::rename(&svg_tmp, &svg).map_err(|e| format!("{}: {e}", svg.display()))?;
+        .map_err(|source| PlotError::Draw {
+            path: svg.clone(),
+            source,
+        })?;
+        std::fs::rename(&png_tmp, &png).map_err(|source| PlotError::Rename {
+            path: png.clone(),
+            source,
+        })?;
+        std::fs::rename(&svg_tmp, &svg).map_err(|source| PlotError::Rename {
+            path: svg.clone(),
+            source,
+        })?;
         Ok(png)
     }
 }

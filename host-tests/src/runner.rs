@@ -2,7 +2,7 @@
 //! [`RunProgress`] (the CLI draws progress bars with it; the library knows no terminal).
 
 use crate::sim::bench::Bench;
-use crate::sim::scenario::Scenario;
+use crate::sim::scenario::{RunError, Scenario};
 use crate::sim::solver::{SimResult, SolverOptions};
 use rayon::prelude::*;
 use std::path::Path;
@@ -11,8 +11,8 @@ use std::path::Path;
 pub struct Outcome {
     /// The scenario.
     pub scenario: Scenario,
-    /// Its result, or the error message.
-    pub result: Result<SimResult, String>,
+    /// Its result, or why it failed (print it with [`crate::error_chain`]).
+    pub result: Result<SimResult, RunError>,
 }
 
 /// What a parallel run reports, from any thread: a scenario started, reached a simulated time,

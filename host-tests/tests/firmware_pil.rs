@@ -38,7 +38,8 @@ fn window(rows: &[PilRow], from: f64) -> impl Iterator<Item = &PilRow> {
 }
 
 fn run(check: pil::CheckFn) {
-    let (q, c) = check(boot(), &Bench::reference()).unwrap_or_else(|e| panic!("{e}"));
+    let (q, c) = check(boot(), &Bench::reference())
+        .unwrap_or_else(|e| panic!("{}", pto_host::error_chain(&e)));
     println!(
         "PIL {}: {:.3} {} (target {} {}); {}; {} steps in {:.1} s wall",
         c.name, c.measured, c.unit, c.target, c.unit, c.detail, c.steps, c.wall_s

@@ -5,7 +5,7 @@
 //! reference values.
 
 use pto_host::fit;
-use pto_host::sim::bench::Bench;
+use pto_host::sim::bench::{Bench, apply_override};
 use pto_host::sim::benchlog::BenchLog;
 
 #[test]
@@ -13,8 +13,9 @@ fn fit_recovers_trapped_air_cd_and_precharge() {
     let dir = std::env::temp_dir().join(format!("pto-fit-test-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let mut truth = Bench::reference().file;
+    let shortcuts = fit::set_shortcuts();
     for kv in ["trapped_air=0.04", "cd=0.17", "precharge=45"] {
-        fit::apply_override(&mut truth, kv).unwrap();
+        apply_override(&mut truth, kv, &shortcuts).unwrap();
     }
     let truth = Bench::from_file(truth, "truth").unwrap();
     let mut logs = Vec::new();

@@ -4,7 +4,7 @@
 //! numeric field of the bench file either changes the model's configuration or is named below
 //! with the reason it does not apply to the reduced model.
 
-use pto_host::model::model_config;
+use pto_host::model::{ModelError, model_config};
 use pto_host::sim::bench::Bench;
 use std::collections::BTreeMap;
 
@@ -37,7 +37,7 @@ fn leaves(v: &serde_json::Value, path: &str, out: &mut BTreeMap<String, (f64, bo
     }
 }
 
-fn model_leaves(b: &Bench) -> Result<BTreeMap<String, (f64, bool)>, String> {
+fn model_leaves(b: &Bench) -> Result<BTreeMap<String, (f64, bool)>, ModelError> {
     let m = model_config(b)?;
     let mut out = BTreeMap::new();
     leaves(&serde_json::to_value(m).unwrap(), "", &mut out);

@@ -8,16 +8,14 @@ pub(crate) fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
     use pto_host::hil::qemu::{self, Build, Qemu};
     use pto_model::protocol::{FromFirmware, ToFirmware};
     eprintln!("building the QEMU firmware…");
-    let elf = qemu::build(Build::Qemu).map_err(anyhow::Error::msg)?;
-    let mut q = Qemu::boot(&elf, follow).map_err(anyhow::Error::msg)?;
+    let elf = qemu::build(Build::Qemu)?;
+    let mut q = Qemu::boot(&elf, follow)?;
     let t0 = std::time::Instant::now();
-    q.link
-        .request(&ToFirmware::Ping(1), |r| {
-            matches!(r, FromFirmware::Pong(1)).then_some(())
-        })
-        .map_err(anyhow::Error::msg)?;
+    q.link.request(&ToFirmware::Ping(1), |r| {
+        matches!(r, FromFirmware::Pong(1)).then_some(())
+    })?;
     let ping = t0.elapsed();
-    let st = pto_host::hil::pil::status(&mut q).map_err(anyhow::Error::msg)?;
+    let st = pto_host::hil::pil::status(&mut q)?;
     let host = q.link.counts();
     if follow {
         eprintln!(
@@ -30,12 +28,8 @@ pub(crate) fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
         }
         anyhow::bail!("QEMU ended by itself");
     }
-    q.link
-        .send(&ToFirmware::Exit(0))
-        .map_err(anyhow::Error::msg)?;
-    let code = q
-        .wait_exit(std::time::Duration::from_secs(10))
-        .map_err(anyhow::Error::msg)?;
+    q.link.send(&ToFirmware::Exit(0))?;
+    let code = q.wait_exit(std::time::Duration::from_secs(10))?;
     if !follow {
         for l in q.log() {
             if json {
@@ -67,7 +61,7 @@ pub(crate) fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
     use pto_host::hil::qemu::{self, Build, Qemu};
     let bench = load_bench(bench)?;
     eprintln!("building the QEMU firmware…");
-    let elf = qemu::build(Build::Qemu).map_err(anyhow::Error::msg)?;
+    let elf = qemu::build(Build::Qemu)?;
     let checks: [(&str, pto_host::hil::pil::CheckFn); 5] = [
         ("hold P2", pto_host::hil::pil::check_hold_p2),
         ("hold speed", pto_host::hil::pil::check_hold_speed),
@@ -81,8 +75,8 @@ pub(crate) fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
     let mut out = Vec::new();
     for (name, f) in checks {
         eprintln!("PIL {name}: running in lockstep with the firmware (≈ 2–3 ms per step)…");
-        let q = Qemu::boot(&elf, false).map_err(anyhow::Error::msg)?;
-        let (mut q, c) = f(q, &bench).map_err(anyhow::Error::msg)?;
+        let q = Qemu::boot(&elf, false)?;
+        let (mut q, c) = f(q, &bench)?;
         let _ = q.link.send(&pto_model::protocol::ToFirmware::Exit(0));
         if !json {
             println!(
@@ -113,10 +107,10 @@ pub(crate) fn fw_cost_cmd(json: bool, trace: Option<&Path>) -> Result<bool> {
     eprintln!(
         "building both firmwares and replaying the golden vectors (and a four-cylinder run) under QEMU…"
     );
-    let r = pto_host::hil::fw_cost::measure().map_err(anyhow::Error::msg)?;
+    let r = pto_host::hil::fw_cost::measure()?;
     if let Some(path) = trace {
         eprintln!("tracing the four-cylinder run step by step…");
-        let t = pto_host::hil::fw_cost::trace_four_cylinders().map_err(anyhow::Error::msg)?;
+        let t = pto_host::hil::fw_cost::trace_four_cylinders()?;
         let mut csv = String::from("step,instructions,background_units,phases\n");
         for s in &t {
             csv += &format!(

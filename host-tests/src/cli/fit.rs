@@ -28,10 +28,10 @@ pub(crate) fn synth_logs_cmd(
     };
     // Written into a staging folder swapped in when every log is written (an interrupted run
     // leaves the previous logs whole).
-    let stage = pto_host::output::StagedDir::new(out).map_err(anyhow::Error::msg)?;
+    let stage = pto_host::output::StagedDir::new(out)?;
     let staged = stage.path().to_path_buf();
     let pb = count_bar(names.len() as u64, "logs");
-    let logs: Vec<Result<pto_host::sim::benchlog::BenchLog, String>> = {
+    let logs: Vec<Result<pto_host::sim::benchlog::BenchLog, fit::FitError>> = {
         use rayon::prelude::*;
         names
             .par_iter()
@@ -46,12 +46,12 @@ pub(crate) fn synth_logs_cmd(
     pb.finish_and_clear();
     let mut written = Vec::new();
     for l in logs {
-        let l = l.map_err(anyhow::Error::msg)?;
-        l.write().map_err(anyhow::Error::msg)?;
+        let l = l?;
+        l.write()?;
         let name = l.path.file_name().map(PathBuf::from).unwrap_or_default();
         written.push((out.join(name), l.t.len()));
     }
-    stage.commit().map_err(anyhow::Error::msg)?;
+    stage.commit()?;
     if json {
         let v: Vec<_> = written
             .iter()
@@ -96,9 +96,7 @@ pub(crate) fn fit_cmd(
         }
     }
     // Residual evaluations: (parameters + 1) × logs per Jacobian.
-    let n_par = fit::params(params, &bench.file)
-        .map_err(anyhow::Error::msg)?
-        .len();
+    let n_par = fit::params(params, &bench.file)?.len();
     let pb = ProgressBar::new(((n_par + 1) * logs.len() * (max_iter + 2)) as u64);
     if std::io::stderr().is_terminal() {
         pb.set_style(
@@ -118,12 +116,11 @@ pub(crate) fn fit_cmd(
             let pb = pb.clone();
             std::sync::Arc::new(move || pb.inc(1))
         }),
-    )
-    .map_err(anyhow::Error::msg)?;
+    )?;
     pb.finish_and_clear();
     // Outputs, all in --out and swapped in whole: the fitted bench, the model configuration
     // for the firmware, the figures and the report.
-    let stage = pto_host::output::StagedDir::new(out).map_err(anyhow::Error::msg)?;
+    let stage = pto_host::output::StagedDir::new(out)?;
     let stem = bench_path
         .and_then(|p| p.file_stem())
         .map_or("reference-bench".into(), |s| {
@@ -140,10 +137,8 @@ pub(crate) fn fit_cmd(
     let bench_name = format!("{stem}.fitted.toml");
     std::fs::write(stage.path().join(&bench_name), text.as_bytes())?;
     // The reduced model has a constant Cd: it takes the fitted Cd at 50 bar Δp.
-    let model = pto_host::model::model_config(&fitted).map_err(anyhow::Error::msg)?;
-    model
-        .validate()
-        .map_err(|e| anyhow::anyhow!("fitted model configuration: {e}"))?;
+    let model = pto_host::model::model_config(&fitted)?;
+    model.validate().context("fitted model configuration")?;
     let model_name = format!("{stem}.model.toml");
     std::fs::write(
         stage.path().join(&model_name),
@@ -157,7 +152,7 @@ pub(crate) fn fit_cmd(
         .collect();
     let report_json = serde_json::to_string_pretty(&o.report)?;
     std::fs::write(stage.path().join("fit.json"), &report_json)?;
-    stage.commit().map_err(anyhow::Error::msg)?;
+    stage.commit()?;
     let r = &o.report;
     if json {
         println!("{report_json}");
@@ -280,7 +275,7 @@ pub(crate) fn fit_figures(
             ],
             cols: 1,
         };
-        files.push(fig.write(out).map_err(anyhow::Error::msg)?);
+        files.push(fig.write(out)?);
     }
     Ok(files)
 }

@@ -23,8 +23,10 @@ pub(crate) fn load_bench_with(path: Option<&PathBuf>, set: &[String]) -> Result<
     }
     let base = load_bench(path)?;
     let mut file = base.file;
+    // The fit's parameter names as short names (`trapped_air=0.04`), then any field by path.
+    let shortcuts = pto_host::fit::set_shortcuts();
     for kv in set {
-        pto_host::fit::apply_override(&mut file, kv).map_err(anyhow::Error::msg)?;
+        pto_host::sim::bench::apply_override(&mut file, kv, &shortcuts)?;
     }
     Ok(Bench::from_file(
         file,
@@ -44,7 +46,7 @@ pub(crate) fn progress_bar(len_ms: u64, label: &str) -> ProgressBar {
 }
 
 pub(crate) fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    pto_host::output::write_atomic(path, bytes).map_err(anyhow::Error::msg)
+    Ok(pto_host::output::write_atomic(path, bytes)?)
 }
 
 pub(crate) fn count_bar(n: u64, what: &str) -> ProgressBar {

@@ -139,7 +139,7 @@ pub(crate) fn validate_cmd(
 
 pub(crate) fn model_cost_cmd(json: bool) -> Result<bool> {
     let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    let cost = pto_host::model::cost::measure(&workspace).map_err(anyhow::Error::msg)?;
+    let cost = pto_host::model::cost::measure(&workspace)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&cost)?);
     } else {

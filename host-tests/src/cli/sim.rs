@@ -107,9 +107,7 @@ pub(crate) fn simulate(
         .filter(|(_, d)| **d)
         .map(|(i, _)| (i, bench.cylinders[i].name.clone()))
         .collect();
-    let fig = figures::single(&s.name, &r.trace, &duty)
-        .write(out)
-        .map_err(anyhow::Error::msg)?;
+    let fig = figures::single(&s.name, &r.trace, &duty).write(out)?;
     let sum = summarize(&s.name, &r, &csv, &fig);
     let pass = sum.balance_worst_rel <= tol::BALANCE_REL;
     if json {
@@ -186,20 +184,20 @@ pub(crate) fn paper_cmd(
     let pass = facts.iter().all(|f| f.pass);
     // Every file of the run goes into a staging folder swapped in whole at the end: an
     // interrupted run leaves the previous figures, report and facts together.
-    let stage = pto_host::output::StagedDir::new(out).map_err(anyhow::Error::msg)?;
+    let stage = pto_host::output::StagedDir::new(out)?;
     let dir = stage.path().to_path_buf();
     let mut fig_paths = Vec::new();
     if plots {
         let r = Results::new(&outcomes);
         for f in figures::all(&r) {
-            let p = f.write(&dir).map_err(anyhow::Error::msg)?;
+            let p = f.write(&dir)?;
             let name = p.file_name().map(PathBuf::from).unwrap_or_default();
             fig_paths.push(out.join(name).display().to_string());
         }
     }
     let failed_runs: Vec<String> = outcomes
         .iter()
-        .filter_map(|o| o.result.as_ref().err().cloned())
+        .filter_map(|o| o.result.as_ref().err().map(|e| pto_host::error_chain(e)))
         .collect();
     let report = PaperReport {
         bench: bench.source.clone(),
@@ -216,7 +214,7 @@ pub(crate) fn paper_cmd(
         &dir.join("facts.json"),
         serde_json::to_string_pretty(&report)?.as_bytes(),
     )?;
-    stage.commit().map_err(anyhow::Error::msg)?;
+    stage.commit()?;
     if json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
@@ -286,7 +284,11 @@ pub(crate) fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
                     res.balance.worst()
                 ));
             }
-            Err(e) => s.push_str(&format!("| {} | failed: {e} | | | |\n", o.scenario.name)),
+            Err(e) => s.push_str(&format!(
+                "| {} | failed: {} | | | |\n",
+                o.scenario.name,
+                pto_host::error_chain(e)
+            )),
         }
     }
     if !r.figures.is_empty() {
@@ -307,7 +309,7 @@ pub(crate) fn bench_cmd(bench_path: Option<&PathBuf>, repeats: usize, json: bool
         bail!("--repeats must be at least 1");
     }
     let bench = load_bench(bench_path)?;
-    let rep = perf::measure(&bench, repeats).map_err(anyhow::Error::msg)?;
+    let rep = perf::measure(&bench, repeats)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&rep)?);
     } else {

@@ -8,11 +8,12 @@
 //! The valve's area table is fitted as factors on its increments (≥ 0), so it stays monotone.
 
 use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
-use crate::sim::bench::{BAR, Bench, BenchFile};
+use crate::sim::bench::{BAR, Bench, BenchError, BenchFile, Setter, Shortcut};
 use crate::sim::benchlog::BenchLog;
 use crate::sim::motion::Motion;
 use crate::sim::plant::Plant;
-use crate::sim::solver::{self, Initial, Run, SolverOptions, ValveSchedule};
+use crate::sim::scenario::RunError;
+use crate::sim::solver::{self, Initial, Run, SimError, SolverOptions, ValveSchedule};
 use crate::sim::trace::{Truth, truth_at};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
@@ -26,8 +27,6 @@ pub const SIGMA_P2_BAR: f64 = 0.5;
 /// Motor speed σ, rpm.
 pub const SIGMA_RPM: f64 = 5.0;
 
-type Setter = Arc<dyn Fn(&mut BenchFile, f64) + Send + Sync>;
-
 mod params;
 mod problem;
 mod residuals;
@@ -37,6 +36,49 @@ pub use params::*;
 pub use problem::*;
 pub use residuals::*;
 pub use synth::*;
+
+/// Why a fit (or a synthetic log) could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum FitError {
+    /// `--params` names a parameter the fit does not know.
+    #[error("--params: unknown parameter `{name}` (known: {})", PARAM_NAMES.join(", "))]
+    UnknownParam {
+        /// The name.
+        name: String,
+    },
+    /// `--params` is empty.
+    #[error("--params: nothing to fit")]
+    NoParams,
+    /// The starting or a trial bench is invalid.
+    #[error(transparent)]
+    Bench(#[from] BenchError),
+    /// A log's simulation failed.
+    #[error("{log}")]
+    Simulation {
+        /// The log's name.
+        log: String,
+        /// The solver's error.
+        source: SimError,
+    },
+    /// No stage of the fit ran.
+    #[error("no fit stage ran")]
+    NoStage,
+    /// The Jacobian at the optimum could not be evaluated.
+    #[error("the Jacobian at the optimum failed")]
+    Jacobian,
+    /// The residuals at the optimum could not be evaluated.
+    #[error("the residuals at the optimum failed")]
+    Residuals,
+    /// The pseudo-inverse of JᵀJ failed.
+    #[error("covariance: {0}")]
+    Covariance(&'static str),
+    /// `pto synth-logs --runs` names no built-in scenario.
+    #[error("unknown scenario `{0}` (see `pto scenarios`)")]
+    UnknownScenario(String),
+    /// A synthetic log's scenario could not be run.
+    #[error(transparent)]
+    Run(#[from] RunError),
+}
 
 /// One fitted parameter.
 #[derive(Debug, Clone, Serialize)]
@@ -135,11 +177,11 @@ pub fn fit(
     spacing_s: f64,
     max_iter: usize,
     progress: Option<Tick>,
-) -> Result<FitOutcome, String> {
+) -> Result<FitOutcome, FitError> {
     let t0 = std::time::Instant::now();
     let params = params(names, start)?;
     let logs = Arc::new(prepare(logs, spacing_s));
-    let b0 = Bench::from_file(start.clone(), "start").map_err(|e| e.to_string())?;
+    let b0 = Bench::from_file(start.clone(), "start")?;
     let before: Vec<Vec<Truth>> = logs
         .par_iter()
         .map(|p| simulate_log(&b0, p))
@@ -203,7 +245,7 @@ pub fn fit(
         }
         last = Some((problem, pj));
     }
-    let (problem, _) = last.ok_or("no fit stage ran")?;
+    let (problem, _) = last.ok_or(FitError::NoStage)?;
     let z: Vec<f64> = problem.z.iter().copied().collect();
     let fitted_bench = problem.bench_at(&z)?;
     let corrections = problem.offsets_of(&z);
@@ -217,12 +259,8 @@ pub fn fit(
         raw_residuals(p, s, &mut r_after);
     }
     // Uncertainty: cov(z) = s²(JᵀJ)⁻¹ with s² = SSR/(m − n), through the bounds' transform.
-    let jac = problem
-        .jacobian()
-        .ok_or("the Jacobian at the optimum failed")?;
-    let r_opt = problem
-        .residuals()
-        .ok_or("the residuals at the optimum failed")?;
+    let jac = problem.jacobian().ok_or(FitError::Jacobian)?;
+    let r_opt = problem.residuals().ok_or(FitError::Residuals)?;
     let m = r_opt.len();
     let n = z.len();
     let s2 = r_opt.iter().map(|x| x * x).sum::<f64>() / (m.saturating_sub(n)).max(1) as f64;
@@ -231,7 +269,7 @@ pub fn fit(
     let smax = svd.singular_values.max();
     let pinv = svd
         .pseudo_inverse(smax * 1e-10)
-        .map_err(|e| format!("covariance: {e}"))?;
+        .map_err(FitError::Covariance)?;
     let mut fitted = start.clone();
     let mut out = Vec::new();
     for (j, p) in params.iter().enumerate() {
@@ -261,7 +299,7 @@ pub fn fit(
                 name: p.log.name(),
                 p2_rms_bar: (pb, pa),
                 rpm_rms: (rb, ra),
-                start_p2_bar: (p.p2_start, p.p2_start + c),
+                start_p2_bar: (p.p2_start_bar, p.p2_start_bar + c),
             }
         })
         .collect();

@@ -1,5 +1,5 @@
 //! The fittable parameters: their bench fields, bounds and the tanh transform that keeps every
-//! trial inside them; `--set` overrides by short name or dotted path.
+//! trial inside them; their short names as `--set` shortcuts.
 
 use super::*;
 
@@ -63,65 +63,76 @@ pub const PARAM_NAMES: &[&str] = &[
     "area_table",
 ];
 
+/// The scalar parameter called `name` (every name of [`PARAM_NAMES`] but `area_table`).
+fn scalar_param(name: &str) -> Option<Param> {
+    Some(match name {
+        "trapped_air" => scalar(
+            "trapped_air",
+            "oil.trapped_air_fraction",
+            "-",
+            0.0,
+            0.3,
+            |f| f.oil.trapped_air_fraction,
+            |f, x| f.oil.trapped_air_fraction = x,
+        ),
+        "cd" => scalar(
+            "cd",
+            "control_valve.discharge_coefficient",
+            "-",
+            0.02,
+            1.0,
+            |f| f.control_valve.discharge_coefficient,
+            |f, x| f.control_valve.discharge_coefficient = x,
+        ),
+        "precharge" => scalar(
+            "precharge",
+            "hp_accumulator.precharge_bar",
+            "bar",
+            1.0,
+            120.0,
+            |f| f.hp_accumulator.precharge_bar,
+            |f, x| f.hp_accumulator.precharge_bar = x,
+        ),
+        "hp_volume" => scalar(
+            "hp_volume",
+            "hp_accumulator.volume_l",
+            "L",
+            0.1,
+            200.0,
+            |f| f.hp_accumulator.volume_l,
+            |f, x| f.hp_accumulator.volume_l = x,
+        ),
+        "cd_slope" => scalar(
+            "cd_slope",
+            "control_valve.cd_slope_per_100bar",
+            "1/100 bar",
+            -0.5,
+            0.5,
+            |f| f.control_valve.cd_slope_per_100bar,
+            |f, x| f.control_valve.cd_slope_per_100bar = x,
+        ),
+        "leakage" => scalar(
+            "leakage",
+            "motor.volumetric_efficiency",
+            "-",
+            0.5,
+            1.0,
+            |f| f.motor.volumetric_efficiency,
+            |f, x| f.motor.volumetric_efficiency = x,
+        ),
+        _ => return None,
+    })
+}
+
 /// The parameters called `names`, for a fit starting from `start`.
-pub fn params(names: &[String], start: &BenchFile) -> Result<Vec<Param>, String> {
+pub fn params(names: &[String], start: &BenchFile) -> Result<Vec<Param>, FitError> {
     let mut v = Vec::new();
     for n in names {
+        if let Some(p) = scalar_param(n) {
+            v.push(p);
+            continue;
+        }
         match n.as_str() {
-            "trapped_air" => v.push(scalar(
-                "trapped_air",
-                "oil.trapped_air_fraction",
-                "-",
-                0.0,
-                0.3,
-                |f| f.oil.trapped_air_fraction,
-                |f, x| f.oil.trapped_air_fraction = x,
-            )),
-            "cd" => v.push(scalar(
-                "cd",
-                "control_valve.discharge_coefficient",
-                "-",
-                0.02,
-                1.0,
-                |f| f.control_valve.discharge_coefficient,
-                |f, x| f.control_valve.discharge_coefficient = x,
-            )),
-            "precharge" => v.push(scalar(
-                "precharge",
-                "hp_accumulator.precharge_bar",
-                "bar",
-                1.0,
-                120.0,
-                |f| f.hp_accumulator.precharge_bar,
-                |f, x| f.hp_accumulator.precharge_bar = x,
-            )),
-            "hp_volume" => v.push(scalar(
-                "hp_volume",
-                "hp_accumulator.volume_l",
-                "L",
-                0.1,
-                200.0,
-                |f| f.hp_accumulator.volume_l,
-                |f, x| f.hp_accumulator.volume_l = x,
-            )),
-            "cd_slope" => v.push(scalar(
-                "cd_slope",
-                "control_valve.cd_slope_per_100bar",
-                "1/100 bar",
-                -0.5,
-                0.5,
-                |f| f.control_valve.cd_slope_per_100bar,
-                |f, x| f.control_valve.cd_slope_per_100bar = x,
-            )),
-            "leakage" => v.push(scalar(
-                "leakage",
-                "motor.volumetric_efficiency",
-                "-",
-                0.5,
-                1.0,
-                |f| f.motor.volumetric_efficiency,
-                |f, x| f.motor.volumetric_efficiency = x,
-            )),
             "area_table" => {
                 let a = start.control_valve.area_mm2.clone();
                 let ap = start.control_valve.aperture_pct.clone();
@@ -170,15 +181,12 @@ pub fn params(names: &[String], start: &BenchFile) -> Result<Vec<Param>, String>
                 }
             }
             other => {
-                return Err(format!(
-                    "--params: unknown parameter `{other}` (known: {})",
-                    PARAM_NAMES.join(", ")
-                ));
+                return Err(FitError::UnknownParam { name: other.into() });
             }
         }
     }
     if v.is_empty() {
-        return Err("--params: nothing to fit".into());
+        return Err(FitError::NoParams);
     }
     Ok(v)
 }
@@ -197,40 +205,17 @@ pub(super) fn dx_dz(p: &Param, z: f64) -> f64 {
     (p.hi - p.lo) * 0.5 / (c * c)
 }
 
-/// Sets a `name=value` override on a bench file (`pto synth-logs --set`, `pto simulate
-/// --set`): a fit parameter's short name (`trapped_air`, `cd`, `precharge`, …) or any bench
-/// field by its dotted path (`hp_accumulator.volume_l`, `cylinder[1].bore_mm`).
-pub fn apply_override(f: &mut BenchFile, kv: &str) -> Result<(), String> {
-    let (k, v) = kv
-        .split_once('=')
-        .ok_or_else(|| format!("--set {kv}: want name=value"))?;
-    let k = k.trim();
-    if k.contains('.') || k.contains('[') {
-        return f.set_field(k, v.trim()).map_err(|e| format!("--set {e}"));
-    }
-    let Ok(v) = v.trim().parse::<f64>() else {
-        return f.set_field(k, v.trim()).map_err(|e| format!("--set {e}"));
-    };
-    let scalars: Vec<String> = PARAM_NAMES
+/// The scalar parameters' short names as `--set` shortcuts (in [`PARAM_NAMES`]' order), for
+/// [`apply_override`](crate::sim::bench::apply_override): `--set trapped_air=0.04` sets
+/// `oil.trapped_air_fraction`.
+pub fn set_shortcuts() -> Vec<Shortcut> {
+    PARAM_NAMES
         .iter()
-        .filter(|n| **n != "area_table")
-        .map(|n| n.to_string())
-        .collect();
-    let all = params(&scalars, f)?;
-    match all.iter().find(|p| p.name == k || p.key == k) {
-        Some(p) => {
-            (p.set)(f, v);
-            Ok(())
-        }
-        // Not a parameter name: a top-level bench field.
-        None => f.set_field(k, &v.to_string()).map_err(|e| {
-            format!(
-                "--set {e} (or a parameter: {})",
-                all.iter()
-                    .map(|p| p.name.clone())
-                    .collect::<Vec<_>>()
-                    .join(", ")
-            )
-        }),
-    }
+        .filter_map(|n| scalar_param(n))
+        .map(|p| Shortcut {
+            name: p.name,
+            field: p.key,
+            set: p.set,
+        })
+        .collect()
 }

@@ -20,12 +20,12 @@ pub(super) struct Problem {
 }
 
 impl Problem {
-    pub(super) fn bench_at(&self, z: &[f64]) -> Result<Bench, String> {
+    pub(super) fn bench_at(&self, z: &[f64]) -> Result<Bench, BenchError> {
         let mut f = self.start.clone();
         for (p, &zi) in self.params.iter().zip(z) {
             (p.set)(&mut f, from_z(p, zi));
         }
-        Bench::from_file(f, "fit").map_err(|e| e.to_string())
+        Bench::from_file(f, "fit")
     }
 
     pub(super) fn offsets_of(&self, z: &[f64]) -> Vec<f64> {

@@ -16,10 +16,10 @@ pub struct Prepared {
     /// When the logged motor speed falls below [`COLLAPSE_FRACTION`] of `rpm0` (HP accumulator
     /// empty), s; `None` if it does not.
     pub collapse: Option<f64>,
-    /// Start pressures, bar (see `start_value`).
-    pub p2_start: f64,
-    /// Same for LP.
-    pub lp_start: f64,
+    /// Start P2, bar (see `start_value`).
+    pub p2_start_bar: f64,
+    /// Start LP, bar.
+    pub lp_start_bar: f64,
 }
 
 /// Prepares logs: residual samples every `spacing_s` seconds.
@@ -58,15 +58,15 @@ pub fn prepare(logs: Vec<BenchLog>, spacing_s: f64) -> Vec<Prepared> {
             );
             let (ts, ap) = log.valve_steps();
             let valve = ts.into_iter().zip(ap).collect();
-            let p2_start = start_value(&log.t, &log.p2_bar, moving);
-            let lp_start = start_value(&log.t, &log.lp_bar, moving);
+            let p2_start_bar = start_value(&log.t, &log.p2_bar, moving);
+            let lp_start_bar = start_value(&log.t, &log.lp_bar, moving);
             Prepared {
                 log,
                 idx,
                 motion,
                 valve,
-                p2_start,
-                lp_start,
+                p2_start_bar,
+                lp_start_bar,
                 rpm0,
                 collapse,
             }
@@ -120,7 +120,7 @@ pub const FIT_SOLVER: SolverOptions = SolverOptions {
 };
 
 /// Simulated (P2 bar, motor rpm) at every log sample.
-pub fn simulate_log(bench: &Bench, p: &Prepared) -> Result<Vec<Truth>, String> {
+pub fn simulate_log(bench: &Bench, p: &Prepared) -> Result<Vec<Truth>, FitError> {
     simulate_log_from(bench, p, 0.0)
 }
 
@@ -129,7 +129,7 @@ pub fn simulate_log_from(
     bench: &Bench,
     p: &Prepared,
     p2_offset: f64,
-) -> Result<Vec<Truth>, String> {
+) -> Result<Vec<Truth>, FitError> {
     let log = &p.log;
     let on: [bool; 4] = log.on_duty;
     let plant = Plant::new(bench, log.config - 1, on, p.motion.clone());
@@ -139,15 +139,18 @@ pub fn simulate_log_from(
         plant: &plant,
         valve: ValveSchedule::Table(p.valve.clone()),
         initial: Initial {
-            p2_pa: (p.p2_start + p2_offset) * BAR,
-            lp_pa: p.lp_start * BAR,
+            p2_pa: (p.p2_start_bar + p2_offset) * BAR,
+            lp_pa: p.lp_start_bar * BAR,
         },
         duration: dur,
         sample_dt: 0.05,
         solver: FIT_SOLVER,
         progress: None,
     })
-    .map_err(|e| format!("{}: {e}", log.name()))?;
+    .map_err(|source| FitError::Simulation {
+        log: log.name(),
+        source,
+    })?;
     Ok(log.t.iter().map(|t| truth_at(&res.trace, t - t0)).collect())
 }
 

@@ -11,9 +11,9 @@ pub fn synth_log(
     rate_hz: f64,
     seed: u64,
     out: &Path,
-) -> Result<BenchLog, String> {
+) -> Result<BenchLog, FitError> {
     let mut s = crate::sim::scenario::builtin_named(scenario)
-        .ok_or_else(|| format!("unknown scenario `{scenario}` (see `pto scenarios`)"))?;
+        .ok_or_else(|| FitError::UnknownScenario(scenario.into()))?;
     s.sample_interval_s = (0.5 / rate_hz).min(s.sample_interval_s);
     let (prep, res) = s.simulate(bench, Path::new("."), SolverOptions::default(), None)?;
     let mut synth = SensorSynth::new(SensorSpec::default(), seed);

@@ -1,15 +1,55 @@
 //! Firmware cost: instructions per estimator + scheduler step under QEMU `-icount shift=0`
 //! (TIM2 counts one tick per instruction), and flash / static RAM of both builds.
 
-use crate::hil::pil;
-use crate::hil::qemu::{self, Build, Qemu};
-use crate::model::golden;
+use crate::hil::pil::{self, PilError};
+use crate::hil::qemu::{self, Build, BuildError, LinkError, Qemu, QemuError};
+use crate::model::golden::{self, GoldenError};
 use object::{Object, ObjectSection, SectionKind};
+use pto_model::ConfigError;
 use pto_model::estimator::Inputs;
 use pto_model::fx::{Aperture, Pressure};
 use pto_model::scheduler::Mode;
 use serde::Serialize;
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// Why the firmware's cost could not be measured.
+#[derive(Debug, thiserror::Error)]
+pub enum FwCostError {
+    /// A file could not be read.
+    #[error("{path}")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// An ELF could not be parsed.
+    #[error("{path}")]
+    Elf {
+        /// The ELF.
+        path: PathBuf,
+        /// The parser's error.
+        source: object::read::Error,
+    },
+    /// A firmware build failed.
+    #[error(transparent)]
+    Build(#[from] BuildError),
+    /// QEMU could not boot the firmware.
+    #[error(transparent)]
+    Qemu(#[from] QemuError),
+    /// The link failed.
+    #[error(transparent)]
+    Link(#[from] LinkError),
+    /// A replay failed.
+    #[error(transparent)]
+    Pil(#[from] PilError),
+    /// The golden vectors or the four-cylinder run could not be made or read.
+    #[error(transparent)]
+    Golden(#[from] GoldenError),
+    /// The reference configuration has no coefficients.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+}
 
 /// Budgets of the controller-safety issue (the old 2 000 / 64 KiB / 16 KiB left no room for
 /// safety work).
@@ -51,9 +91,15 @@ pub struct Size {
 }
 
 /// Sizes of an ELF's loadable sections.
-pub fn size(elf: &Path, build: &str) -> Result<Size, String> {
-    let data = std::fs::read(elf).map_err(|e| format!("{}: {e}", elf.display()))?;
-    let obj = object::File::parse(&*data).map_err(|e| format!("{}: {e}", elf.display()))?;
+pub fn size(elf: &Path, build: &str) -> Result<Size, FwCostError> {
+    let data = std::fs::read(elf).map_err(|source| FwCostError::Read {
+        path: elf.to_path_buf(),
+        source,
+    })?;
+    let obj = object::File::parse(&*data).map_err(|source| FwCostError::Elf {
+        path: elf.to_path_buf(),
+        source,
+    })?;
     let (mut flash, mut ram) = (0u64, 0u64);
     for s in obj.sections() {
         let name = s.name().unwrap_or("");
@@ -85,7 +131,7 @@ pub fn step_cost(
     (inputs, p2, lp): (&[Inputs], f32, f32),
     mode: Mode,
     label: &str,
-) -> Result<StepCost, String> {
+) -> Result<StepCost, PilError> {
     let before = pil::status(q)?;
     pil::replay(q, inputs, p2, lp, mode)?;
     let after = pil::status(q)?;
@@ -129,15 +175,13 @@ pub struct StepTrace {
 /// read back (a status request per step: ≈ 2× the time of [`measure`]'s run), and the host
 /// model (the same code, bit for bit) stepped alongside gives each cylinder's phase, which the
 /// firmware's output does not carry. For finding which steps set the maximum.
-pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, String> {
+pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, FwCostError> {
     use pto_model::estimator::{self, State};
     let qemu_elf = qemu::build(Build::Qemu)?;
     let (four, p2, lp) = four_cylinder_inputs()?;
     let mut q = Qemu::boot(&qemu_elf, false)?;
     pil::prime(&mut q, p2, lp, hold_p2())?;
-    let k = pto_model::config::ModelConfig::reference()
-        .coefficients()
-        .map_err(|e| e.to_string())?;
+    let k = pto_model::config::ModelConfig::reference().coefficients()?;
     // As the firmware's `Reset`: P2 known to 1 bar.
     let mut st = State::new(
         Pressure::from_num(p2),
@@ -186,7 +230,7 @@ fn hold_p2() -> Mode {
 }
 
 /// The four-cylinder window of the torque run (Config 1) and its start pressures.
-fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), String> {
+fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
     golden::clean_inputs(
         &crate::sim::bench::Bench::reference(),
         "torque-cfg1-c1234",
@@ -196,11 +240,14 @@ fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), String> {
 }
 
 /// Builds both firmwares, measures.
-pub fn measure() -> Result<Report, String> {
+pub fn measure() -> Result<Report, FwCostError> {
     let qemu_elf = qemu::build(Build::Qemu)?;
     let bench_elf = qemu::build(Build::Bench)?;
     let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(golden::FILE))
-        .map_err(|e| format!("{}: {e}", golden::FILE))?;
+        .map_err(|source| FwCostError::Read {
+            path: golden::FILE.into(),
+            source,
+        })?;
     let (p2, lp, inputs) = golden::parse(&text)?;
     let start = (
         inputs.as_slice(),

@@ -6,21 +6,78 @@
 //! Over 600 lines: the firmware as a valve controller (frames, faults injected) and the
 //! checks of each processor-in-the-loop run, which read its rows.
 
-use crate::hil::qemu::Qemu;
+use crate::hil::qemu::{LinkError, Qemu};
+use crate::model::closed_loop::LoopError;
 use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::Eval;
 use crate::sim::solver::{SimResult, ValveController};
 use crate::sim::trace::Truth;
-use pto_firmware::frontend::Transducer;
+use pto_firmware::frontend::{SpecError, Transducer};
 use pto_model::estimator::{Estimate, Inputs};
 use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::protocol::{FromFirmware, Refusal, SensorFrame, Status, ToFirmware};
 use pto_model::scheduler::{Command, Mode};
 
+/// Why a firmware session failed.
+#[derive(Debug, thiserror::Error)]
+pub enum PilError {
+    /// The link failed or the firmware answered out of turn.
+    #[error(transparent)]
+    Link(#[from] LinkError),
+    /// The firmware refused to reset its estimator.
+    #[error("{0}")]
+    Refused(Refusal),
+    /// The sensor model's 4–20 mA loop is not one the firmware's front end takes.
+    #[error("{0}")]
+    Transducer(SpecError),
+    /// The closed-loop run could not be made.
+    #[error(transparent)]
+    Loop(#[from] LoopError),
+    /// A frame damaged on purpose was answered.
+    #[error("tick {0}: a damaged frame was accepted")]
+    DamagedAccepted(u32),
+    /// A burst of frames stepped the loop twice in one period.
+    #[error("tick {0}: stepped twice in a burst")]
+    SteppedTwice(u32),
+    /// An unexpected message after a damaged frame.
+    #[error("unexpected {0:?}")]
+    Unexpected(Box<FromFirmware>),
+    /// An unexpected message during a burst.
+    #[error("unexpected {0:?} in a burst")]
+    UnexpectedInBurst(Box<FromFirmware>),
+    /// An unexpected message where a step's output was due.
+    #[error("tick {tick}: unexpected {got:?}")]
+    UnexpectedAt {
+        /// The step's tick.
+        tick: u32,
+        /// What came instead.
+        got: Box<FromFirmware>,
+    },
+    /// A closed-loop step failed at this time.
+    #[error("t = {t:.4} s")]
+    Step {
+        /// Simulated time, s.
+        t: f64,
+        /// What failed.
+        source: Box<PilError>,
+    },
+    /// A reset asked in a closed-loop step failed at this time.
+    #[error("t = {t:.4} s: reset")]
+    Reset {
+        /// Simulated time, s.
+        t: f64,
+        /// What failed.
+        source: LinkError,
+    },
+    /// The overpressure check's firmware never tripped.
+    #[error("the firmware never tripped")]
+    NeverTripped,
+}
+
 /// Asks the firmware to restart its estimator from known pressures: `Ok(Err(refusal))` when
 /// it refused (the overpressure trip holds), with its reason.
-pub fn reset(q: &mut Qemu, p2: f32, lp: f32) -> Result<Result<(), Refusal>, String> {
+pub fn reset(q: &mut Qemu, p2: f32, lp: f32) -> Result<Result<(), Refusal>, LinkError> {
     q.link.request(
         &ToFirmware::Reset {
             p2: Pressure::from_num(p2),
@@ -35,9 +92,9 @@ pub fn reset(q: &mut Qemu, p2: f32, lp: f32) -> Result<Result<(), Refusal>, Stri
 }
 
 /// Starts the firmware's estimator from known pressures and sets its mode.
-pub fn prime(q: &mut Qemu, p2: f32, lp: f32, mode: Mode) -> Result<(), String> {
-    reset(q, p2, lp)?.map_err(|why| why.to_string())?;
-    q.link.send(&ToFirmware::SetMode(mode))
+pub fn prime(q: &mut Qemu, p2: f32, lp: f32, mode: Mode) -> Result<(), PilError> {
+    reset(q, p2, lp)?.map_err(PilError::Refused)?;
+    Ok(q.link.send(&ToFirmware::SetMode(mode))?)
 }
 
 /// Replays `inputs` through the firmware (lockstep), returning its outputs.
@@ -47,7 +104,7 @@ pub fn replay(
     p2: f32,
     lp: f32,
     mode: Mode,
-) -> Result<Vec<(Estimate, Command)>, String> {
+) -> Result<Vec<(Estimate, Command)>, PilError> {
     prime(q, p2, lp, mode)?;
     let mut out = Vec::with_capacity(inputs.len());
     for (i, inp) in inputs.iter().enumerate() {
@@ -57,7 +114,11 @@ pub fn replay(
 }
 
 /// One replayed step, answered for `tick`.
-pub fn replay_step(q: &mut Qemu, tick: u32, inp: &Inputs) -> Result<(Estimate, Command), String> {
+pub fn replay_step(
+    q: &mut Qemu,
+    tick: u32,
+    inp: &Inputs,
+) -> Result<(Estimate, Command), LinkError> {
     q.link
         .request(&ToFirmware::Replay { tick, inputs: *inp }, |r| match r {
             FromFirmware::Output {
@@ -71,7 +132,7 @@ pub fn replay_step(q: &mut Qemu, tick: u32, inp: &Inputs) -> Result<(Estimate, C
 }
 
 /// The firmware's counters.
-pub fn status(q: &mut Qemu) -> Result<Status, String> {
+pub fn status(q: &mut Qemu) -> Result<Status, LinkError> {
     q.link.request(&ToFirmware::GetStatus, |r| match r {
         FromFirmware::Status(s) => Some(*s),
         _ => None,
@@ -154,8 +215,8 @@ pub struct FirmwareController {
     inject: Box<dyn Fn(f64) -> Injection>,
     /// Every step.
     pub rows: Vec<PilRow>,
-    /// First link error (the run then holds the last command).
-    pub error: Option<String>,
+    /// The first failed exchange (the run then holds the last command).
+    pub error: Option<PilError>,
 }
 
 impl FirmwareController {
@@ -166,13 +227,13 @@ impl FirmwareController {
         spec: SensorSpec,
         seed: u64,
         inject: Box<dyn Fn(f64) -> Injection>,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, PilError> {
         Ok(FirmwareController {
             q,
             period: 2f64.powi(-i32::from(dt_log2)),
             synth: SensorSynth::new(spec, seed),
-            hp: Transducer::new(spec.hp_loop).map_err(|e| e.to_string())?,
-            lp: Transducer::new(spec.lp_loop).map_err(|e| e.to_string())?,
+            hp: Transducer::new(spec.hp_loop).map_err(PilError::Transducer)?,
+            lp: Transducer::new(spec.lp_loop).map_err(PilError::Transducer)?,
             tick: 0,
             last_enc: 0,
             applied: 0.0,
@@ -210,7 +271,11 @@ impl FirmwareController {
         }
     }
 
-    fn exchange(&mut self, f: SensorFrame, inj: Injection) -> Result<Option<FromFirmware>, String> {
+    fn exchange(
+        &mut self,
+        f: SensorFrame,
+        inj: Injection,
+    ) -> Result<Option<FromFirmware>, PilError> {
         let link = &mut self.q.link;
         let bytes = link.frame(&ToFirmware::Sensors(f));
         match inj {
@@ -229,9 +294,9 @@ impl FirmwareController {
                 match link.recv()? {
                     FromFirmware::Pong(n) if n == f.tick => Ok(None),
                     FromFirmware::Output { tick, .. } if tick == f.tick => {
-                        Err(format!("tick {tick}: a damaged frame was accepted"))
+                        Err(PilError::DamagedAccepted(tick))
                     }
-                    other => Err(format!("unexpected {other:?}")),
+                    other => Err(PilError::Unexpected(Box::new(other))),
                 }
             }
             Injection::Burst(n) => {
@@ -249,11 +314,11 @@ impl FirmwareController {
                         FromFirmware::Pong(x) if x == f.tick => return Ok(last),
                         o @ FromFirmware::Output { tick, .. } if tick == f.tick => {
                             if last.is_some() {
-                                return Err(format!("tick {tick}: stepped twice in a burst"));
+                                return Err(PilError::SteppedTwice(tick));
                             }
                             last = Some(o);
                         }
-                        other => return Err(format!("unexpected {other:?} in a burst")),
+                        other => return Err(PilError::UnexpectedInBurst(Box::new(other))),
                     }
                 }
             }
@@ -261,7 +326,10 @@ impl FirmwareController {
                 link.send_raw(&bytes)?;
                 match link.recv()? {
                     o @ FromFirmware::Output { tick, .. } if tick == f.tick => Ok(Some(o)),
-                    other => Err(format!("tick {}: unexpected {other:?}", f.tick)),
+                    other => Err(PilError::UnexpectedAt {
+                        tick: f.tick,
+                        got: Box::new(other),
+                    }),
                 }
             }
         }
@@ -305,12 +373,17 @@ impl ValveController for FirmwareController {
                     row.dump = dump;
                 }
                 Ok(_) => {}
-                Err(e) => self.error = Some(format!("t = {t:.4} s: {e}")),
+                Err(e) => {
+                    self.error = Some(PilError::Step {
+                        t,
+                        source: Box::new(e),
+                    })
+                }
             }
             if let Injection::HpWireBreakAndReset(p2) | Injection::HostReset(p2) = inj {
                 match reset(&mut self.q, p2, 8.0) {
                     Ok(r) => row.reset_reply = Some(r),
-                    Err(e) => self.error = Some(format!("t = {t:.4} s: reset: {e}")),
+                    Err(source) => self.error = Some(PilError::Reset { t, source }),
                 }
             }
         }
@@ -334,7 +407,7 @@ pub fn closed_loop(
     duration: f64,
     spec: SensorSpec,
     inject: Box<dyn Fn(f64) -> Injection>,
-) -> Result<LoopRun, String> {
+) -> Result<LoopRun, PilError> {
     let dt_log2 = pto_model::ModelConfig::reference().dt_log2;
     let (res, ctrl) =
         crate::model::closed_loop::test3_like_loop(bench, p2_start, duration, |prep| {
@@ -362,7 +435,7 @@ pub fn fixed(pct: f32) -> Mode {
 }
 
 /// A processor-in-the-loop check: runs on a booted firmware, returns it with the figures.
-pub type CheckFn = fn(Qemu, &Bench) -> Result<(Qemu, Check), String>;
+pub type CheckFn = fn(Qemu, &Bench) -> Result<(Qemu, Check), PilError>;
 
 /// A processor-in-the-loop check and its figures.
 #[derive(Debug, Clone, serde::Serialize)]
@@ -391,7 +464,7 @@ fn max_of(it: impl Iterator<Item = f64>) -> f64 {
 
 /// Hold P2 at 100 bar from 92 bar for 60 s; judged from 40 s (the loop, with the scheduler's
 /// default gains, settles in ≈ 40 s, as in the in-process check of `pto validate`).
-pub fn check_hold_p2(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+pub fn check_hold_p2(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
     let t0 = std::time::Instant::now();
     let (q, _res, rows) = closed_loop(
         q,
@@ -428,7 +501,7 @@ pub fn check_hold_p2(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
 }
 
 /// Hold the motor at 250 rpm from 100 bar for 40 s; judged from 15 s.
-pub fn check_hold_speed(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+pub fn check_hold_speed(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
     let t0 = std::time::Instant::now();
     let sp = 250.0;
     let (q, _res, rows) = closed_loop(
@@ -469,14 +542,14 @@ pub fn check_hold_speed(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String>
 /// P2 crosses 140 bar (with 0.5 bar noise it trips up to ≈ 1.5 bar early, on a noise peak).
 /// Measured: periods from the plant's crossing (or the firmware's trip, if earlier) to the
 /// safe state.
-pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
     let t0 = std::time::Instant::now();
     let trip = 140.0;
     let (q, _res, rows) = overpressure_run(q, bench, Box::new(|_| Injection::None))?;
     let tripped = rows
         .iter()
         .position(|r| r.dump)
-        .ok_or("the firmware never tripped")?;
+        .ok_or(PilError::NeverTripped)?;
     let crossed = rows.iter().position(|r| r.p2_bar > trip);
     let onset = crossed.map_or(tripped, |k| k.min(tripped));
     // Safe state: valve fully open and dump valve on, from the onset step to the end while P2
@@ -518,7 +591,7 @@ fn overpressure_run(
     q: Qemu,
     bench: &Bench,
     inject: Box<dyn Fn(f64) -> Injection>,
-) -> Result<LoopRun, String> {
+) -> Result<LoopRun, PilError> {
     let mut b = bench.clone();
     b.relief_setting_pa = 170.0 * BAR;
     let spec = SensorSpec {
@@ -532,7 +605,7 @@ fn overpressure_run(
 /// 1.5 s, P2 still high, the host asks for a `Reset` to 100 bar; from 1.6 s the HP
 /// transducer's wire breaks and stays broken, and at 2.0 s the host asks again. The latch must
 /// hold to the end and both resets must be refused with their reasons.
-pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
     let t0 = std::time::Instant::now();
     // P2 crosses 140 bar 1.47 s in (`pil_trips_to_the_safe_state_within_one_period`), then
     // falls through the open valve.
@@ -547,7 +620,7 @@ pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String>
     let tripped = rows
         .iter()
         .position(|r| r.dump)
-        .ok_or("the firmware never tripped")?;
+        .ok_or(PilError::NeverTripped)?;
     let broken: Vec<&PilRow> = rows.iter().filter(|r| r.injection.wire_break()).collect();
     let held = broken
         .iter()
@@ -607,7 +680,7 @@ pub fn check_trip_holds(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String>
 /// the HP transducer lost after 0.5 s and the motor sensor then reading 200 rpm behind the
 /// valve; the lever pumps P2 up from 60 bar for 4 s. No false trip, the contradiction flagged once a real rotor would have
 /// spun down, and the estimate following the plant (the pump), not the motor reading.
-pub fn check_motor_behind_closed_valve(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), String> {
+pub fn check_motor_behind_closed_valve(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
     let t0 = std::time::Instant::now();
     // The transducer confirms the start for 0.5 s, then breaks.
     let inject = |t: f64| {

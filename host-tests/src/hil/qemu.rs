@@ -11,11 +11,138 @@ use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
+
+/// Why the firmware could not be built. `Clone`: the result of a build is kept for the
+/// process.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum BuildError {
+    /// Cargo could not be started.
+    #[error("cannot run cargo to build the firmware")]
+    Cargo(#[source] Arc<std::io::Error>),
+    /// The build failed (the last 30 lines of its output kept).
+    #[error(
+        "firmware build ({build}) failed (is the target installed? `rustup target add \
+         thumbv7em-none-eabihf`):\n{tail}"
+    )]
+    Failed {
+        /// Which build.
+        build: &'static str,
+        /// The end of cargo's error output.
+        tail: String,
+    },
+}
+
+/// Why QEMU could not boot the firmware, or did not end as asked.
+#[derive(Debug, thiserror::Error)]
+pub enum QemuError {
+    /// The ELF could not be read.
+    #[error("cannot read {elf}")]
+    ReadElf {
+        /// The ELF.
+        elf: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The ELF's defmt table could not be parsed.
+    #[error("{elf}: bad defmt table")]
+    DefmtTable {
+        /// The ELF.
+        elf: PathBuf,
+        /// The decoder's error.
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// The ELF has no defmt table.
+    #[error("{elf}: no defmt table")]
+    NoDefmtTable {
+        /// The ELF.
+        elf: PathBuf,
+    },
+    /// `qemu-system-arm` could not be started (shown in the message, with how to install it).
+    #[error(
+        "cannot start qemu-system-arm ({error}); install it with `apt-get install -y \
+         qemu-system-arm`"
+    )]
+    Start {
+        /// The OS error.
+        error: std::io::Error,
+    },
+    /// A pipe to QEMU was not set up.
+    #[error("no QEMU {0}")]
+    NoPipe(&'static str),
+    /// QEMU exited before the firmware's USART was connected.
+    #[error("QEMU exited before the link was up ({status}): {said}")]
+    ExitedEarly {
+        /// Its exit status.
+        status: ExitStatus,
+        /// What it wrote to stderr.
+        said: String,
+    },
+    /// The USART's socket did not accept a connection within 20 s.
+    #[error("cannot connect to {sock}")]
+    Connect {
+        /// The socket.
+        sock: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The firmware's greeting failed.
+    #[error(transparent)]
+    Link(#[from] LinkError),
+    /// Waiting for QEMU failed.
+    #[error("waiting for QEMU")]
+    Wait(#[source] std::io::Error),
+    /// QEMU was ended by a signal.
+    #[error("QEMU ended by {0}")]
+    Signalled(ExitStatus),
+    /// QEMU did not exit in time.
+    #[error("QEMU still running after {0:?}")]
+    StillRunning(Duration),
+}
+
+/// Why an exchange with the firmware over its USART failed.
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    /// Sending failed.
+    #[error("link write")]
+    Write(#[source] std::io::Error),
+    /// Setting the read timeout failed.
+    #[error("link")]
+    SetTimeout(#[source] std::io::Error),
+    /// Receiving failed.
+    #[error("link read")]
+    Read(#[source] std::io::Error),
+    /// No reply within the link's timeout.
+    #[error("no reply from the firmware in {0:?}")]
+    NoReply(Duration),
+    /// The firmware closed its end.
+    #[error("the firmware closed the link (QEMU exited?)")]
+    Closed,
+    /// A frame from the firmware failed to decode or was lost.
+    #[error(
+        "bad frame from the firmware (link counts now {0:?}); a firmware built from another \
+         revision speaks another protocol: rebuild both"
+    )]
+    BadFrame(LinkCounts),
+    /// The firmware speaks another protocol.
+    #[error("{0}")]
+    Protocol(protocol::HelloMismatch),
+    /// Another message came where the firmware's `Hello` was due.
+    #[error("expected the firmware's Hello, got {0:?}")]
+    NotHello(Box<FromFirmware>),
+    /// A reply the request did not accept.
+    #[error("unexpected reply to {sent:?}: {got:?}")]
+    Unexpected {
+        /// The request.
+        sent: Box<ToFirmware>,
+        /// The reply.
+        got: Box<FromFirmware>,
+    },
+}
 
 /// Which firmware build.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -54,17 +181,17 @@ fn trace_args() -> Vec<String> {
     )
 }
 
-static BUILT: [OnceLock<Result<PathBuf, String>>; 2] = [OnceLock::new(), OnceLock::new()];
+static BUILT: [OnceLock<Result<PathBuf, BuildError>>; 2] = [OnceLock::new(), OnceLock::new()];
 
 /// Builds the firmware (profile `firmware`, `thumbv7em-none-eabihf`, its own target directory so that it
 /// can run inside `cargo test`) once per process and returns the ELF path.
-pub fn build(which: Build) -> Result<PathBuf, String> {
+pub fn build(which: Build) -> Result<PathBuf, BuildError> {
     BUILT[which as usize]
         .get_or_init(|| build_uncached(which))
         .clone()
 }
 
-fn build_uncached(which: Build) -> Result<PathBuf, String> {
+fn build_uncached(which: Build) -> Result<PathBuf, BuildError> {
     let root = workspace_root();
     let target_dir = root.join("target").join("fw").join(which.name());
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
@@ -83,18 +210,14 @@ fn build_uncached(which: Build) -> Result<PathBuf, String> {
     if which == Build::Bench {
         cmd.args(["--no-default-features", "--features", "bench"]);
     }
-    let out = cmd
-        .output()
-        .map_err(|e| format!("cannot run cargo to build the firmware: {e}"))?;
+    let out = cmd.output().map_err(|e| BuildError::Cargo(Arc::new(e)))?;
     if !out.status.success() {
         let err = String::from_utf8_lossy(&out.stderr);
         let tail: Vec<&str> = err.lines().rev().take(30).collect();
-        return Err(format!(
-            "firmware build ({}) failed (is the target installed? `rustup target add \
-             thumbv7em-none-eabihf`):\n{}",
-            which.name(),
-            tail.into_iter().rev().collect::<Vec<_>>().join("\n")
-        ));
+        return Err(BuildError::Failed {
+            build: which.name(),
+            tail: tail.into_iter().rev().collect::<Vec<_>>().join("\n"),
+        });
     }
     Ok(target_dir
         .join("thumbv7em-none-eabihf")
@@ -155,12 +278,19 @@ pub const ICOUNT: &str = "shift=0,align=off,sleep=off";
 
 impl Qemu {
     /// Boots `elf`; `echo` prints every log line to stderr as it arrives.
-    pub fn boot(elf: &Path, echo: bool) -> Result<Qemu, String> {
-        let bytes =
-            std::fs::read(elf).map_err(|e| format!("cannot read {}: {e}", elf.display()))?;
+    pub fn boot(elf: &Path, echo: bool) -> Result<Qemu, QemuError> {
+        let bytes = std::fs::read(elf).map_err(|source| QemuError::ReadElf {
+            elf: elf.to_path_buf(),
+            source,
+        })?;
         let table = Table::parse(&bytes)
-            .map_err(|e| format!("{}: bad defmt table: {e}", elf.display()))?
-            .ok_or_else(|| format!("{}: no defmt table", elf.display()))?;
+            .map_err(|e| QemuError::DefmtTable {
+                elf: elf.to_path_buf(),
+                source: e.into(),
+            })?
+            .ok_or_else(|| QemuError::NoDefmtTable {
+                elf: elf.to_path_buf(),
+            })?;
         let sock = std::env::temp_dir().join(format!(
             "pto-qemu-{}-{}.sock",
             std::process::id(),
@@ -186,18 +316,13 @@ impl Qemu {
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
-            .map_err(|e| {
-                format!(
-                    "cannot start qemu-system-arm ({e}); install it with `apt-get install -y \
-                     qemu-system-arm`"
-                )
-            })?;
+            .map_err(|error| QemuError::Start { error })?;
         if let Ok(mut r) = RUNNING.lock() {
             r.push((child.id(), sock.clone()));
         }
-        let mut stdout = child.stdout.take().ok_or("no QEMU stdout")?;
+        let mut stdout = child.stdout.take().ok_or(QemuError::NoPipe("stdout"))?;
         // QEMU's own messages (the "waiting for connection" note, errors): kept for error reports.
-        let mut stderr = child.stderr.take().ok_or("no QEMU stderr")?;
+        let mut stderr = child.stderr.take().ok_or(QemuError::NoPipe("stderr"))?;
         let errors = Arc::new(Mutex::new(String::new()));
         let errors2 = errors.clone();
         std::thread::spawn(move || {
@@ -263,16 +388,19 @@ impl Qemu {
                         forget(child.id());
                         let _ = std::fs::remove_file(&sock);
                         std::thread::sleep(Duration::from_millis(50));
-                        return Err(format!(
-                            "QEMU exited before the link was up ({st}): {}",
-                            qemu_said()
-                        ));
+                        return Err(QemuError::ExitedEarly {
+                            status: st,
+                            said: qemu_said(),
+                        });
                     }
                     if t0.elapsed() > Duration::from_secs(20) {
                         forget(child.id());
                         let _ = child.kill();
                         let _ = child.wait();
-                        return Err(format!("cannot connect to {}: {e}", sock.display()));
+                        return Err(QemuError::Connect {
+                            sock: sock.clone(),
+                            source: e,
+                        });
                     }
                     std::thread::sleep(Duration::from_millis(10));
                 }
@@ -283,7 +411,7 @@ impl Qemu {
             sock,
             log,
             reader: Some(reader),
-            link: Link::new(stream)?,
+            link: Link::new(stream),
         };
         // The firmware's boot `Hello`, then a session of our own (its count of our sequence
         // numbers starts from our `Hello`).
@@ -305,21 +433,17 @@ impl Qemu {
 
     /// Waits for QEMU to exit (wall-clock `timeout`); returns its exit code. The log reader is
     /// joined so that [`Qemu::log`] then holds every line.
-    pub fn wait_exit(&mut self, timeout: Duration) -> Result<i32, String> {
+    pub fn wait_exit(&mut self, timeout: Duration) -> Result<i32, QemuError> {
         let t0 = Instant::now();
         loop {
-            if let Some(st) = self
-                .child
-                .try_wait()
-                .map_err(|e| format!("waiting for QEMU: {e}"))?
-            {
+            if let Some(st) = self.child.try_wait().map_err(QemuError::Wait)? {
                 if let Some(r) = self.reader.take() {
                     let _ = r.join();
                 }
-                return st.code().ok_or_else(|| format!("QEMU ended by {st}"));
+                return st.code().ok_or(QemuError::Signalled(st));
             }
             if t0.elapsed() > timeout {
-                return Err(format!("QEMU still running after {timeout:?}"));
+                return Err(QemuError::StillRunning(timeout));
             }
             std::thread::sleep(Duration::from_millis(5));
         }
@@ -358,14 +482,14 @@ pub struct Link {
 }
 
 impl Link {
-    fn new(stream: UnixStream) -> Result<Self, String> {
-        Ok(Link {
+    fn new(stream: UnixStream) -> Self {
+        Link {
             stream,
             rx: Receiver::new(),
             queue: std::collections::VecDeque::new(),
             seq: 0,
             timeout: Duration::from_secs(30),
-        })
+        }
     }
 
     /// What the host's receiver took from the firmware and dropped, by cause.
@@ -388,7 +512,7 @@ impl Link {
     }
 
     /// Sends a message.
-    pub fn send(&mut self, msg: &ToFirmware) -> Result<(), String> {
+    pub fn send(&mut self, msg: &ToFirmware) -> Result<(), LinkError> {
         if matches!(msg, ToFirmware::Hello) {
             // A new session: numbered from 0 again.
             self.seq = 0;
@@ -398,15 +522,13 @@ impl Link {
     }
 
     /// Sends raw bytes (corrupted or truncated frames in the fault tests).
-    pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), String> {
-        self.stream
-            .write_all(bytes)
-            .map_err(|e| format!("link write: {e}"))
+    pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
+        self.stream.write_all(bytes).map_err(LinkError::Write)
     }
 
     /// Receives the next message. A frame from the firmware that fails to decode is an error
     /// (its replies must always be valid), named with its cause.
-    pub fn recv(&mut self) -> Result<FromFirmware, String> {
+    pub fn recv(&mut self) -> Result<FromFirmware, LinkError> {
         let t0 = Instant::now();
         let mut buf = [0u8; 4096];
         loop {
@@ -415,13 +537,13 @@ impl Link {
             }
             let left = self.timeout.saturating_sub(t0.elapsed());
             if left.is_zero() {
-                return Err(format!("no reply from the firmware in {:?}", self.timeout));
+                return Err(LinkError::NoReply(self.timeout));
             }
             self.stream
                 .set_read_timeout(Some(left))
-                .map_err(|e| format!("link: {e}"))?;
+                .map_err(LinkError::SetTimeout)?;
             let n = match self.stream.read(&mut buf) {
-                Ok(0) => return Err("the firmware closed the link (QEMU exited?)".into()),
+                Ok(0) => return Err(LinkError::Closed),
                 Ok(n) => n,
                 Err(e)
                     if matches!(
@@ -429,9 +551,9 @@ impl Link {
                         std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
                     ) =>
                 {
-                    return Err(format!("no reply from the firmware in {:?}", self.timeout));
+                    return Err(LinkError::NoReply(self.timeout));
                 }
-                Err(e) => return Err(format!("link read: {e}")),
+                Err(e) => return Err(LinkError::Read(e)),
             };
             let before = self.rx.counts;
             for b in &buf[..n] {
@@ -441,22 +563,19 @@ impl Link {
             }
             let after = self.rx.counts;
             if after.dropped() != before.dropped() || after.lost != before.lost {
-                return Err(format!(
-                    "bad frame from the firmware (link counts now {after:?}); a firmware built \
-                     from another revision speaks another protocol: rebuild both"
-                ));
+                return Err(LinkError::BadFrame(after));
             }
         }
     }
 
     /// Receives the firmware's `Hello` and checks its protocol version and schema hash.
-    pub fn hello(&mut self) -> Result<Hello, String> {
+    pub fn hello(&mut self) -> Result<Hello, LinkError> {
         match self.recv()? {
             FromFirmware::Hello(h) => {
-                h.check().map_err(|e| e.to_string())?;
+                h.check().map_err(LinkError::Protocol)?;
                 Ok(h)
             }
-            other => Err(format!("expected the firmware's Hello, got {other:?}")),
+            other => Err(LinkError::NotHello(Box::new(other))),
         }
     }
 
@@ -466,10 +585,13 @@ impl Link {
         &mut self,
         msg: &ToFirmware,
         pick: impl Fn(&FromFirmware) -> Option<T>,
-    ) -> Result<T, String> {
+    ) -> Result<T, LinkError> {
         self.send(msg)?;
         let r = self.recv()?;
-        pick(&r).ok_or_else(|| format!("unexpected reply to {msg:?}: {r:?}"))
+        pick(&r).ok_or_else(|| LinkError::Unexpected {
+            sent: Box::new(*msg),
+            got: Box::new(r),
+        })
     }
 }
 

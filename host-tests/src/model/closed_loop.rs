@@ -2,11 +2,14 @@
 //! firmware) as the plant's valve controller in a Test III-like run, and the checks that judge it.
 
 use super::validate::target;
-use super::{duty_mask, model_config};
+use super::{ModelError, duty_mask, model_config};
 use crate::model::sensors::{SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::Eval;
-use crate::sim::solver::{self, Initial, Run, SolverOptions, ValveController, ValveSchedule};
+use crate::sim::scenario::ScenarioError;
+use crate::sim::solver::{
+    self, Initial, Run, SimError, SolverOptions, ValveController, ValveSchedule,
+};
 use crate::sim::trace::Truth;
 use pto_model::estimator::{self, Estimate, State};
 use pto_model::fx::{Pressure, Rpm};
@@ -21,16 +24,42 @@ use std::path::Path;
 pub struct LoopRow {
     /// What was held.
     pub name: String,
-    /// Setpoint (bar or rpm).
+    /// Setpoint, in `setpoint_unit`.
     pub setpoint: f64,
+    /// Unit of the setpoint: `bar` (P2) or `rpm` (motor speed).
+    pub setpoint_unit: &'static str,
     /// Window judged, s.
     pub window_s: (f64, f64),
-    /// Largest deviation in the window (bar, or fraction of the setpoint).
+    /// Largest deviation from the setpoint in the window, in `deviation_unit`.
     pub max_deviation: f64,
-    /// Target for it.
+    /// Target for it, in `deviation_unit`.
     pub target: f64,
+    /// Unit of the deviation and its target: the setpoint's (`bar`), or
+    /// [`FRACTION_OF_SETPOINT`].
+    pub deviation_unit: &'static str,
     /// Met.
     pub pass: bool,
+}
+
+/// [`LoopRow::deviation_unit`] of a deviation relative to the setpoint.
+pub const FRACTION_OF_SETPOINT: &str = "fraction of setpoint";
+
+/// Why a closed-loop run could not be made (the controller's own errors aside: see
+/// [`test3_like_loop`]).
+#[derive(Debug, thiserror::Error)]
+pub enum LoopError {
+    /// The built-in scenario the run is made from is missing.
+    #[error("{0} missing")]
+    MissingScenario(&'static str),
+    /// It does not prepare on the bench.
+    #[error(transparent)]
+    Scenario(#[from] ScenarioError),
+    /// The run failed.
+    #[error(transparent)]
+    Simulation(#[from] SimError),
+    /// The bench has no model configuration, or the configuration no coefficients.
+    #[error(transparent)]
+    Model(#[from] ModelError),
 }
 
 /// The model crate's estimator + scheduler as the plant's valve controller.
@@ -58,11 +87,9 @@ impl ModelController {
         duty: u8,
         config: u8,
         seed: u64,
-    ) -> Result<Self, String> {
-        let k = mcfg.coefficients().map_err(|e| e.to_string())?;
-        let sc = SchedulerConfig::default()
-            .coefficients(&k)
-            .map_err(|e| e.to_string())?;
+    ) -> Result<Self, ModelError> {
+        let k = mcfg.coefficients()?;
+        let sc = SchedulerConfig::default().coefficients(&k)?;
         Ok(ModelController {
             st: State::new(
                 Pressure::from_num(p2 as f32),
@@ -106,17 +133,18 @@ pub const LOOP_LP_START_BAR: f64 = 8.0;
 
 /// A Test III-like closed-loop run (HC3.1 + HC3.4, Config 1, ±40 mm at 0.1 Hz, from `p2_start`
 /// bar, LP 8 bar) for `duration` s, with the controller `make` builds for the prepared scenario
-/// (its duty and geometry); returns the controller with the result.
-pub fn test3_like_loop<C: ValveController + 'static>(
+/// (its duty and geometry); returns the controller with the result. Errors are the caller's
+/// type `E`, which takes the run's own ([`LoopError`]) and those of `make`.
+pub fn test3_like_loop<C: ValveController + 'static, E: From<LoopError>>(
     bench: &Bench,
     p2_start: f64,
     duration: f64,
-    make: impl FnOnce(&crate::sim::scenario::Prepared) -> Result<C, String>,
-) -> Result<(crate::sim::solver::SimResult, C), String> {
-    let s = crate::sim::scenario::builtin_named("test3-ap10").ok_or("test3-ap10 missing")?;
-    let prep = s
-        .prepare(bench, Path::new("."))
-        .map_err(|e| e.to_string())?;
+    make: impl FnOnce(&crate::sim::scenario::Prepared) -> Result<C, E>,
+) -> Result<(crate::sim::solver::SimResult, C), E> {
+    const SCENARIO: &str = "test3-ap10";
+    let s = crate::sim::scenario::builtin_named(SCENARIO)
+        .ok_or(LoopError::MissingScenario(SCENARIO))?;
+    let prep = s.prepare(bench, Path::new(".")).map_err(LoopError::from)?;
     let ctrl = make(&prep)?;
     let (res, ctrl) = solver::simulate_with(
         Run {
@@ -136,7 +164,7 @@ pub fn test3_like_loop<C: ValveController + 'static>(
         },
         ctrl,
     );
-    Ok((res.map_err(|e| e.to_string())?, ctrl))
+    Ok((res.map_err(LoopError::from)?, ctrl))
 }
 
 /// The model crate as the controller of a Test III-like run, its model at 2^−dt_log2 s.
@@ -146,11 +174,11 @@ pub fn closed_loop(
     p2_start: f64,
     duration: f64,
     dt_log2: u8,
-) -> Result<(crate::sim::solver::SimResult, ModelController), String> {
+) -> Result<(crate::sim::solver::SimResult, ModelController), LoopError> {
     let mut mcfg = model_config(bench)?;
     mcfg.dt_log2 = dt_log2;
     test3_like_loop(bench, p2_start, duration, |prep| {
-        ModelController::new(
+        Ok(ModelController::new(
             &mcfg,
             mode,
             p2_start,
@@ -158,14 +186,19 @@ pub fn closed_loop(
             duty_mask(&prep.on_duty),
             prep.config as u8,
             7,
-        )
+        )?)
     })
 }
 
+/// The row of a run holding `setpoint` (in `setpoint_unit`): the largest deviation of `f`
+/// from it from `settle_from` s to the end, in the setpoint's unit or, if `rel`, as a fraction
+/// of it.
+#[allow(clippy::too_many_arguments)]
 fn judge_loop(
     name: &str,
     res: &crate::sim::solver::SimResult,
     setpoint: f64,
+    setpoint_unit: &'static str,
     settle_from: f64,
     rel: bool,
     target: f64,
@@ -182,15 +215,21 @@ fn judge_loop(
     LoopRow {
         name: name.into(),
         setpoint,
+        setpoint_unit,
         window_s: (settle_from, end),
         max_deviation: worst,
         target,
+        deviation_unit: if rel {
+            FRACTION_OF_SETPOINT
+        } else {
+            setpoint_unit
+        },
         pass: worst <= target,
     }
 }
 
 /// Closed-loop checks: hold P2 at 100 bar; hold the motor at 250 rpm.
-pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
+pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, LoopError>> {
     let cases: Vec<(&str, Mode)> = vec![
         (
             "hold P2 at 100 bar",
@@ -216,6 +255,7 @@ pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
                         name,
                         &res,
                         sp,
+                        "bar",
                         reach + 60.0,
                         false,
                         target::HOLD_P2_BAR,
@@ -224,9 +264,16 @@ pub fn closed_loop_rows(bench: &Bench) -> Vec<Result<LoopRow, String>> {
                 }
                 Mode::HoldSpeed(r) => {
                     let sp = f64::from(r.to_f32());
-                    judge_loop(name, &res, sp, 150.0, true, target::HOLD_SPEED_REL, |k| {
-                        tr.omega_rad_s[k] * 30.0 / std::f64::consts::PI
-                    })
+                    judge_loop(
+                        name,
+                        &res,
+                        sp,
+                        "rpm",
+                        150.0,
+                        true,
+                        target::HOLD_SPEED_REL,
+                        |k| tr.omega_rad_s[k] * 30.0 / std::f64::consts::PI,
+                    )
                 }
                 _ => unreachable!(),
             })

@@ -3,13 +3,66 @@
 
 use super::{inputs, model_config};
 use crate::sim::bench::Bench;
+use pto_model::ConfigError;
 use pto_model::estimator::{self, State};
 use pto_model::fx::Pressure;
 use pto_model::scheduler::{self, Mode, SchedulerConfig, SchedulerState};
 use serde::Serialize;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
+
+/// Why the model's cost could not be measured.
+#[derive(Debug, thiserror::Error)]
+pub enum CostError {
+    /// Cargo could not be started.
+    #[error("cannot run cargo")]
+    Cargo(#[source] std::io::Error),
+    /// The build for a target failed (its output kept).
+    #[error(
+        "cargo build -p pto-model --target {target} failed (is the target installed? `rustup \
+         target add {target}`):\n{stderr}"
+    )]
+    Build {
+        /// The target triple.
+        target: String,
+        /// Cargo's error output.
+        stderr: String,
+    },
+    /// The built rlib could not be read.
+    #[error("{path}")]
+    Read {
+        /// The rlib.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The rlib is not an archive.
+    #[error("{path}")]
+    Archive {
+        /// The rlib.
+        path: PathBuf,
+        /// The parser's error.
+        source: object::read::Error,
+    },
+    /// A member of the rlib could not be read.
+    #[error(transparent)]
+    Member(object::read::Error),
+    /// A per-step function or table of the list is not in the rlib.
+    #[error(
+        "{path}: no symbol matches `{fragment}`: the per-step function list in model/cost.rs is \
+         stale"
+    )]
+    StaleList {
+        /// The rlib.
+        path: PathBuf,
+        /// The name fragment not found.
+        fragment: &'static str,
+    },
+    /// The reference configuration has no coefficients.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+}
 
 /// Targets of the model-crate issue.
 pub mod target {
@@ -128,7 +181,7 @@ const STEP: [&str; 12] = [
 ];
 
 /// Builds `pto-model` for `target` (release, into `target/model-size`) and sums its sections.
-pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
+pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> {
     let target_dir = workspace.join("target").join("model-size");
     let out = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
         .current_dir(workspace)
@@ -143,29 +196,35 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
         ])
         .arg(&target_dir)
         .output()
-        .map_err(|e| format!("cannot run cargo: {e}"))?;
+        .map_err(CostError::Cargo)?;
     if !out.status.success() {
-        return Err(format!(
-            "cargo build -p pto-model --target {target} failed (is the target installed? `rustup target add {target}`):\n{}",
-            String::from_utf8_lossy(&out.stderr)
-        ));
+        return Err(CostError::Build {
+            target: target.into(),
+            stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
+        });
     }
     let rlib = target_dir
         .join(target)
         .join("release")
         .join("libpto_model.rlib");
-    let data = std::fs::read(&rlib).map_err(|e| format!("{}: {e}", rlib.display()))?;
-    let archive = object::read::archive::ArchiveFile::parse(&*data)
-        .map_err(|e| format!("{}: {e}", rlib.display()))?;
+    let data = std::fs::read(&rlib).map_err(|source| CostError::Read {
+        path: rlib.clone(),
+        source,
+    })?;
+    let archive =
+        object::read::archive::ArchiveFile::parse(&*data).map_err(|source| CostError::Archive {
+            path: rlib.clone(),
+            source,
+        })?;
     let (mut text, mut rodata, mut step) = (0u64, 0u64, 0u64);
     let mut seen = [false; STEP.len()];
     for member in archive.members() {
-        let member = member.map_err(|e| e.to_string())?;
+        let member = member.map_err(CostError::Member)?;
         let name = String::from_utf8_lossy(member.name()).to_string();
         if !name.ends_with(".o") {
             continue;
         }
-        let bytes = member.data(&*data).map_err(|e| e.to_string())?;
+        let bytes = member.data(&*data).map_err(CostError::Member)?;
         let Ok(file) = object::File::parse(bytes) else {
             continue;
         };
@@ -192,11 +251,10 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
     // A function moved or renamed would silently drop out of the count: every entry must be
     // found.
     if let Some(i) = seen.iter().position(|s| !s) {
-        return Err(format!(
-            "{}: no symbol matches `{}`: the per-step function list in model/cost.rs is stale",
-            rlib.display(),
-            STEP[i]
-        ));
+        return Err(CostError::StaleList {
+            path: rlib,
+            fragment: STEP[i],
+        });
     }
     Ok(CodeSize {
         target: target.into(),
@@ -207,11 +265,9 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, String> {
 }
 
 /// The full report. `workspace` is the repository root (for the nested cargo builds).
-pub fn measure(workspace: &Path) -> Result<Cost, String> {
+pub fn measure(workspace: &Path) -> Result<Cost, CostError> {
     let ns = host_ns_per_step();
-    let k = pto_model::ModelConfig::reference()
-        .coefficients()
-        .map_err(|e| e.to_string())?;
+    let k = pto_model::ModelConfig::reference().coefficients()?;
     let mut code = Vec::new();
     for t in ["thumbv6m-none-eabi", "thumbv7em-none-eabihf"] {
         code.push(code_size(workspace, t)?);

@@ -9,13 +9,53 @@
 use super::{commanded_aperture_pct, duty_mask, inputs};
 use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::Bench;
+use crate::sim::scenario::RunError;
 use crate::sim::trace::truth_at;
 use pto_model::estimator::{self, Estimate, Inputs, State};
 use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::scheduler::{self, Command, Mode, Override, SchedulerConfig, SchedulerState};
-use pto_model::{Coefficients, ModelConfig};
+use pto_model::{Coefficients, ConfigError, ModelConfig};
 use std::fmt::Write as _;
 use std::path::Path;
+
+/// Why golden vectors could not be made, read or run.
+#[derive(Debug, thiserror::Error)]
+pub enum GoldenError {
+    /// The built-in scenario the inputs come from is missing.
+    #[error("{0} missing")]
+    MissingScenario(String),
+    /// Its run failed.
+    #[error(transparent)]
+    Run(#[from] RunError),
+    /// The model configuration has no coefficients.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    /// The golden file is empty.
+    #[error("empty golden file")]
+    Empty,
+    /// Its first line lacks a start pressure.
+    #[error("golden file line 1: missing {key}")]
+    MissingStart {
+        /// The key (`start_p2_bits=`).
+        key: &'static str,
+    },
+    /// A line has the wrong number of columns.
+    #[error("golden file line {line}: {columns} columns, want 22")]
+    Columns {
+        /// 1-based line.
+        line: usize,
+        /// Columns found.
+        columns: usize,
+    },
+    /// A cell is not an integer.
+    #[error("line {line}")]
+    Number {
+        /// 1-based line.
+        line: usize,
+        /// The parser's error.
+        source: std::num::ParseIntError,
+    },
+}
 
 /// Where the vectors live.
 pub const FILE: &str = "data/golden-vectors.csv";
@@ -58,8 +98,9 @@ pub fn scenario_inputs(
     t_start: Option<f64>,
     steps: usize,
     faults: Faults,
-) -> Result<(Vec<Inputs>, f32, f32), String> {
-    let mut s = crate::sim::scenario::builtin_named(name).ok_or(format!("{name} missing"))?;
+) -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
+    let mut s = crate::sim::scenario::builtin_named(name)
+        .ok_or_else(|| GoldenError::MissingScenario(name.into()))?;
     s.sample_interval_s = 1.0 / 128.0;
     let dt = 1.0 / 1024.0;
     if let Some(t0) = t_start {
@@ -96,7 +137,7 @@ pub fn scenario_inputs(
 }
 
 /// Makes the 2048 golden input steps (Test III at 10 %, faults injected).
-pub fn make_inputs(bench: &Bench) -> Result<(Vec<Inputs>, f32, f32), String> {
+pub fn make_inputs(bench: &Bench) -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
     scenario_inputs(bench, "test3-ap10", None, 2048, golden_faults)
 }
 
@@ -106,7 +147,7 @@ pub fn clean_inputs(
     name: &str,
     t_start: Option<f64>,
     steps: usize,
-) -> Result<(Vec<Inputs>, f32, f32), String> {
+) -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
     scenario_inputs(bench, name, t_start, steps, no_faults)
 }
 
@@ -116,10 +157,8 @@ pub fn run(
     inputs: &[Inputs],
     p2: f32,
     lp: f32,
-) -> Result<Vec<(Estimate, Command)>, String> {
-    let sc = SchedulerConfig::default()
-        .coefficients(k)
-        .map_err(|e| e.to_string())?;
+) -> Result<Vec<(Estimate, Command)>, GoldenError> {
+    let sc = SchedulerConfig::default().coefficients(k)?;
     let mut s = State::new(
         Pressure::from_num(p2),
         Pressure::from_num(lp),
@@ -189,15 +228,15 @@ pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) 
 }
 
 /// Parsed golden file: start pressures (bits), inputs and the expected CSV text.
-pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), String> {
+pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), GoldenError> {
     let mut lines = text.lines();
-    let first = lines.next().ok_or("empty golden file")?;
-    let field = |key: &str| -> Result<i32, String> {
+    let first = lines.next().ok_or(GoldenError::Empty)?;
+    let field = |key: &'static str| -> Result<i32, GoldenError> {
         first
             .split_whitespace()
             .find_map(|w| w.strip_prefix(key))
             .and_then(|v| v.parse().ok())
-            .ok_or_else(|| format!("golden file line 1: missing {key}"))
+            .ok_or(GoldenError::MissingStart { key })
     };
     let (p2, lp) = (field("start_p2_bits=")?, field("start_lp_bits=")?);
     lines.next();
@@ -205,23 +244,23 @@ pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), String> {
     for (n, l) in lines.enumerate() {
         let c: Vec<&str> = l.split(',').collect();
         if c.len() != 22 {
-            return Err(format!(
-                "golden file line {}: {} columns, want 22",
-                n + 3,
-                c.len()
-            ));
+            return Err(GoldenError::Columns {
+                line: n + 3,
+                columns: c.len(),
+            });
         }
-        let o = |s: &str| -> Result<Option<i32>, String> {
+        let num = |s: &str| -> Result<i32, GoldenError> {
+            s.parse().map_err(|source| GoldenError::Number {
+                line: n + 3,
+                source,
+            })
+        };
+        let o = |s: &str| -> Result<Option<i32>, GoldenError> {
             if s.is_empty() {
                 Ok(None)
             } else {
-                s.parse()
-                    .map(Some)
-                    .map_err(|e| format!("line {}: {e}", n + 3))
+                num(s).map(Some)
             }
-        };
-        let num = |s: &str| -> Result<i32, String> {
-            s.parse().map_err(|e| format!("line {}: {e}", n + 3))
         };
         inputs.push(Inputs {
             encoder: o(c[1])?,
@@ -238,8 +277,6 @@ pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), String> {
 
 /// The model configuration the vectors are made with: the firmware's `ModelConfig::reference()`
 /// (a test keeps it equal to `model::model_config` of the reference bench).
-pub fn coefficients() -> Result<Coefficients, String> {
-    ModelConfig::reference()
-        .coefficients()
-        .map_err(|e| e.to_string())
+pub fn coefficients() -> Result<Coefficients, GoldenError> {
+    Ok(ModelConfig::reference().coefficients()?)
 }

@@ -11,12 +11,12 @@
 //!
 //! let mut file = Bench::reference().file;
 //! file.set_field("hp_accumulator.precharge_bar", "45")?;
-//! let bench = Bench::from_file(file, "my bench").map_err(|e| e.to_string())?;
+//! let bench = Bench::from_file(file, "my bench")?;
 //! let cfg = model_config(&bench)?;
 //! assert_eq!(cfg.hp_accumulator.precharge_bar, 45.0);
-//! let k = cfg.coefficients().map_err(|e| e.to_string())?;
+//! let k = cfg.coefficients()?;
 //! assert_eq!(k.dt_log2, 10);
-//! # Ok::<(), String>(())
+//! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
 pub mod closed_loop;
@@ -30,21 +30,36 @@ use crate::sim::bench::{BAR, Bench, Load};
 use crate::sim::scenario::{Scenario, ValveSpec};
 use crate::sim::solver::SimResult;
 use pto_model::ModelConfig;
-use pto_model::config::{AccumulatorConfig, CylinderConfig, GeometryConfig};
+use pto_model::config::{AccumulatorConfig, ConfigError, CylinderConfig, GeometryConfig};
 use pto_model::estimator::Inputs;
 use pto_model::fx::{Aperture, Pressure, Rpm};
 
 const RPM: f64 = 30.0 / std::f64::consts::PI;
 
+/// Why a bench has no model configuration, or a configuration no coefficients.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum ModelError {
+    /// The bench's generator load is a constant torque.
+    #[error("the reduced model supports the viscous generator load only")]
+    ConstantLoad,
+    /// The bench's valve table does not have the model's 11 points.
+    #[error("the reduced model needs an 11-point valve table")]
+    ValveTable {
+        /// The bench's number of points.
+        points: usize,
+    },
+    /// A configuration field (or a coefficient made from it) is outside its range.
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+}
+
 /// The model configuration of a bench (the firmware's is `ModelConfig::reference()`, which a test
 /// keeps equal to this for the reference bench).
-pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
+pub fn model_config(b: &Bench) -> Result<ModelConfig, ModelError> {
     let f = &b.file;
     let load_nm_per_rpm = match b.load {
         Load::Viscous(c) => c / RPM,
-        Load::Constant(_) => {
-            return Err("the reduced model supports the viscous generator load only".into());
-        }
+        Load::Constant(_) => return Err(ModelError::ConstantLoad),
     };
     let cylinders = std::array::from_fn(|i| CylinderConfig {
         bore_mm: f.cylinder[i].bore_mm as f32,
@@ -63,10 +78,10 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
         polytropic_index: a.index as f32,
         line_volume_l: (line * 1e3) as f32,
     };
-    let table = |v: &[f64]| -> Result<[f32; 11], String> {
+    let table = |v: &[f64]| -> Result<[f32; 11], ModelError> {
         let a: Vec<f32> = v.iter().map(|x| *x as f32).collect();
         a.try_into()
-            .map_err(|_| "the reduced model needs an 11-point valve table".to_string())
+            .map_err(|a: Vec<f32>| ModelError::ValveTable { points: a.len() })
     };
     // Relief: flow gained per bar above the setting, d/dp of Cd·A(p)·sqrt(2Δp/ρ) at the setting.
     let relief_gain = b.relief_cd * b.relief_area_m2 / b.relief_range_pa
@@ -99,7 +114,7 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, String> {
         motor_inertia_kg_m2: b.motor_inertia_kg_m2 as f32,
         ..r
     };
-    c.validate().map_err(|e| e.to_string())?;
+    c.validate()?;
     Ok(c)
 }
 
@@ -124,21 +139,23 @@ pub fn commanded_aperture_pct(s: &Scenario, res: &SimResult, t: f64) -> f64 {
     }
 }
 
-/// One step's inputs, in the model's types.
+/// One step's inputs, in the model's types: the sensor readings (`None`: that sensor missing),
+/// the commanded aperture (%), the cylinders on duty (bit i = HC3.(i+1)) and the geometry
+/// (0..=3 = Config 1..4).
 pub fn inputs(
-    enc: Option<i32>,
-    hp: Option<f64>,
-    lp: Option<f64>,
-    motor: Option<f64>,
+    encoder_count: Option<i32>,
+    hp_bar: Option<f64>,
+    lp_bar: Option<f64>,
+    motor_rpm: Option<f64>,
     aperture_pct: f64,
     on_duty: u8,
     config: u8,
 ) -> Inputs {
     Inputs {
-        encoder: enc,
-        hp: hp.map(|v| Pressure::from_num(v as f32)),
-        lp: lp.map(|v| Pressure::from_num(v as f32)),
-        motor: motor.map(|v| Rpm::from_num(v as f32)),
+        encoder: encoder_count,
+        hp: hp_bar.map(|v| Pressure::from_num(v as f32)),
+        lp: lp_bar.map(|v| Pressure::from_num(v as f32)),
+        motor: motor_rpm.map(|v| Rpm::from_num(v as f32)),
         aperture_cmd: Aperture::from_num(aperture_pct as f32),
         on_duty,
         config,

@@ -6,7 +6,7 @@ use super::{commanded_aperture_pct, duty_mask, model_config};
 use crate::model::reference::Reference;
 use crate::model::sensors::{SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
-use crate::sim::scenario::Scenario;
+use crate::sim::scenario::{RunError, Scenario};
 use crate::sim::solver::SolverOptions;
 use crate::sim::trace::{Truth, truth_at};
 use pto_model::estimator::{self, Estimate, Inputs, State};
@@ -115,7 +115,7 @@ pub struct Report {
     pub rows: Vec<Row>,
     /// Closed loop.
     pub closed_loop: Vec<LoopRow>,
-    /// Failed runs.
+    /// Failed runs, each error with its causes.
     pub errors: Vec<String>,
     /// Every target met.
     pub pass: bool,
@@ -131,7 +131,7 @@ fn validate_scenario(
     k: &Coefficients,
     s: &Scenario,
     seed: u64,
-) -> Result<Row, String> {
+) -> Result<Row, RunError> {
     let mut s = s.clone();
     s.sample_interval_s = TRACE_DT;
     let (prep, res) = s.simulate(bench, Path::new("."), SolverOptions::default(), None)?;
@@ -472,7 +472,7 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
             return Report {
                 rows: vec![],
                 closed_loop: vec![],
-                errors: vec![e],
+                errors: vec![crate::error_chain(&e)],
                 pass: false,
             };
         }
@@ -483,12 +483,12 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
             return Report {
                 rows: vec![],
                 closed_loop: vec![],
-                errors: vec![e.to_string()],
+                errors: vec![crate::error_chain(&e)],
                 pass: false,
             };
         }
     };
-    let results: Vec<Result<Row, String>> = scenarios
+    let results: Vec<Result<Row, RunError>> = scenarios
         .par_iter()
         // Errors from `Scenario::simulate` already name the scenario.
         .map(|s| validate_scenario(bench, &mcfg, &k, s, seed_of(&s.name)))
@@ -503,14 +503,14 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
     for r in results {
         match r {
             Ok(x) => rows.push(x),
-            Err(e) => errors.push(e),
+            Err(e) => errors.push(crate::error_chain(&e)),
         }
     }
     let mut closed = Vec::new();
     for r in loops {
         match r {
             Ok(x) => closed.push(x),
-            Err(e) => errors.push(e),
+            Err(e) => errors.push(crate::error_chain(&e)),
         }
     }
     let pass = errors.is_empty() && rows.iter().all(|r| r.pass) && closed.iter().all(|r| r.pass);

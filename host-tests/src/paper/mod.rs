@@ -479,7 +479,7 @@ fn fact10(outcomes: &[Outcome]) -> Fact {
                     worst_name = o.scenario.name.clone();
                 }
             }
-            Err(e) => failed.push(e.clone()),
+            Err(e) => failed.push(crate::error_chain(e)),
         }
     }
     if !failed.is_empty() {

@@ -221,7 +221,7 @@ impl BenchLog {
     }
 
     /// Writes the log (to a temporary name, then renamed: never half-written).
-    pub fn write(&self) -> Result<(), String> {
+    pub fn write(&self) -> Result<(), crate::output::OutputError> {
         crate::output::write_atomic(&self.path, self.to_csv().as_bytes())
     }
 

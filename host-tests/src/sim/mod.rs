@@ -24,7 +24,7 @@
 //! // The valve stays shut until 100 bar: the pumps raise P2 from its 60 bar start.
 //! assert!(p2_bar > 60.0 && p2_bar < 100.0, "{p2_bar}");
 //! assert!(run.balance.worst() <= 1e-4);
-//! # Ok::<(), String>(())
+//! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
 pub mod bench;

@@ -1,8 +1,9 @@
 //! The bench file as written: TOML sections whose key names carry their units, and editing a
-//! field by its dotted path.
+//! field by its dotted path, alone or as a `--set NAME=VALUE` override.
 
-use super::BenchError;
+use super::{BenchError, OverrideError, SetFieldError};
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// Raw bench file, field names carry their units.
 #[allow(missing_docs)]
@@ -180,8 +181,8 @@ impl BenchFile {
     /// `control_valve.area_mm2[3]`) to `value` (TOML: a number, a boolean, a quoted string or
     /// an array), keeping its type. Errors name the path and, for an unknown key, the keys
     /// there. The result is validated when it becomes a [`Bench`](super::Bench).
-    pub fn set_field(&mut self, path: &str, value: &str) -> Result<(), String> {
-        let mut root = toml::Value::try_from(&*self).map_err(|e| e.to_string())?;
+    pub fn set_field(&mut self, path: &str, value: &str) -> Result<(), SetFieldError> {
+        let mut root = toml::Value::try_from(&*self)?;
         let mut at = &mut root;
         for part in path.split('.') {
             let (key, index) = match part.split_once('[') {
@@ -189,50 +190,65 @@ impl BenchFile {
                     let i = rest
                         .strip_suffix(']')
                         .and_then(|i| i.parse::<usize>().ok())
-                        .ok_or_else(|| format!("{path}: bad index in `{part}`"))?;
+                        .ok_or_else(|| SetFieldError::BadIndex {
+                            path: path.into(),
+                            part: part.into(),
+                        })?;
                     (k, Some(i))
                 }
                 None => (part, None),
             };
-            let table = at
-                .as_table_mut()
-                .ok_or_else(|| format!("{path}: `{key}` is inside a value, not a table"))?;
-            let known: Vec<String> = table.keys().cloned().collect();
-            at = table.get_mut(key).ok_or_else(|| {
-                format!(
-                    "{path}: unknown field `{key}` (fields here: {})",
-                    known.join(", ")
-                )
+            let table = at.as_table_mut().ok_or_else(|| SetFieldError::NotATable {
+                path: path.into(),
+                key: key.into(),
             })?;
+            let known: Vec<String> = table.keys().cloned().collect();
+            at = table
+                .get_mut(key)
+                .ok_or_else(|| SetFieldError::UnknownField {
+                    path: path.into(),
+                    key: key.into(),
+                    known,
+                })?;
             if let Some(i) = index {
-                let arr = at
-                    .as_array_mut()
-                    .ok_or_else(|| format!("{path}: `{key}` is not a list"))?;
+                let arr = at.as_array_mut().ok_or_else(|| SetFieldError::NotAList {
+                    path: path.into(),
+                    key: key.into(),
+                })?;
                 let n = arr.len();
-                at = arr
-                    .get_mut(i)
-                    .ok_or_else(|| format!("{path}: index {i} outside `{key}`'s 0..{n}"))?;
+                at = arr.get_mut(i).ok_or_else(|| SetFieldError::IndexOutside {
+                    path: path.into(),
+                    key: key.into(),
+                    index: i,
+                    len: n,
+                })?;
             }
         }
         let parsed: toml::Table = toml::from_str(&format!("v = {value}"))
             .or_else(|_| toml::from_str(&format!("v = {value:?}")))
-            .map_err(|e| format!("{path}: `{value}` is not a value: {e}"))?;
+            .map_err(|error| SetFieldError::NotAValue {
+                path: path.into(),
+                value: value.into(),
+                error: Box::new(error),
+            })?;
         let mut new = parsed["v"].clone();
         new = match (&*at, new) {
             (toml::Value::Float(_), toml::Value::Integer(i)) => toml::Value::Float(i as f64),
             (old, new) if old.type_str() == new.type_str() => new,
             (old, new) => {
-                return Err(format!(
-                    "{path}: `{value}` is a {}, the field holds a {}",
-                    new.type_str(),
-                    old.type_str()
-                ));
+                return Err(SetFieldError::WrongType {
+                    path: path.into(),
+                    value: value.into(),
+                    given: new.type_str(),
+                    held: old.type_str(),
+                });
             }
         };
         *at = new;
-        *self = root
-            .try_into()
-            .map_err(|e: toml::de::Error| format!("{path}: {e}"))?;
+        *self = root.try_into().map_err(|error| SetFieldError::Rebuild {
+            path: path.into(),
+            error: Box::new(error),
+        })?;
         Ok(())
     }
 
@@ -242,5 +258,61 @@ impl BenchFile {
             file: file.to_string(),
             message: e.to_string(),
         })
+    }
+}
+
+/// Sets a value of a bench file, as the fit's parameters do.
+pub type Setter = Arc<dyn Fn(&mut BenchFile, f64) + Send + Sync>;
+
+/// A short name `--set` takes for a bench field (the fit's parameter names: `trapped_air`,
+/// `cd`, `precharge`, …), and how it sets the field.
+#[derive(Clone)]
+pub struct Shortcut {
+    /// The short name.
+    pub name: String,
+    /// The field it sets, by its dotted path (`--set` takes that too).
+    pub field: String,
+    /// Sets it.
+    pub set: Setter,
+}
+
+impl std::fmt::Debug for Shortcut {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} ({})", self.name, self.field)
+    }
+}
+
+/// Sets a `name=value` override on a bench file (`pto simulate --set`, `pto synth-logs
+/// --set`): any bench field by its dotted path (`hp_accumulator.volume_l`,
+/// `cylinder[1].bore_mm`), or, for a numeric value, one of `shortcuts` by its short name
+/// (`fit::set_shortcuts()`: `trapped_air`, `cd`, `precharge`, …); a plain name that is neither
+/// is a top-level bench field.
+pub fn apply_override(
+    f: &mut BenchFile,
+    kv: &str,
+    shortcuts: &[Shortcut],
+) -> Result<(), OverrideError> {
+    let (k, v) = kv
+        .split_once('=')
+        .ok_or_else(|| OverrideError::Syntax { kv: kv.into() })?;
+    let k = k.trim();
+    if k.contains('.') || k.contains('[') {
+        return f.set_field(k, v.trim()).map_err(OverrideError::Field);
+    }
+    let Ok(v) = v.trim().parse::<f64>() else {
+        return f.set_field(k, v.trim()).map_err(OverrideError::Field);
+    };
+    match shortcuts.iter().find(|s| s.name == k || s.field == k) {
+        Some(s) => {
+            (s.set)(f, v);
+            Ok(())
+        }
+        // Not a short name: a top-level bench field.
+        None => f
+            .set_field(k, &v.to_string())
+            .map_err(|error| OverrideError::FieldOrShortcut {
+                error,
+                shortcuts: shortcuts.iter().map(|s| s.name.clone()).collect(),
+            }),
     }
 }

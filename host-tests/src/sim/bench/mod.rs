@@ -21,7 +21,7 @@ mod check;
 mod error;
 mod file;
 
-pub use error::{BenchError, FieldError};
+pub use error::{BenchError, FieldError, OverrideError, SetFieldError};
 pub use file::*;
 
 /// Oil properties in SI units.

@@ -88,6 +88,23 @@ pub struct ScenarioError {
     pub message: String,
 }
 
+/// Why [`Scenario::simulate`] failed: the scenario is not feasible on the bench, or its run
+/// failed (named with the scenario, the solver's error as the source).
+#[derive(Debug, thiserror::Error)]
+pub enum RunError {
+    /// The scenario does not prepare on the bench.
+    #[error(transparent)]
+    Scenario(#[from] ScenarioError),
+    /// The run failed.
+    #[error("{scenario}")]
+    Simulation {
+        /// The scenario's name.
+        scenario: String,
+        /// The solver's error.
+        source: SimError,
+    },
+}
+
 /// A scenario resolved against a bench: ready to run.
 pub struct Prepared {
     /// The scenario.
@@ -432,11 +449,14 @@ impl Scenario {
         base: &Path,
         solver: SolverOptions,
         progress: Option<crate::sim::solver::Progress<'_>>,
-    ) -> Result<(Prepared, SimResult), String> {
-        let prep = self.prepare(bench, base).map_err(|e| e.to_string())?;
+    ) -> Result<(Prepared, SimResult), RunError> {
+        let prep = self.prepare(bench, base)?;
         let res = prep
             .run(solver, progress)
-            .map_err(|e| format!("{}: {e}", self.name))?;
+            .map_err(|source| RunError::Simulation {
+                scenario: self.name.clone(),
+                source,
+            })?;
         Ok((prep, res))
     }
 }
