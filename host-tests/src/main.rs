@@ -79,10 +79,11 @@ enum Cmd {
         #[arg(long)]
         no_plots: bool,
     },
-    /// Run the fixed-point model against the full simulation on every built-in scenario, and the
-    /// scheduler in closed loop; print the figures against the targets.
+    /// Run the fixed-point model against the full simulation on every built-in scenario (the
+    /// paper's runs and the sea family of irregular seas), and the scheduler in closed loop;
+    /// print the figures against the targets.
     #[command(
-        after_help = "Examples:\n  pto validate\n  pto validate --filter test1 --no-loop --json\n\nExit status:\n  0 every target met in every scenario (and the closed loop, unless --no-loop)\n  1 a target missed (the row names it)\n  2 bad input"
+        after_help = "Examples:\n  pto validate\n  pto validate --filter test1 --no-loop --json\n  pto validate --filter sea- --no-loop\n\nExit status:\n  0 every target met in every scenario (and the closed loop, unless --no-loop)\n  1 a target missed (the row names it)\n  2 bad input"
     )]
     Validate {
         /// Bench parameter file (default: the reference bench).

@@ -143,7 +143,7 @@ fn scenarios_json_lists_every_builtin() {
     let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(
         v.as_array().unwrap().len(),
-        pto_host::sim::scenario::builtin().len()
+        pto_host::sim::scenario::builtin().len() + pto_host::sim::scenario::sea_family().len()
     );
 }
 

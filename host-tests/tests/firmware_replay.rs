@@ -45,7 +45,13 @@ fn firmware_matches_the_host_model_bit_for_bit() {
 
     // 2. Long traces from the full simulation.
     let bench = Bench::reference();
-    for (name, start) in [("test3-ap10", None), ("irregular-sea", Some(200.0))] {
+    // The small sea from 14 s: slow reversals with the tracker's speed flickering about zero,
+    // strokes shorter than the free play (`CylState::gap`, `alt_gap`).
+    for (name, start) in [
+        ("test3-ap10", None),
+        ("irregular-sea", Some(200.0)),
+        ("sea-hs20-tp14-s11", Some(14.0)),
+    ] {
         let (inputs, p2, lp) = golden::clean_inputs(&bench, name, start, 12_000).unwrap();
         let host = golden::run(&k, &inputs, p2, lp).unwrap();
         let t0 = Instant::now();
@@ -66,6 +72,11 @@ fn firmware_matches_the_host_model_bit_for_bit() {
         assert!(inputs.len() >= 10_000);
         assert_eq!(first_diff, None, "{name}: firmware and host differ");
         assert!(torque_span > 100.0, "{name}: the trace exercises the pump");
+        if name.starts_with("sea-") {
+            let short = short_strokes(&k, &inputs, p2, lp);
+            println!("{name}: {short} reversals before the eye had crossed its play");
+            assert!(short > 0, "{name}: the trace exercises the short strokes");
+        }
     }
     // 3. Test I with one cylinder without the HP transducer: the HP accumulator runs empty each
     // wave and the motor speed corrects P2 (the same inputs with that correction switched off
@@ -113,4 +124,31 @@ fn firmware_matches_the_host_model_bit_for_bit() {
         .send(&pto_model::protocol::ToFirmware::Exit(0))
         .unwrap();
     assert_eq!(q.wait_exit(Duration::from_secs(10)).unwrap(), 0);
+}
+
+/// Reversals of the host model over `inputs` at which the ending stroke's eye had not yet crossed
+/// its free play (`CylState::engaged` false after the turn).
+fn short_strokes(
+    k: &pto_model::Coefficients,
+    inputs: &[pto_model::estimator::Inputs],
+    p2: f32,
+    lp: f32,
+) -> usize {
+    let mut st = pto_model::estimator::State::new(
+        Pressure::from_num(p2),
+        Pressure::from_num(lp),
+        Pressure::from_num(1.0),
+    );
+    let mut n = 0;
+    for inp in inputs {
+        let before = st.cyl;
+        pto_model::estimator::step(k, &mut st, inp);
+        n += st
+            .cyl
+            .iter()
+            .zip(&before)
+            .filter(|(c, b)| c.dir != b.dir && b.dir != 0 && !c.engaged)
+            .count();
+    }
+    n
 }

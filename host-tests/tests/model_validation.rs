@@ -78,6 +78,61 @@ fn model_tracks_the_full_simulation_on_representative_runs() {
     }
 }
 
+/// The sea family (`pto validate`'s group `sea-family`: 18 JONSWAP seas over Hs 20–60 mm of
+/// rack, Tp 6–14 s, two seeds each, 300 s, and two starts from an empty HP node with the lever
+/// moving): in every run the torque RMS error is within 5 % of the peak, P2 within 0.3 bar RMS
+/// with the transducer, the model-only P2 within 2 bar where it applies, σ covers the error and
+/// fixed point follows f64. Small and partial strokes leave the rods standing in their free play
+/// (a stroke shorter than the play, a reversal that comes before the rod engaged, a tracker
+/// speed flickering about zero at a slow reversal); without the eye's position in its play
+/// carried from one reversal to the next (`CylState::gap`) the Hs 20 mm seas run 5–10 % of
+/// peak, with 4 s events of up to 54 % of peak.
+///
+/// Motor speed is not asserted here: it is judged (and reported as missed where it is) by
+/// `pto validate`. In two runs the valve opens at 100 bar only in the run's last 30–40 s, and
+/// ≈ 94 % of the motor's squared error sits in the 0.2 s spin-up after the opening, where the
+/// full simulation's motor line (oil with trapped air, pressurised from LP) delays the rotor by
+/// ≈ 70 ms and overshoots, which the reduced model (no motor-line node) does not carry; see
+/// `docs/model.md`.
+#[test]
+fn model_tracks_the_full_simulation_over_the_sea_family() {
+    let sel = pto_host::sim::scenario::sea_family();
+    assert!(sel.len() >= 12);
+    let rep = validate::run(&Bench::reference(), &sel, false);
+    assert!(rep.errors.is_empty(), "{:?}", rep.errors);
+    let spread = rep.sea_family.as_ref().expect("the family's spread");
+    println!(
+        "sea family over {} runs, worst / median: torque RMS {:.2} / {:.2} % of peak, worst 4 s \
+         {:.1} / {:.1} % of peak, P2 RMS {:.3} / {:.3} bar, motor {:.2} / {:.2} %",
+        spread.runs,
+        spread.torque_rms_of_peak.0 * 100.0,
+        spread.torque_rms_of_peak.1 * 100.0,
+        spread.torque_worst_4s_of_peak.0 * 100.0,
+        spread.torque_worst_4s_of_peak.1 * 100.0,
+        spread.p2_rms_bar.0,
+        spread.p2_rms_bar.1,
+        spread.motor_rms_rel.0 * 100.0,
+        spread.motor_rms_rel.1 * 100.0,
+    );
+    assert_eq!(spread.runs, sel.len());
+    for r in &rep.rows {
+        let others: Vec<_> = r
+            .missed
+            .iter()
+            .filter(|m| !m.starts_with("motor "))
+            .collect();
+        assert!(others.is_empty(), "{}: missed {others:?}", r.scenario);
+        let tq = r.torque_rms_of_peak.expect("the lever moves");
+        assert!(
+            tq <= target::TORQUE_RMS_OF_PEAK,
+            "{}: torque {tq}",
+            r.scenario
+        );
+        assert!(r.p2_rms_bar <= target::P2_RMS_BAR, "{}", r.scenario);
+        assert!(r.cover_2s >= target::COVER_2S && r.cover_3s >= target::COVER_3S);
+    }
+}
+
 /// Test I with one cylinder: the HP accumulator is empty and P2 follows the motor, whose rotor
 /// inertia the model carries (the quasi-static valve/motor law missed the speed by 10–13 %).
 /// Without the HP transducer the motor speed reads P2 (the model alone was 4.4 bar off). At

@@ -15,6 +15,7 @@ pub(crate) fn validate_cmd(
     let bench = load_bench(bench_path)?;
     let sel: Vec<_> = scenario::builtin()
         .into_iter()
+        .chain(scenario::sea_family())
         .filter(|s| s.name.contains(filter))
         .collect();
     if sel.is_empty() {
@@ -33,7 +34,7 @@ pub(crate) fn validate_cmd(
         return Ok(rep.pass);
     }
     println!(
-        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>8} {:>7}",
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8} {:>7}",
         "scenario",
         "P2 RMS",
         "P2 max",
@@ -42,17 +43,18 @@ pub(crate) fn validate_cmd(
         "3σ",
         "empty",
         "torque",
+        "T 4 s",
         "motor",
         "fx P2",
         "fx T",
         ""
     );
     println!(
-        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>8}",
-        "(unit)", "bar", "bar", "bar", "%", "%", "ms", "of peak", "of RMS", "bar", "N·m"
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8}",
+        "(unit)", "bar", "bar", "bar", "%", "%", "ms", "of peak", "of peak", "of RMS", "bar", "N·m"
     );
     println!(
-        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>8}",
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8}",
         "(target)",
         format!("≤{}", target::P2_RMS_BAR),
         "-",
@@ -61,6 +63,7 @@ pub(crate) fn validate_cmd(
         format!("≥{}", target::COVER_3S * 100.0),
         format!("≤{}", target::EMPTY_FLAG_MS),
         format!("≤{}%", target::TORQUE_RMS_OF_PEAK * 100.0),
+        "-",
         format!("≤{}%", target::MOTOR_RMS_REL * 100.0),
         format!("≤{}*", target::FIXED_VS_F64_BAR),
         format!("≤{}*", target::FIXED_VS_F64_NM)
@@ -69,7 +72,7 @@ pub(crate) fn validate_cmd(
     for r in &rep.rows {
         let misses = &r.missed;
         println!(
-            "{:<20} {:>7.3} {:>6.2} {:>7.3} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7.4} {:>8.3}  {}",
+            "{:<20} {:>7.3} {:>6.2} {:>7.3} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7.4} {:>8.3}  {}",
             r.scenario,
             r.p2_rms_bar,
             r.p2_max_bar,
@@ -87,6 +90,7 @@ pub(crate) fn validate_cmd(
             r.empty_flag_delay_ms
                 .map_or("-".to_string(), |d| format!("{d:.0}")),
             pct(r.torque_rms_of_peak),
+            pct(r.torque_worst_4s_of_peak),
             pct(r.motor_rms_rel),
             r.fixed_vs_f64_bar,
             r.fixed_vs_f64_nm,
@@ -98,7 +102,8 @@ pub(crate) fn validate_cmd(
         );
     }
     println!(
-        "σ coverage: with the transducer / without it (%). * no-HP ≤ {} bar in runs whose \
+        "σ coverage: with the transducer / without it (%). T 4 s: the largest RMS torque error \
+         over 4 s (not a target). * no-HP ≤ {} bar in runs whose \
          estimate stays above the precharge + {} bar (else σ coverage and the empty flag, ms \
          after the bench's accumulator ran empty, judge it); fixed vs f64 ≤ {} bar and ≤ {} N·m \
          where P2 stays out of the cells at the precharge, else ≤ {} bar (torque not judged)",
@@ -108,6 +113,25 @@ pub(crate) fn validate_cmd(
         target::FIXED_VS_F64_NM,
         target::FIXED_VS_F64_CELL_BAR
     );
+    if let Some(f) = &rep.sea_family {
+        let p = |x: (f64, f64)| format!("{:.2} / {:.2} %", x.0 * 100.0, x.1 * 100.0);
+        println!(
+            "sea family, worst / median over {} runs ({} meet every target): torque RMS {} \
+             (≤ {} %), worst 4 s torque error {} of peak, P2 RMS {:.3} / {:.3} bar, \
+             model-only P2 max {:.2} / {:.2} bar, 2σ coverage {}, motor {}",
+            f.runs,
+            f.runs_met,
+            p(f.torque_rms_of_peak),
+            target::TORQUE_RMS_OF_PEAK * 100.0,
+            p(f.torque_worst_4s_of_peak),
+            f.p2_rms_bar.0,
+            f.p2_rms_bar.1,
+            f.p2_model_only_max_bar.0,
+            f.p2_model_only_max_bar.1,
+            p(f.cover_2s),
+            p(f.motor_rms_rel),
+        );
+    }
     for l in &rep.closed_loop {
         println!(
             "closed loop: {:<24} max deviation {:.4} (target {}) over {:.0}–{:.0} s: {}",

@@ -14,7 +14,10 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
 pub(crate) fn scenarios(json: bool) -> Result<bool> {
-    let all = scenario::builtin();
+    let all: Vec<_> = scenario::builtin()
+        .into_iter()
+        .chain(scenario::sea_family())
+        .collect();
     if json {
         println!("{}", serde_json::to_string_pretty(&all)?);
     } else {
@@ -23,7 +26,9 @@ pub(crate) fn scenarios(json: bool) -> Result<bool> {
             println!("{:<22} {:>6.0}s  {}", s.name, s.duration_s, s.description);
         }
         println!(
-            "\n{} scenarios. Write your own in the same TOML form (`pto scenarios --json` shows the fields).",
+            "\n{} scenarios: the paper's runs (`pto paper`) and the estimator's sea family \
+             (`sea-*`, `sine-empty-start`: `pto validate`). Write your own in the same TOML form \
+             (`pto scenarios --json` shows the fields).",
             all.len()
         );
     }

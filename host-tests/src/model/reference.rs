@@ -60,6 +60,14 @@ struct RefCyl {
     from_rest: bool,
     /// The play this stroke crosses, mm.
     play: f64,
+    /// The last stroke's eye had pushed the rod before the lever turned (`CylState::engaged`).
+    engaged: bool,
+    /// It had delivered (`CylState::delivered`).
+    delivered: bool,
+    /// (engaged, delivered, gap) kept aside (`CylState::alt_engaged`).
+    alt: (bool, bool, f64),
+    /// The eye's distance from the face that drives the new stroke, mm (`CylState::gap`).
+    gap: f64,
     setup_left: u8,
     bisect_left: u8,
     /// Eye travel since the reversal, mm.
@@ -150,6 +158,10 @@ impl Reference {
                 dir: c.dir,
                 from_rest: c.from_rest,
                 play: f(c.play),
+                engaged: c.engaged,
+                delivered: c.delivered,
+                alt: (c.alt_engaged, c.alt_delivered, f(c.alt_gap)),
+                gap: f(c.gap),
                 setup_left: c.setup_left,
                 bisect_left: c.bisect_left,
                 travel: f(c.travel),
@@ -329,6 +341,27 @@ impl Reference {
                     (pn, po)
                 };
                 if dir != cs.dir {
+                    if cs.setup_left > SETUP_UNITS - 2 {
+                        std::mem::swap(&mut cs.engaged, &mut cs.alt.0);
+                        std::mem::swap(&mut cs.delivered, &mut cs.alt.1);
+                        std::mem::swap(&mut cs.gap, &mut cs.alt.2);
+                    } else {
+                        let rel = if cs.setup_left != 0 {
+                            cs.travel
+                        } else {
+                            let ub = if cs.bisect_left > 0 {
+                                cs.u_bal_hi
+                            } else {
+                                cs.u_bal
+                            };
+                            (cs.travel - ub).clamp(0.0, cs.play)
+                        };
+                        let full = f(k.pump.play_mm);
+                        cs.engaged = rel >= cs.play;
+                        cs.delivered = cs.setup_left == 0 && cs.travel >= cs.u_end + cs.play;
+                        cs.gap = (full - cs.play + rel).min(full);
+                        cs.alt = (false, false, (cs.play - rel).max(0.0));
+                    }
                     cs.from_rest = cs.dir == 0;
                     cs.dir = dir;
                     cs.travel = 0.0;
@@ -365,23 +398,27 @@ impl Reference {
                         cs.setup_left -= 1;
                     } else if cs.setup_left == SETUP_UNITS - 1 {
                         cs.strain.3 = 1000.0 / cs.len.1;
-                        if !cs.from_rest {
+                        if !cs.from_rest && !cs.engaged {
+                            cs.play = cs.gap;
+                        } else if !cs.from_rest {
                             let (p_new0, p_old0) = held(cs);
                             let net = p_old0 - ratio * p_new0;
-                            // A quarter of the play inside the band, ramps at its edges.
+                            // Inside the band a quarter of the play once the stroke delivered
+                            // (else all of it), ramps at its edges.
                             let band = f(pto_model::estimator::FLOAT_BAND);
                             let ramp = f(pto_model::estimator::FLOAT_RAMP);
                             let play = f(k.pump.play_mm);
+                            let float = if cs.delivered { 0.25 * play } else { play };
                             cs.play = if net <= -band {
                                 0.0
                             } else if net >= band {
                                 play
                             } else if net < ramp - band {
-                                0.25 * play * (net + band) / ramp
+                                float * (net + band) / ramp
                             } else if net > band - ramp {
-                                0.25 * play + 0.75 * play * (net - (band - ramp)) / ramp
+                                float + (play - float) * (net - (band - ramp)) / ramp
                             } else {
-                                0.25 * play
+                                float
                             };
                         }
                         cs.setup_left -= 1;

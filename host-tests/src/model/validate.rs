@@ -68,6 +68,11 @@ pub struct Row {
     /// Torque RMS error / peak torque (None when the input does not move: no restraining
     /// torque to speak of, only the static LP·A_rod of the rods).
     pub torque_rms_of_peak: Option<f64>,
+    /// The worst torque event: the largest RMS torque error over any 4 s window, as a fraction
+    /// of the peak torque (information, not a target: where the error of a run sits).
+    pub torque_worst_4s_of_peak: Option<f64>,
+    /// Start of that window, s.
+    pub torque_worst_4s_at_s: Option<f64>,
     /// Motor speed RMS error / RMS speed (None when the motor does not turn).
     pub motor_rms_rel: Option<f64>,
     /// Max |P2 fixed − P2 f64|, bar, over both runs (with the HP transducer, and without it for
@@ -113,6 +118,8 @@ pub struct Row {
 pub struct Report {
     /// Per scenario.
     pub rows: Vec<Row>,
+    /// The spread of the sea family's rows (group `sea-family`), when any was validated.
+    pub sea_family: Option<Spread>,
     /// Closed loop.
     pub closed_loop: Vec<LoopRow>,
     /// Failed runs, each error with its causes.
@@ -155,6 +162,7 @@ fn validate_scenario(
     let mut count = 0.0f64;
     let mut max_p2 = 0.0f64;
     let mut cover = Coverage::default();
+    let mut worst_window = WorstWindow::new((WORST_WINDOW_S / dt) as usize);
     // The capacitance table's cell around the precharge (its nodes on either side).
     let h = f64::from(Table1::<{ coeffs::N_NODE }>::spacing(
         0.0,
@@ -189,6 +197,7 @@ fn validate_scenario(
             max_p2 = max_p2.max((p2 - truth.p2_bar).abs());
             se_p2 += (p2 - truth.p2_bar).powi(2);
             se_tq += (tq - truth.torque_nm).powi(2);
+            worst_window.add(t, (tq - truth.torque_nm).powi(2));
             se_w += (w - truth.motor_rpm).powi(2);
             ss_w += truth.motor_rpm.powi(2);
             peak_tq = peak_tq.max(truth.torque_nm.abs());
@@ -235,14 +244,17 @@ fn validate_scenario(
     }
     let (emptyings, empty_flag_delay_ms, empty_flag_early) = empty.finish(m as f64 * dt);
     let rms = |se: f64| (se / count.max(1.0)).sqrt();
+    let moving = !matches!(s.motion, crate::sim::motion::MotionSpec::Blocked { .. });
+    let worst = worst_window.worst().filter(|_| moving);
     let motor_rms_rel = (ss_w / count.max(1.0) > 1.0).then(|| (se_w / ss_w).sqrt());
     let row = Row {
         scenario: s.name.clone(),
         p2_rms_bar: rms(se_p2),
         p2_max_bar: max_p2,
         p2_model_only_max_bar: max_mo,
-        torque_rms_of_peak: (!matches!(s.motion, crate::sim::motion::MotionSpec::Blocked { .. }))
-            .then(|| rms(se_tq) / peak_tq.max(1.0)),
+        torque_rms_of_peak: moving.then(|| rms(se_tq) / peak_tq.max(1.0)),
+        torque_worst_4s_of_peak: worst.map(|(ms, _)| ms.sqrt() / peak_tq.max(1.0)),
+        torque_worst_4s_at_s: worst.map(|(_, t)| t),
         motor_rms_rel,
         fixed_vs_f64_bar: d_p2.max(d_p2_mo),
         fixed_vs_f64_nm: (se_d_tq / n.max(1) as f64).sqrt(),
@@ -359,6 +371,116 @@ impl Row {
     }
 }
 
+/// The scenario group whose spread the report gives ([`crate::sim::scenario::sea_family`]).
+pub const FAMILY_GROUP: &str = "sea-family";
+
+/// Length of the window of [`Row::torque_worst_4s_of_peak`], s.
+pub const WORST_WINDOW_S: f64 = 4.0;
+
+/// The largest mean of a quantity over a sliding window of `len` samples.
+struct WorstWindow {
+    len: usize,
+    ring: std::collections::VecDeque<(f64, f64)>,
+    sum: f64,
+    /// (largest mean, start of its window).
+    worst: Option<(f64, f64)>,
+}
+
+impl WorstWindow {
+    fn new(len: usize) -> Self {
+        WorstWindow {
+            len: len.max(1),
+            ring: std::collections::VecDeque::with_capacity(len.max(1) + 1),
+            sum: 0.0,
+            worst: None,
+        }
+    }
+
+    fn add(&mut self, t: f64, x: f64) {
+        self.ring.push_back((t, x));
+        self.sum += x;
+        if self.ring.len() > self.len {
+            let (_, old) = self.ring.pop_front().unwrap_or_default();
+            self.sum -= old;
+        }
+        if self.ring.len() == self.len {
+            // (The running sum's rounding is ≈ 1e-11 of it over a 300 s run; a NaN sample
+            // makes the worst window NaN, which shows.)
+            let mean = self.sum / self.len as f64;
+            let start = self.ring.front().map_or(t, |f| f.0);
+            if self.worst.is_none_or(|w| mean > w.0 || mean.is_nan()) {
+                self.worst = Some((mean, start));
+            }
+        }
+    }
+
+    /// (largest window mean, its start), None when fewer samples than a window came.
+    fn worst(&self) -> Option<(f64, f64)> {
+        self.worst
+    }
+}
+
+/// Worst and median of a family of rows, per figure.
+#[derive(Debug, Clone, Serialize)]
+pub struct Spread {
+    /// Rows in the family.
+    pub runs: usize,
+    /// Rows meeting every target.
+    pub runs_met: usize,
+    /// Torque RMS error / peak: (worst, median); every figure is such a pair (`[worst,
+    /// median]` in JSON), over the rows that have the figure.
+    pub torque_rms_of_peak: (f64, f64),
+    /// Worst 4 s torque error / peak: (worst, median).
+    pub torque_worst_4s_of_peak: (f64, f64),
+    /// P2 RMS error with the transducer, bar: (worst, median).
+    pub p2_rms_bar: (f64, f64),
+    /// Model-only P2 max error (first 60 s), bar: (worst, median).
+    pub p2_model_only_max_bar: (f64, f64),
+    /// 2σ coverage with the transducer: (worst, median).
+    pub cover_2s: (f64, f64),
+    /// 3σ coverage with the transducer: (worst, median).
+    pub cover_3s: (f64, f64),
+    /// Motor speed RMS error / RMS speed: (worst, median).
+    pub motor_rms_rel: (f64, f64),
+}
+
+impl Spread {
+    /// The spread of `rows` (None when empty).
+    pub fn of(rows: &[&Row]) -> Option<Spread> {
+        if rows.is_empty() {
+            return None;
+        }
+        // (worst, median) of the figures present; `high_is_bad` says which end is the worst.
+        let wm = |xs: Vec<f64>, high_is_bad: bool| {
+            let mut xs = xs;
+            xs.sort_by(f64::total_cmp);
+            if xs.is_empty() {
+                return (f64::NAN, f64::NAN);
+            }
+            let worst = if high_is_bad { xs[xs.len() - 1] } else { xs[0] };
+            let n = xs.len();
+            let median = if n % 2 == 1 {
+                xs[n / 2]
+            } else {
+                0.5 * (xs[n / 2 - 1] + xs[n / 2])
+            };
+            (worst, median)
+        };
+        let col = |f: &dyn Fn(&Row) -> Option<f64>| rows.iter().filter_map(|r| f(r)).collect();
+        Some(Spread {
+            runs: rows.len(),
+            runs_met: rows.iter().filter(|r| r.pass).count(),
+            torque_rms_of_peak: wm(col(&|r| r.torque_rms_of_peak), true),
+            torque_worst_4s_of_peak: wm(col(&|r| r.torque_worst_4s_of_peak), true),
+            p2_rms_bar: wm(col(&|r| Some(r.p2_rms_bar)), true),
+            p2_model_only_max_bar: wm(col(&|r| Some(r.p2_model_only_max_bar)), true),
+            cover_2s: wm(col(&|r| Some(r.cover_2s)), false),
+            cover_3s: wm(col(&|r| Some(r.cover_3s)), false),
+            motor_rms_rel: wm(col(&|r| r.motor_rms_rel), true),
+        })
+    }
+}
+
 /// Counts the samples whose P2 error lies within 2σ and 3σ of the estimate's own σ.
 #[derive(Default)]
 struct Coverage {
@@ -471,6 +593,7 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
         Err(e) => {
             return Report {
                 rows: vec![],
+                sea_family: None,
                 closed_loop: vec![],
                 errors: vec![crate::error_chain(&e)],
                 pass: false,
@@ -482,6 +605,7 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
         Err(e) => {
             return Report {
                 rows: vec![],
+                sea_family: None,
                 closed_loop: vec![],
                 errors: vec![crate::error_chain(&e)],
                 pass: false,
@@ -514,7 +638,15 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
         }
     }
     let pass = errors.is_empty() && rows.iter().all(|r| r.pass) && closed.iter().all(|r| r.pass);
+    let in_family = |name: &str| {
+        scenarios
+            .iter()
+            .any(|s| s.name == name && s.group == FAMILY_GROUP)
+    };
+    let family: Vec<&Row> = rows.iter().filter(|r| in_family(&r.scenario)).collect();
+    let sea_family = Spread::of(&family);
     Report {
+        sea_family,
         rows,
         closed_loop: closed,
         errors,

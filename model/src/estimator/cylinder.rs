@@ -118,7 +118,11 @@ pub(super) fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, 
         // (2) The old chamber's strain per mm, and the play the eye has to cross.
         cs.ms_per_mm_o = recip(Fx::from_bits(cs.len_o.to_bits() >> 10)).qmul(KMS);
         if !cs.from_rest {
-            cs.play = play_to_cross(k, c, cs, lo, hi);
+            cs.play = if cs.engaged {
+                play_to_cross(k, c, cs, lo, hi)
+            } else {
+                cs.gap
+            };
         }
     } else if cs.setup_left == SETUP_UNITS - 2 {
         // (3) Start from the chambers' pressures at the reversal (held since), not from P2/LP:
@@ -154,14 +158,19 @@ pub(super) fn reversal_unit(sh: &Shared, c: &CylinderCoeffs, cs: &mut CylState, 
 /// - it already resists the new motion: the rod ran ahead of the eye on the old stroke (P2 below
 ///   LP·A_suc/A_del, a low P2 on an annulus stroke) and lies against the end that now pushes
 ///   it: no play to cross;
-/// - within ±[`FLOAT_BAND`] of zero the rod floated: the pump's delivery and the motor's draw
-///   held P2 at the balance while the rod drifted ahead in its play. The full simulation shows
-///   it most of the way across when the lever turns (0.2–1 mm of a 4 mm play left in the Test I
-///   runs with one cylinder); a quarter of the play is taken.
+/// - within ±[`FLOAT_BAND`] of zero, after a stroke that delivered ([`CylState::delivered`]),
+///   the rod floated: the pump's delivery and the motor's draw held P2 at the balance while the
+///   rod drifted ahead in its play. The full simulation shows it most of the way across when the
+///   lever turns (0.2–1 mm of a 4 mm play left in the Test I runs with one cylinder); a quarter
+///   of the play is taken. After a stroke that had pushed the rod but not yet delivered, the rod
+///   stands where the eye left it: the whole play.
+///
+/// Only for a stroke whose eye pushed the rod ([`CylState::engaged`]); after one that turned
+/// before, the play is the eye's distance back, [`CylState::gap`].
 ///
 /// The band's edges are ramps [`FLOAT_RAMP`] wide (0 → a quarter at −band, a quarter → all of it
 /// at +band), so that a rounding difference in the held pressures moves the play by a small
-/// amount, not by a quarter of it: such a step at the band's edge separated the fixed-point model
+/// amount, not by a quarter of it: a step at the band's edge separates the fixed-point model
 /// from its f64 reference by 0.5 bar in a Config 2 run. Inside the band the play stays a
 /// quarter: a slope there would turn the 1e-4 bar by which the two models' pressures differ into
 /// a persistent torque offset on every floating reversal (≈ 3 000 N·m per mm of play during
@@ -176,19 +185,26 @@ pub(super) fn play_to_cross(
 ) -> Fx {
     let (p_new0, p_old0) = held_pressures(cs, lo, hi);
     let net = p_old0.saturating_sub(area_ratio(c, cs.dir).qmul(p_new0));
-    let quarter = k.play_mm >> 2u32;
+    // A rod floats only while it delivers (the pump's delivery and the motor's draw holding P2
+    // at the balance while it drifts); one the eye has pushed but that has not yet delivered
+    // stands where the eye left it, the whole play behind the eye.
+    let float = if cs.delivered {
+        k.play_mm >> 2u32
+    } else {
+        k.play_mm
+    };
     if net <= -FLOAT_BAND {
         ZERO
     } else if net >= FLOAT_BAND {
         k.play_mm
     } else if net < FLOAT_RAMP - FLOAT_BAND {
         // (net + band)/ramp in [0, 1).
-        quarter.qmul((net + FLOAT_BAND) << FLOAT_RAMP_SHIFT)
+        float.qmul((net + FLOAT_BAND) << FLOAT_RAMP_SHIFT)
     } else if net > FLOAT_BAND - FLOAT_RAMP {
         // (net − (band − ramp))/ramp in (0, 1).
-        quarter + (k.play_mm - quarter).qmul((net - (FLOAT_BAND - FLOAT_RAMP)) << FLOAT_RAMP_SHIFT)
+        float + (k.play_mm - float).qmul((net - (FLOAT_BAND - FLOAT_RAMP)) << FLOAT_RAMP_SHIFT)
     } else {
-        quarter
+        float
     }
 }
 
@@ -260,6 +276,42 @@ pub(super) fn cylinder(
     // (A linear pressure–travel law put the new chamber at ~45 bar instead of ~19 bar when the
     // forces balance, so the torque built up too early.)
     if dir != cs.dir {
+        // Where the eye stands in its free play as the lever turns (see `CylState::gap`):
+        // until it has crossed this stroke's play (set-up pending, the rod following it to the
+        // force balance, or the eye crossing the play with the rod standing) the rod stands
+        // where it stopped, `rel` behind the eye. A stroke that turns before its set-up has
+        // taken its play (unit 2: a few steps, the tracker's speed flickering about zero at
+        // a slow reversal) is no stroke: the new one continues the stroke before it, whose
+        // reading was kept aside (`CylState::alt_gap`), and this one's is kept aside in turn.
+        if cs.setup_left > SETUP_UNITS - 2 {
+            core::mem::swap(&mut cs.engaged, &mut cs.alt_engaged);
+            core::mem::swap(&mut cs.delivered, &mut cs.alt_delivered);
+            core::mem::swap(&mut cs.gap, &mut cs.alt_gap);
+        } else {
+            let rel = if cs.setup_left != 0 {
+                cs.travel
+            } else {
+                let ub = if cs.bisect_left > 0 {
+                    cs.u_bal_hi
+                } else {
+                    cs.u_bal
+                };
+                // The eye's travel past the rod: travel − u with u = min(travel, ub) ∨
+                // (travel − play) the rod's travel, i.e. travel − ub held to [0, play].
+                clamp(cs.travel.saturating_sub(ub), ZERO, cs.play)
+            };
+            cs.engaged = rel >= cs.play;
+            cs.delivered = cs.setup_left == 0 && cs.travel >= cs.u_end.saturating_add(cs.play);
+            cs.gap = k
+                .play_mm
+                .saturating_sub(cs.play)
+                .saturating_add(rel)
+                .min(k.play_mm);
+            // Were the new stroke no stroke, the next would continue this one: the eye would
+            // still have the rest of this stroke's play to cross.
+            (cs.alt_engaged, cs.alt_delivered) = (false, false);
+            cs.alt_gap = cs.play.saturating_sub(rel).max(ZERO);
+        }
         cs.from_rest = cs.dir == 0;
         cs.dir = dir;
         cs.travel = ZERO;

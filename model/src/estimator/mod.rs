@@ -143,9 +143,32 @@ pub struct CylState {
     pub dir: i8,
     /// The last reversal started from rest (both chambers at LP).
     pub from_rest: bool,
-    /// The free play this stroke crosses, mm: the configured play, 0 when the rod stays on one
-    /// end of it, a quarter of it when the rod floated (see `play_to_cross`).
+    /// The free play this stroke crosses, mm: after a stroke whose eye pushed the rod, the
+    /// configured play, 0 when the rod stays on one end of it, a quarter of it when the rod
+    /// floated (see `play_to_cross`); after one that turned before, [`CylState::gap`].
     pub play: Fx,
+    /// The last stroke's eye had crossed its play and pushed the rod before the lever turned:
+    /// the new stroke's play then follows the chambers' force on the rod (`play_to_cross`);
+    /// else it is [`CylState::gap`].
+    pub engaged: bool,
+    /// The last stroke's new chamber had reached P2 and delivered before the lever turned
+    /// (only then can its rod have floated: see `play_to_cross`).
+    pub delivered: bool,
+    /// The eye's distance, as the lever turned, from the face of its play that drives the rod
+    /// in the new direction, mm: the play that lay behind the rod when the last stroke began
+    /// (play − that stroke's `play`) plus the eye's travel past the rod since. A stroke shorter
+    /// than the play leaves the eye part way across it, and the rod (standing at its force
+    /// balance) is driven only once the eye is back at that face.
+    pub gap: Fx,
+    /// The reading ([`CylState::engaged`], [`CylState::delivered`], [`CylState::gap`]) for the
+    /// stroke after the new one should the new one turn before its set-up has taken its play
+    /// (no stroke: the one after continues the stroke before it). Swapped with the new
+    /// stroke's at such a turn.
+    pub alt_engaged: bool,
+    /// See [`CylState::alt_engaged`].
+    pub alt_delivered: bool,
+    /// See [`CylState::alt_engaged`], mm.
+    pub alt_gap: Fx,
     /// Reversal set-up units still to run ([`SETUP_UNITS`] after a reversal, then 0).
     pub setup_left: u8,
     /// Force-balance bisection iterations still to run.
@@ -199,7 +222,7 @@ pub const REVERSAL_UNITS_PER_STEP: u8 = 1;
 /// Steps between autonomy refreshes (8 ms at 2^−10 s; more while reversals hold the slot).
 pub const AUTONOMY_EVERY: u8 = 8;
 
-/// Estimator state (360 bytes together with the scheduler's; `pto model-cost` prints it), a
+/// Estimator state (416 bytes together with the scheduler's; `pto model-cost` prints it), a
 /// sub-state per stage of [`step`].
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(feature = "serde", derive(serde::Serialize, serde::Deserialize))]

@@ -395,7 +395,9 @@ fn both_chambers_reach_their_check_valves_by_mid_stroke() {
 
 /// The play the eye crosses after a reversal follows the sign of the chambers' net force on
 /// the rod when the lever turns, computed here in f64 from the bores and rods: every
-/// cylinder, both directions, chamber pressures over LP − drop … P2 + drop.
+/// cylinder, both directions, chamber pressures over LP − drop … P2 + drop; inside the band a
+/// quarter of the play after a stroke that delivered (the rod floated), all of it after one
+/// that had not.
 #[test]
 fn the_play_to_cross_follows_the_rods_net_force_at_the_reversal() {
     let cfg = crate::ModelConfig::reference();
@@ -408,7 +410,8 @@ fn the_play_to_cross_follows_the_rods_net_force_at_the_reversal() {
     for (c, cc) in k.pump.cyl.iter().zip(cfg.cylinders.iter()) {
         let a_cap = core::f64::consts::PI / 4.0 * f64::from(cc.bore_mm).powi(2);
         let a_ann = a_cap - core::f64::consts::PI / 4.0 * f64::from(cc.rod_mm).powi(2);
-        for dir in [1i8, -1] {
+        for (dir, delivered) in [(1i8, true), (-1, true), (1, false), (-1, false)] {
+            let float = if delivered { 0.25 * play } else { play };
             for i in 0..=62 {
                 for j in 0..=62 {
                     let (p_cap, p_rod) = (lo + 0.37 * f64::from(i), lo + 0.37 * f64::from(j));
@@ -422,6 +425,7 @@ fn the_play_to_cross_follows_the_rods_net_force_at_the_reversal() {
                     let net = assist / a_old;
                     let cs = CylState {
                         dir,
+                        delivered,
                         p_cap: Fx::from_num(p_cap),
                         p_rod: Fx::from_num(p_rod),
                         ..CylState::default()
@@ -434,11 +438,11 @@ fn the_play_to_cross_follows_the_rods_net_force_at_the_reversal() {
                     } else if net >= band {
                         (play, 2)
                     } else if net < ramp - band {
-                        (0.25 * play * (net + band) / ramp, 1)
+                        (float * (net + band) / ramp, 1)
                     } else if net > band - ramp {
-                        (0.25 * play + 0.75 * play * (net - (band - ramp)) / ramp, 1)
+                        (float + (play - float) * (net - (band - ramp)) / ramp, 1)
                     } else {
-                        (0.25 * play, 1)
+                        (float, 1)
                     };
                     // Q16.16 area ratio (±7.6e-6 relative) times ≤ 30 bar: the net force
                     // is off by ≤ 2.3e-4 bar, the play on the steeper ramp by

@@ -255,7 +255,90 @@ pub fn builtin() -> Vec<Scenario> {
     v
 }
 
-/// The built-in scenario called `name`.
+/// Significant rack displacements of the sea family, mm (4σ).
+pub const FAMILY_HS_MM: [f64; 3] = [20.0, 40.0, 60.0];
+/// Peak periods of the sea family, s.
+pub const FAMILY_TP_S: [f64; 3] = [6.0, 10.0, 14.0];
+/// Phase seeds of each sea state of the family.
+pub const FAMILY_SEEDS: [u64; 2] = [11, 12];
+/// Length of a family run, s.
+pub const FAMILY_DURATION_S: f64 = 300.0;
+
+/// The estimator's family of irregular seas (group `sea-family`): JONSWAP seas over
+/// [`FAMILY_HS_MM`] × [`FAMILY_TP_S`] × [`FAMILY_SEEDS`], 300 s each, HC3.1 + HC3.4 in
+/// Config 1 from 60 bar with the valve opening to 10 % at 100 bar (the irregular-sea run's
+/// set-up), 128 spectral components so that a run does not repeat itself within 300 s; and
+/// two starts from an empty HP node (P2 = LP = 8 bar) with the lever moving: the irregular
+/// sea at Hs 40 mm, and the paper's sine, which starts at its full speed.
+pub fn sea_family() -> Vec<Scenario> {
+    let mut v = Vec::new();
+    let threshold = ValveSpec::Threshold {
+        threshold_bar: 100.0,
+        aperture_pct: 10.0,
+    };
+    let sea = |hs: f64, tp: f64, seed: u64| MotionSpec::Irregular {
+        significant_mm: hs,
+        peak_period_s: tp,
+        gamma: 3.3,
+        components: 128,
+        seed,
+    };
+    for hs in FAMILY_HS_MM {
+        for tp in FAMILY_TP_S {
+            for seed in FAMILY_SEEDS {
+                v.push(scenario(
+                    format!("sea-hs{hs:.0}-tp{tp:.0}-s{seed}"),
+                    "sea-family",
+                    format!(
+                        "Irregular sea: JONSWAP Hs {hs:.0} mm of rack, Tp {tp:.0} s, seed \
+                         {seed}, HC3.1 + HC3.4, Config 1, from 60 bar, valve 10 % at 100 bar"
+                    ),
+                    1,
+                    &["HC3.1", "HC3.4"],
+                    sea(hs, tp, seed),
+                    threshold.clone(),
+                    FAMILY_DURATION_S,
+                    0.02,
+                    Some(60.0),
+                ));
+            }
+        }
+    }
+    v.push(scenario(
+        "sea-empty-start".into(),
+        "sea-family",
+        "Irregular sea Hs 40 mm, Tp 10 s, from an empty HP node (P2 = LP = 8 bar), HC3.1 + \
+         HC3.4, Config 1, valve 10 % at 100 bar"
+            .into(),
+        1,
+        &["HC3.1", "HC3.4"],
+        sea(40.0, 10.0, 11),
+        threshold.clone(),
+        FAMILY_DURATION_S,
+        0.02,
+        Some(8.0),
+    ));
+    v.push(scenario(
+        "sine-empty-start".into(),
+        "sea-family",
+        "Sine ±40 mm at 0.1 Hz starting at full speed, from an empty HP node (P2 = LP = 8 bar), \
+         HC3.1 + HC3.4, Config 1, valve 10 % at 100 bar"
+            .into(),
+        1,
+        &["HC3.1", "HC3.4"],
+        sine(),
+        threshold,
+        120.0,
+        0.02,
+        Some(8.0),
+    ));
+    v
+}
+
+/// The built-in scenario called `name` (the paper's runs and the sea family).
 pub fn builtin_named(name: &str) -> Option<Scenario> {
-    builtin().into_iter().find(|s| s.name == name)
+    builtin()
+        .into_iter()
+        .chain(sea_family())
+        .find(|s| s.name == name)
 }
