@@ -1,15 +1,28 @@
 //! Puts the workspace's `memory.x` on the linker path and adds the cortex-m-rt and defmt linker
-//! scripts, for bare-metal targets only (the library and its tests also build for the host).
+//! scripts (bare-metal targets only: the library and its tests also build for the host), and
+//! builds the firmware for a bench file: `PTO_BENCH=FILE` (relative paths from the workspace
+//! root; default the reference bench) is loaded and range-checked, converted into the model's
+//! configuration by the host tools' own conversion (`pto_bench::model::model_config`), checked
+//! by `ModelConfig::coefficients`, and embedded as postcard bytes (`OUT_DIR/bench-config.bin`,
+//! `OUT_DIR/bench-config.rs`). A bench the model cannot take fails the build with the file, the
+//! field and its range.
 
-use std::{env, fs, path::PathBuf};
+use pto_bench::Bench;
+use pto_bench::model::model_config;
+use pto_model::protocol::{CONFIG_MAX_BYTES, config_fingerprint, decode_config, encode_config};
+use std::{env, fs, path::PathBuf, process};
 
 fn main() {
     let out = PathBuf::from(env::var_os("OUT_DIR").expect("cargo sets OUT_DIR"));
-    let memory = PathBuf::from(env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets it"))
-        .join("..")
-        .join("memory.x");
-    println!("cargo:rerun-if-changed={}", memory.display());
+    let manifest = PathBuf::from(env::var_os("CARGO_MANIFEST_DIR").expect("cargo sets it"));
+    let workspace = manifest
+        .parent()
+        .expect("the firmware sits in the workspace")
+        .to_path_buf();
     println!("cargo:rerun-if-changed=build.rs");
+    embed_bench(&workspace, &out);
+    let memory = workspace.join("memory.x");
+    println!("cargo:rerun-if-changed={}", memory.display());
     if env::var("CARGO_CFG_TARGET_OS").as_deref() != Ok("none") {
         return;
     }
@@ -20,4 +33,59 @@ fn main() {
     println!("cargo:rustc-link-arg-bins=--nmagic");
     println!("cargo:rustc-link-arg-bins=-Tlink.x");
     println!("cargo:rustc-link-arg-bins=-Tdefmt.x");
+}
+
+/// Stops the build with `message` (cargo prints a build script's stderr when it fails).
+fn fail(message: &str) -> ! {
+    eprintln!("error: {message}");
+    process::exit(1)
+}
+
+fn embed_bench(workspace: &std::path::Path, out: &std::path::Path) {
+    println!("cargo:rerun-if-env-changed=PTO_BENCH");
+    let reference = workspace.join("host-tests/data/reference-bench.toml");
+    println!("cargo:rerun-if-changed={}", reference.display());
+    let (bench, source, reference) = match env::var_os("PTO_BENCH").filter(|p| !p.is_empty()) {
+        Some(p) => {
+            let path = workspace.join(PathBuf::from(p));
+            println!("cargo:rerun-if-changed={}", path.display());
+            let bench = Bench::load(&path).unwrap_or_else(|e| fail(&format!("PTO_BENCH: {e}")));
+            (bench, path.display().to_string(), false)
+        }
+        None => (
+            Bench::reference(),
+            pto_bench::REFERENCE_BENCH_NAME.to_string(),
+            true,
+        ),
+    };
+    let cfg = model_config(&bench).unwrap_or_else(|e| {
+        fail(&format!(
+            "{source}: the controller's model cannot take this bench: {e}"
+        ))
+    });
+    if let Err(e) = cfg.coefficients() {
+        fail(&format!(
+            "{source}: the controller's model configuration made from it is out of range: {e}"
+        ));
+    }
+    let mut buf = [0u8; CONFIG_MAX_BYTES];
+    let bytes = encode_config(&cfg, &mut buf)
+        .unwrap_or_else(|e| fail(&format!("{source}: cannot encode the configuration: {e}")));
+    match decode_config(bytes) {
+        Ok(back) if back == cfg => {}
+        _ => fail("the configuration does not survive its encoding"),
+    }
+    let fingerprint = config_fingerprint(bytes);
+    fs::write(out.join("bench-config.bin"), &*bytes).expect("OUT_DIR is writable");
+    fs::write(
+        out.join("bench-config.rs"),
+        format!(
+            "/// Where the built-in configuration came from.\npub const SOURCE: &str = {source:?};\n\
+             /// It is the reference bench's (`PTO_BENCH` unset).\n\
+             pub const REFERENCE: bool = {reference};\n\
+             /// Its fingerprint (`pto_model::protocol::config_fingerprint`).\n\
+             pub const FINGERPRINT: u32 = {fingerprint:#010x};\n"
+        ),
+    )
+    .expect("OUT_DIR is writable");
 }

@@ -17,12 +17,12 @@ use pto_firmware::control::{ControlConfig, Controller, SetupError};
 use pto_firmware::link::{HostReceiver, Transmitter};
 use pto_firmware::supervisor::{Heartbeats, Supervisor, Task, Watchdog as _};
 use pto_firmware::{HEARTBEAT_MS, SUPERVISOR_PERIOD_MS, VERSION};
+use pto_model::fx::Aperture;
 use pto_model::protocol::{
     FromFirmware, Hello, LinkCounts, MAX_FRAME, PROTOCOL_VERSION, Refusal, SCHEMA_HASH,
     SensorFrame, ToFirmware,
 };
 use pto_model::scheduler::SchedulerConfig;
-use pto_model::{ModelConfig, fx::Aperture};
 use static_cell::StaticCell;
 
 /// What the tasks get from the board (its types are the board module's aliases).
@@ -100,7 +100,15 @@ fn hello() -> Hello {
 /// Boots the board, checks the configuration, spawns the tasks.
 pub fn start(spawner: Spawner) {
     let b = board::init(spawner);
-    let model = ModelConfig::reference();
+    let Some(model) = pto_firmware::built_config::model() else {
+        defmt::error!("the built-in model configuration does not decode: damaged image");
+        board::fail(2)
+    };
+    defmt::info!(
+        "model configuration: built for {=str} (fingerprint {=u32:08x})",
+        pto_firmware::built_config::SOURCE,
+        pto_firmware::built_config::FINGERPRINT
+    );
     let sched = SchedulerConfig::default();
     let cc = ControlConfig::default();
     let ctl = match Controller::new(&model, &sched, &cc) {

@@ -11,9 +11,11 @@
 //! - [`supervisor`]: task heartbeats and the watchdog-feed decision.
 //! - [`trip`]: the overpressure trip latch (a state machine that only a valid reading
 //!   releases).
+//! - [`built_config`]: the model configuration the firmware is built for (`PTO_BENCH`).
 #![cfg_attr(not(test), no_std)]
 #![forbid(unsafe_code)]
 
+pub mod built_config;
 pub mod control;
 pub mod frontend;
 pub mod link;

@@ -205,8 +205,9 @@ fn check(field: &'static str, value: f32, min: f32, max: f32) -> Result<(), Conf
 }
 
 impl ModelConfig {
-    /// The reference bench of `host-tests/data/reference-bench.toml` (a host test keeps the two
-    /// in step).
+    /// The reference bench of `host-tests/data/reference-bench.toml`, to the bit: the values the
+    /// host tools' conversion (`pto_bench::model::model_config`) gives for that file, as f32 (a
+    /// host test keeps the two equal; the firmware built without `PTO_BENCH` runs this).
     pub fn reference() -> Self {
         let small = CylinderConfig {
             bore_mm: 32.0,
@@ -244,7 +245,7 @@ impl ModelConfig {
             free_play_mm: 4.0,
             seal_friction_n_s_per_m: 2000.0,
             // 15 cm³ + 1 m of 9.5 mm hose.
-            chamber_dead_volume_cm3: 85.88,
+            chamber_dead_volume_cm3: 85.882_19,
             oil_liquid_bulk_modulus_mpa: 1600.0,
             oil_density_kg_m3: 870.0,
             trapped_air_fraction: 0.06,
@@ -254,13 +255,13 @@ impl ModelConfig {
                 volume_l: 10.0,
                 precharge_bar: 25.0,
                 polytropic_index: 1.4,
-                line_volume_l: 0.38,
+                line_volume_l: 0.380_030_6,
             },
             lp_accumulator: AccumulatorConfig {
                 volume_l: 20.0,
                 precharge_bar: 4.0,
                 polytropic_index: 1.4,
-                line_volume_l: 0.76,
+                line_volume_l: 0.760_061_2,
             },
             valve_discharge_coefficient: 0.154,
             valve_aperture_pct: [
@@ -275,11 +276,11 @@ impl ModelConfig {
             relief_setting_bar: 130.0,
             // Cd·A_max/range·sqrt(2·Δp/ρ) with Δp = 130 − 8 bar:
             // 0.7 × 10 mm² / 3 bar × sqrt(2 × 122 bar / 870 kg/m³), in L/min per bar.
-            relief_gain_lpm_per_bar: 23.4457,
+            relief_gain_lpm_per_bar: 23.445_707,
             motor_displacement_cm3_per_rev: 8.0,
             // D·ω_nom·(1 − η_v)/p_nom = 12 L/min × 0.08 / 100 bar.
             motor_leak_lpm_per_bar: 0.0096,
-            motor_mech_efficiency: 0.923_913,
+            motor_mech_efficiency: 0.923_913_06,
             load_nm_per_rpm: 0.00784,
             motor_inertia_kg_m2: 0.01,
             hp_sensor_range_bar: (-2.0, 250.0),

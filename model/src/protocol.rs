@@ -596,6 +596,34 @@ impl<T: DeserializeOwned + Session> Receiver<T> {
     }
 }
 
+/// Largest postcard encoding of a [`ModelConfig`](crate::ModelConfig), bytes (its f32 fields
+/// are 4 bytes each and its small integers varints: ≈ 300 bytes).
+pub const CONFIG_MAX_BYTES: usize = 512;
+
+/// A model configuration as postcard bytes: the form the firmware's build script embeds (and in
+/// which a configuration travels to the firmware). The bytes are written into `out`; the
+/// encoded part is returned.
+pub fn encode_config<'a>(
+    cfg: &crate::ModelConfig,
+    out: &'a mut [u8],
+) -> Result<&'a mut [u8], postcard::Error> {
+    postcard::to_slice(cfg, out)
+}
+
+/// The model configuration of [`encode_config`]'s bytes: exactly those bytes, nothing left over.
+pub fn decode_config(bytes: &[u8]) -> Result<crate::ModelConfig, postcard::Error> {
+    match postcard::take_from_bytes(bytes)? {
+        (cfg, []) => Ok(cfg),
+        _ => Err(postcard::Error::DeserializeBadEncoding),
+    }
+}
+
+/// A configuration's fingerprint: the CRC-32C of its [`encode_config`] bytes (the firmware logs
+/// it at boot; `pto` prints the same figure for a bench file).
+pub fn config_fingerprint(bytes: &[u8]) -> u32 {
+    CRC.checksum(bytes)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -719,5 +747,24 @@ mod tests {
         };
         assert!(other.check().is_err());
         assert_ne!(SCHEMA_HASH, [0; 8]);
+    }
+
+    /// The reference configuration survives the embedding's round trip field for field, and a
+    /// truncated or padded encoding is refused.
+    #[test]
+    fn a_model_configuration_round_trips_through_its_bytes() {
+        let cfg = crate::ModelConfig::reference();
+        let mut buf = [0u8; CONFIG_MAX_BYTES];
+        let bytes = encode_config(&cfg, &mut buf).unwrap().to_vec();
+        println!(
+            "reference configuration: {} bytes, fingerprint {:08x}",
+            bytes.len(),
+            config_fingerprint(&bytes)
+        );
+        assert_eq!(decode_config(&bytes).unwrap(), cfg);
+        assert!(decode_config(&bytes[..bytes.len() - 1]).is_err());
+        let mut padded = bytes.clone();
+        padded.push(0);
+        assert!(decode_config(&padded).is_err());
     }
 }

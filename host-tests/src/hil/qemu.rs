@@ -192,8 +192,34 @@ pub fn build(which: Build) -> Result<PathBuf, BuildError> {
 }
 
 fn build_uncached(which: Build) -> Result<PathBuf, BuildError> {
+    build_into(
+        which,
+        None,
+        &workspace_root()
+            .join("target")
+            .join("fw")
+            .join(which.name()),
+    )
+}
+
+/// Builds the firmware for the bench file `bench` (`PTO_BENCH`, see `pto_firmware::built_config`)
+/// into `target_dir` (not cached: each call runs cargo, which rebuilds only what changed) and
+/// returns the ELF path. A bench the model cannot take fails the build; the error's tail carries
+/// the build script's message (file, field, range).
+pub fn build_for_bench(
+    which: Build,
+    bench: &Path,
+    target_dir: &Path,
+) -> Result<PathBuf, BuildError> {
+    build_into(which, Some(bench), target_dir)
+}
+
+fn build_into(
+    which: Build,
+    bench: Option<&Path>,
+    target_dir: &Path,
+) -> Result<PathBuf, BuildError> {
     let root = workspace_root();
-    let target_dir = root.join("target").join("fw").join(which.name());
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let mut cmd = Command::new(cargo);
     cmd.current_dir(&root).args([
@@ -206,7 +232,13 @@ fn build_uncached(which: Build) -> Result<PathBuf, BuildError> {
         "thumbv7em-none-eabihf",
         "--target-dir",
     ]);
-    cmd.arg(&target_dir);
+    cmd.arg(target_dir);
+    // The default builds are for the reference bench whatever the caller's environment says
+    // (the golden vectors and the PIL runs assume it).
+    match bench {
+        Some(b) => cmd.env("PTO_BENCH", b),
+        None => cmd.env_remove("PTO_BENCH"),
+    };
     if which == Build::Bench {
         cmd.args(["--no-default-features", "--features", "bench"]);
     }

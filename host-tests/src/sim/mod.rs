@@ -27,7 +27,9 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
-pub mod bench;
+/// The bench parameter file (its own crate, `pto-bench`, which the firmware's build script uses
+/// too).
+pub use pto_bench as bench;
 pub mod benchlog;
 pub mod motion;
 pub mod physics;

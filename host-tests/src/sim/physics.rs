@@ -173,9 +173,43 @@ pub fn valve_flow(bench: &Bench, a_pct: f64, dp: f64) -> f64 {
 /// the fluid volume offset by the band's small deficit, < 0.3 cm³ per litre of gas).
 pub const BLADDER_BAND: f64 = 0.5e5;
 
-impl Accumulator {
+/// The gas accumulator's law (the bench file's [`Accumulator`] holds its parameters).
+pub trait AccumulatorLaw {
     /// Gas volume of the ideal polytropic gas law at gauge pressure `p`, m³.
-    pub fn gas_volume(&self, p: f64) -> f64 {
+    fn gas_volume(&self, p: f64) -> f64;
+    /// Oil volume inside, m³.
+    fn fluid_volume(&self, p: f64) -> f64;
+    /// dV_fluid/dp, m³/Pa (0 below precharge: the bladder rests on its stop).
+    fn capacitance(&self, p: f64) -> f64;
+    /// Work done on the gas by the oil, with gauge pressures: ∫ p dV_fluid, J.
+    fn stored_energy(&self, p: f64) -> f64;
+}
+
+fn exact_capacitance(a: &Accumulator, p: f64) -> f64 {
+    a.gas_volume(p) / (a.index * (p + P_ATM))
+}
+
+/// ∫ p dV of the exact gas law from the precharge to p (gauge frame), J.
+fn exact_energy(a: &Accumulator, p: f64) -> f64 {
+    let (p0, p1) = (a.precharge_pa + P_ATM, p + P_ATM);
+    let v1 = a.gas_volume(p);
+    // −∫ p_abs dV = (p1·V1 − p0·V0)/(k − 1); the atmosphere's share p_a·(V0 − V1) is not
+    // stored in the gauge frame.
+    (p1 * v1 - p0 * a.volume_m3) / (a.index - 1.0) - P_ATM * (a.volume_m3 - v1)
+}
+
+/// Values at the top of the lift-off band: (p1, C(p1), fluid volume, energy).
+fn band_top(a: &Accumulator) -> (f64, f64, f64, f64) {
+    let p0 = a.precharge_pa;
+    let p1 = p0 + BLADDER_BAND;
+    let c1 = exact_capacitance(a, p1);
+    let vf = c1 * BLADDER_BAND / 2.0;
+    let e = c1 / BLADDER_BAND * ((p1.powi(3) - p0.powi(3)) / 3.0 - p0 * (p1 * p1 - p0 * p0) / 2.0);
+    (p1, c1, vf, e)
+}
+
+impl AccumulatorLaw for Accumulator {
+    fn gas_volume(&self, p: f64) -> f64 {
         if p <= self.precharge_pa {
             self.volume_m3
         } else {
@@ -183,37 +217,12 @@ impl Accumulator {
         }
     }
 
-    fn exact_capacitance(&self, p: f64) -> f64 {
-        self.gas_volume(p) / (self.index * (p + P_ATM))
-    }
-
-    /// ∫ p dV of the exact gas law from the precharge to p (gauge frame), J.
-    fn exact_energy(&self, p: f64) -> f64 {
-        let (p0, p1) = (self.precharge_pa + P_ATM, p + P_ATM);
-        let v1 = self.gas_volume(p);
-        // −∫ p_abs dV = (p1·V1 − p0·V0)/(k − 1); the atmosphere's share p_a·(V0 − V1) is not
-        // stored in the gauge frame.
-        (p1 * v1 - p0 * self.volume_m3) / (self.index - 1.0) - P_ATM * (self.volume_m3 - v1)
-    }
-
-    /// Values at the top of the lift-off band: (p1, C(p1), fluid volume, energy).
-    fn band_top(&self) -> (f64, f64, f64, f64) {
-        let p0 = self.precharge_pa;
-        let p1 = p0 + BLADDER_BAND;
-        let c1 = self.exact_capacitance(p1);
-        let vf = c1 * BLADDER_BAND / 2.0;
-        let e =
-            c1 / BLADDER_BAND * ((p1.powi(3) - p0.powi(3)) / 3.0 - p0 * (p1 * p1 - p0 * p0) / 2.0);
-        (p1, c1, vf, e)
-    }
-
-    /// Oil volume inside, m³.
-    pub fn fluid_volume(&self, p: f64) -> f64 {
+    fn fluid_volume(&self, p: f64) -> f64 {
         let p0 = self.precharge_pa;
         if p <= p0 {
             return 0.0;
         }
-        let (p1, c1, vf1, _) = self.band_top();
+        let (p1, c1, vf1, _) = band_top(self);
         if p <= p1 {
             c1 * (p - p0).powi(2) / (2.0 * BLADDER_BAND)
         } else {
@@ -221,31 +230,29 @@ impl Accumulator {
         }
     }
 
-    /// dV_fluid/dp, m³/Pa (0 below precharge: the bladder rests on its stop).
-    pub fn capacitance(&self, p: f64) -> f64 {
+    fn capacitance(&self, p: f64) -> f64 {
         let p0 = self.precharge_pa;
         if p <= p0 {
             return 0.0;
         }
-        let (p1, c1, _, _) = self.band_top();
+        let (p1, c1, _, _) = band_top(self);
         if p <= p1 {
             c1 * (p - p0) / BLADDER_BAND
         } else {
-            self.exact_capacitance(p)
+            exact_capacitance(self, p)
         }
     }
 
-    /// Work done on the gas by the oil, with gauge pressures: ∫ p dV_fluid, J.
-    pub fn stored_energy(&self, p: f64) -> f64 {
+    fn stored_energy(&self, p: f64) -> f64 {
         let p0 = self.precharge_pa;
         if p <= p0 {
             return 0.0;
         }
-        let (p1, c1, _, e1) = self.band_top();
+        let (p1, c1, _, e1) = band_top(self);
         if p <= p1 {
             c1 / BLADDER_BAND * ((p.powi(3) - p0.powi(3)) / 3.0 - p0 * (p * p - p0 * p0) / 2.0)
         } else {
-            e1 + self.exact_energy(p) - self.exact_energy(p1)
+            e1 + exact_energy(self, p) - exact_energy(self, p1)
         }
     }
 }

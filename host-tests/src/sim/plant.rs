@@ -9,7 +9,7 @@
 
 use crate::sim::bench::{BAR, Bench, Load};
 use crate::sim::motion::Motion;
-use crate::sim::physics::{self, Fluid, Lever, check_flow};
+use crate::sim::physics::{self, AccumulatorLaw, Fluid, Lever, check_flow};
 use std::cell::Cell;
 
 /// Number of cylinders on the bench.

@@ -13,13 +13,15 @@ pub const P_ATM: f64 = 101_325.0;
 pub const BAR: f64 = 1e5;
 
 /// The reference bench shipped with the project (`data/reference-bench.toml`).
-pub const REFERENCE_BENCH_TOML: &str = include_str!("../../../data/reference-bench.toml");
+pub const REFERENCE_BENCH_TOML: &str = include_str!("../../data/reference-bench.toml");
 /// Name under which the embedded reference bench reports errors.
 pub const REFERENCE_BENCH_NAME: &str = "the built-in reference bench";
 
 mod check;
 mod error;
 mod file;
+#[cfg(feature = "model")]
+pub mod model;
 
 pub use error::{BenchError, FieldError, OverrideError, SetFieldError};
 pub use file::*;

@@ -1,0 +1,42 @@
+//! The model configuration the firmware is built for: `PTO_BENCH=FILE cargo fw-bench` (a path
+//! from the workspace root; default the reference bench). The build script loads and checks
+//! the bench file with the host tools' own code, converts it into a [`ModelConfig`]
+//! (`pto_bench::model::model_config`), checks that it gives coefficients, and embeds it as
+//! postcard bytes; a bench the model cannot take fails the build with the file, the field and
+//! its range.
+
+use pto_model::ModelConfig;
+use pto_model::protocol::decode_config;
+
+include!(concat!(env!("OUT_DIR"), "/bench-config.rs"));
+
+/// The configuration's bytes ([`pto_model::protocol::encode_config`]).
+pub const BYTES: &[u8] = include_bytes!(concat!(env!("OUT_DIR"), "/bench-config.bin"));
+
+/// The configuration the firmware is built for; `None` only if the image is damaged (the build
+/// script decoded these very bytes).
+pub fn model() -> Option<ModelConfig> {
+    decode_config(BYTES).ok()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The embedded configuration decodes, gives coefficients and carries its fingerprint;
+    /// built for the reference bench it is `ModelConfig::reference()` to the bit (the golden
+    /// vectors' configuration).
+    #[test]
+    fn the_built_in_configuration_decodes_and_names_its_source() {
+        let cfg = model().unwrap();
+        println!(
+            "built for {SOURCE}: {} bytes, fingerprint {FINGERPRINT:08x}",
+            BYTES.len()
+        );
+        assert_eq!(FINGERPRINT, pto_model::protocol::config_fingerprint(BYTES));
+        assert!(cfg.coefficients().is_ok());
+        if REFERENCE {
+            assert_eq!(cfg, ModelConfig::reference());
+        }
+    }
+}
