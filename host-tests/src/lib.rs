@@ -9,7 +9,7 @@
 //! - [`fit`]: bench parameters fitted to bench logs, on the simulation.
 //! - [`model`]: the fixed-point model against the simulation (configuration from the bench,
 //!   sensors, the f64 mirror, `pto validate`, golden vectors, code cost).
-//! - [`hil`]: the firmware under QEMU, processor-in-the-loop, firmware cost.
+//! - [`hil`]: the firmware built from the host, run under QEMU, processor-in-the-loop, firmware cost.
 //! - [`runner`]: scenarios run in parallel on all cores; [`perf`]: the solver's timing
 //!   (`pto bench`).
 //! - [`figures`] (the figures of a run and of the paper), [`plot`] (the plotting), [`output`]

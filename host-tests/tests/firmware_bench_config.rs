@@ -3,8 +3,9 @@
 //! firmware boots with that bench's configuration (its fingerprint in the boot log) and, step
 //! for step, gives the host model's estimate with that configuration bit for bit.
 
+use pto_host::hil::build::{self, Build};
 use pto_host::hil::pil;
-use pto_host::hil::qemu::{self, Build, Qemu};
+use pto_host::hil::qemu::Qemu;
 use pto_host::model::{golden, model_config};
 use pto_host::sim::bench::{Bench, REFERENCE_BENCH_TOML};
 use pto_model::fx::Pressure;
@@ -20,7 +21,7 @@ fn bench_with(key_old: &str, key_new: &str) -> String {
 
 #[test]
 fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
-    let dir = qemu::workspace_root().join("target").join("fw-bench-file");
+    let dir = build::workspace_root().join("target").join("fw-bench-file");
     std::fs::create_dir_all(&dir).unwrap();
     // A bench whose trapped air differs from the reference's.
     let path = dir.join("more-air.toml");
@@ -35,7 +36,7 @@ fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
     let mut buf = [0u8; CONFIG_MAX_BYTES];
     let fingerprint = config_fingerprint(encode_config(&cfg, &mut buf).unwrap());
 
-    let elf = qemu::build_for_bench(Build::Qemu, &path, &dir.join("target")).unwrap();
+    let elf = build::build_for_bench(Build::Qemu, &path, &dir.join("target")).unwrap();
     let mut q = Qemu::boot(&elf, false).unwrap();
     let k = cfg.coefficients().unwrap();
     let mode = Mode::HoldPressure(Pressure::from_num(golden::SETPOINT_BAR));
@@ -85,7 +86,7 @@ fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
         bench_with("trapped_air_fraction = 0.06", "trapped_air_fraction = 0.9"),
     )
     .unwrap();
-    let err = qemu::build_for_bench(Build::Qemu, &bad, &dir.join("target"))
+    let err = build::build_for_bench(Build::Qemu, &bad, &dir.join("target"))
         .expect_err("an out-of-range bench does not build");
     let text = format!("{err:#}");
     println!("{text}");

@@ -1,12 +1,13 @@
 //! The QEMU build boots, logs its version and configuration, answers a ping, exits on command.
 
-use pto_host::hil::qemu::{self, Build, Qemu};
+use pto_host::hil::build::{self, Build};
+use pto_host::hil::qemu::Qemu;
 use pto_model::protocol::{FromFirmware, ToFirmware};
 use std::time::Duration;
 
 #[test]
 fn boots_logs_answers_a_ping_and_exits_zero() {
-    let elf = qemu::build(Build::Qemu).unwrap();
+    let elf = build::build(Build::Qemu).unwrap();
     let t0 = std::time::Instant::now();
     let mut q = Qemu::boot(&elf, false).unwrap();
     let pong = q

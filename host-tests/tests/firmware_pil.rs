@@ -2,8 +2,9 @@
 //! lockstep over USART1 (one sensor frame out and one output back per 2^-10 s step). Also the
 //! fault injections and the watchdog test.
 
+use pto_host::hil::build::{self, Build};
 use pto_host::hil::pil::{self, Injection, PilRow};
-use pto_host::hil::qemu::{self, Build, Qemu};
+use pto_host::hil::qemu::Qemu;
 use pto_host::model::sensors::SensorSpec;
 use pto_host::sim::bench::Bench;
 use pto_model::estimator::fault;
@@ -13,7 +14,7 @@ use pto_model::scheduler::Mode;
 use std::time::Duration;
 
 fn boot() -> Qemu {
-    Qemu::boot(&qemu::build(Build::Qemu).unwrap(), false).unwrap()
+    Qemu::boot(&build::build(Build::Qemu).unwrap(), false).unwrap()
 }
 
 fn finish(mut q: Qemu) {

@@ -3,8 +3,9 @@
 //! firmware give, step for step, the same estimate and scheduler output as the model crate run
 //! on the host.
 
+use pto_host::hil::build::{self, Build};
 use pto_host::hil::pil;
-use pto_host::hil::qemu::{self, Build, Qemu};
+use pto_host::hil::qemu::Qemu;
 use pto_host::model::golden;
 use pto_host::sim::bench::Bench;
 use pto_model::fx::Pressure;
@@ -13,7 +14,7 @@ use std::time::{Duration, Instant};
 
 #[test]
 fn firmware_matches_the_host_model_bit_for_bit() {
-    let elf = qemu::build(Build::Qemu).unwrap();
+    let elf = build::build(Build::Qemu).unwrap();
     let mut q = Qemu::boot(&elf, false).unwrap();
     let k = golden::coefficients().unwrap();
     let mode = Mode::HoldPressure(Pressure::from_num(golden::SETPOINT_BAR));
@@ -126,8 +127,9 @@ fn firmware_matches_the_host_model_bit_for_bit() {
     assert_eq!(q.wait_exit(Duration::from_secs(10)).unwrap(), 0);
 }
 
-/// Reversals of the host model over `inputs` at which the ending stroke's eye had not yet crossed
-/// its free play (`CylState::engaged` false after the turn).
+/// Reversals of the host model over `inputs` after which the new stroke crosses the eye's
+/// distance back rather than following the chambers' force (`CylState::engaged` false after the
+/// turn: the ending stroke's eye had not crossed its play, or it was no stroke at all).
 fn short_strokes(
     k: &pto_model::Coefficients,
     inputs: &[pto_model::estimator::Inputs],

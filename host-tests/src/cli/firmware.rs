@@ -5,10 +5,11 @@ use anyhow::Result;
 use std::path::{Path, PathBuf};
 
 pub(crate) fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
-    use pto_host::hil::qemu::{self, Build, Qemu};
+    use pto_host::hil::build::{self, Build};
+    use pto_host::hil::qemu::Qemu;
     use pto_model::protocol::{FromFirmware, ToFirmware};
     eprintln!("building the QEMU firmware…");
-    let elf = qemu::build(Build::Qemu)?;
+    let elf = build::build(Build::Qemu)?;
     let mut q = Qemu::boot(&elf, follow)?;
     let t0 = std::time::Instant::now();
     q.link.request(&ToFirmware::Ping(1), |r| {
@@ -58,10 +59,11 @@ pub(crate) fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
 }
 
 pub(crate) fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
-    use pto_host::hil::qemu::{self, Build, Qemu};
+    use pto_host::hil::build::{self, Build};
+    use pto_host::hil::qemu::Qemu;
     let bench = load_bench(bench)?;
     eprintln!("building the QEMU firmware…");
-    let elf = qemu::build(Build::Qemu)?;
+    let elf = build::build(Build::Qemu)?;
     let checks: [(&str, pto_host::hil::pil::CheckFn); 5] = [
         ("hold P2", pto_host::hil::pil::check_hold_p2),
         ("hold speed", pto_host::hil::pil::check_hold_speed),

@@ -13,9 +13,8 @@ pub(crate) fn validate_cmd(
 ) -> Result<bool> {
     use pto_host::model::validate::{self, target};
     let bench = load_bench(bench_path)?;
-    let sel: Vec<_> = scenario::builtin()
+    let sel: Vec<_> = scenario::every_builtin()
         .into_iter()
-        .chain(scenario::sea_family())
         .filter(|s| s.name.contains(filter))
         .collect();
     if sel.is_empty() {

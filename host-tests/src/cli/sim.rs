@@ -14,10 +14,7 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
 pub(crate) fn scenarios(json: bool) -> Result<bool> {
-    let all: Vec<_> = scenario::builtin()
-        .into_iter()
-        .chain(scenario::sea_family())
-        .collect();
+    let all = scenario::every_builtin();
     if json {
         println!("{}", serde_json::to_string_pretty(&all)?);
     } else {

@@ -32,26 +32,6 @@ impl std::fmt::Debug for Param {
     }
 }
 
-pub(super) fn scalar(
-    name: &str,
-    key: &str,
-    unit: &str,
-    lo: f64,
-    hi: f64,
-    get: fn(&BenchFile) -> f64,
-    set: fn(&mut BenchFile, f64),
-) -> Param {
-    Param {
-        name: name.into(),
-        key: key.into(),
-        unit: unit.into(),
-        lo,
-        hi,
-        get: Arc::new(get),
-        set: Arc::new(set),
-    }
-}
-
 /// Names accepted by `--params` (`area_table` expands to one factor per table segment).
 pub const PARAM_NAMES: &[&str] = &[
     "trapped_air",
@@ -63,64 +43,87 @@ pub const PARAM_NAMES: &[&str] = &[
     "area_table",
 ];
 
-/// The scalar parameter called `name` (every name of [`PARAM_NAMES`] but `area_table`).
+/// A scalar parameter: (short name, bench field, unit, lower bound, upper bound, getter,
+/// setter).
+type Scalar = (
+    &'static str,
+    &'static str,
+    &'static str,
+    f64,
+    f64,
+    fn(&BenchFile) -> f64,
+    fn(&mut BenchFile, f64),
+);
+
+/// The scalar parameters (every name of [`PARAM_NAMES`] but `area_table`).
+const SCALARS: [Scalar; 6] = [
+    (
+        "trapped_air",
+        "oil.trapped_air_fraction",
+        "-",
+        0.0,
+        0.3,
+        |f| f.oil.trapped_air_fraction,
+        |f, x| f.oil.trapped_air_fraction = x,
+    ),
+    (
+        "cd",
+        "control_valve.discharge_coefficient",
+        "-",
+        0.02,
+        1.0,
+        |f| f.control_valve.discharge_coefficient,
+        |f, x| f.control_valve.discharge_coefficient = x,
+    ),
+    (
+        "precharge",
+        "hp_accumulator.precharge_bar",
+        "bar",
+        1.0,
+        120.0,
+        |f| f.hp_accumulator.precharge_bar,
+        |f, x| f.hp_accumulator.precharge_bar = x,
+    ),
+    (
+        "hp_volume",
+        "hp_accumulator.volume_l",
+        "L",
+        0.1,
+        200.0,
+        |f| f.hp_accumulator.volume_l,
+        |f, x| f.hp_accumulator.volume_l = x,
+    ),
+    (
+        "cd_slope",
+        "control_valve.cd_slope_per_100bar",
+        "1/100 bar",
+        -0.5,
+        0.5,
+        |f| f.control_valve.cd_slope_per_100bar,
+        |f, x| f.control_valve.cd_slope_per_100bar = x,
+    ),
+    (
+        "leakage",
+        "motor.volumetric_efficiency",
+        "-",
+        0.5,
+        1.0,
+        |f| f.motor.volumetric_efficiency,
+        |f, x| f.motor.volumetric_efficiency = x,
+    ),
+];
+
+/// The scalar parameter called `name`.
 fn scalar_param(name: &str) -> Option<Param> {
-    Some(match name {
-        "trapped_air" => scalar(
-            "trapped_air",
-            "oil.trapped_air_fraction",
-            "-",
-            0.0,
-            0.3,
-            |f| f.oil.trapped_air_fraction,
-            |f, x| f.oil.trapped_air_fraction = x,
-        ),
-        "cd" => scalar(
-            "cd",
-            "control_valve.discharge_coefficient",
-            "-",
-            0.02,
-            1.0,
-            |f| f.control_valve.discharge_coefficient,
-            |f, x| f.control_valve.discharge_coefficient = x,
-        ),
-        "precharge" => scalar(
-            "precharge",
-            "hp_accumulator.precharge_bar",
-            "bar",
-            1.0,
-            120.0,
-            |f| f.hp_accumulator.precharge_bar,
-            |f, x| f.hp_accumulator.precharge_bar = x,
-        ),
-        "hp_volume" => scalar(
-            "hp_volume",
-            "hp_accumulator.volume_l",
-            "L",
-            0.1,
-            200.0,
-            |f| f.hp_accumulator.volume_l,
-            |f, x| f.hp_accumulator.volume_l = x,
-        ),
-        "cd_slope" => scalar(
-            "cd_slope",
-            "control_valve.cd_slope_per_100bar",
-            "1/100 bar",
-            -0.5,
-            0.5,
-            |f| f.control_valve.cd_slope_per_100bar,
-            |f, x| f.control_valve.cd_slope_per_100bar = x,
-        ),
-        "leakage" => scalar(
-            "leakage",
-            "motor.volumetric_efficiency",
-            "-",
-            0.5,
-            1.0,
-            |f| f.motor.volumetric_efficiency,
-            |f, x| f.motor.volumetric_efficiency = x,
-        ),
-        _ => return None,
+    let &(name, key, unit, lo, hi, get, set) = SCALARS.iter().find(|s| s.0 == name)?;
+    Some(Param {
+        name: name.into(),
+        key: key.into(),
+        unit: unit.into(),
+        lo,
+        hi,
+        get: Arc::new(get),
+        set: Arc::new(set),
     })
 }
 

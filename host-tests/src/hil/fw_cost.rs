@@ -1,8 +1,9 @@
 //! Firmware cost: instructions per estimator + scheduler step under QEMU `-icount shift=0`
 //! (TIM2 counts one tick per instruction), and flash / static RAM of both builds.
 
+use crate::hil::build::{self, Build, BuildError};
 use crate::hil::pil::{self, PilError};
-use crate::hil::qemu::{self, Build, BuildError, LinkError, Qemu, QemuError};
+use crate::hil::qemu::{LinkError, Qemu, QemuError};
 use crate::model::golden::{self, GoldenError};
 use object::{Object, ObjectSection, SectionKind};
 use pto_model::ConfigError;
@@ -177,7 +178,7 @@ pub struct StepTrace {
 /// firmware's output does not carry. For finding which steps set the maximum.
 pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, FwCostError> {
     use pto_model::estimator::{self, State};
-    let qemu_elf = qemu::build(Build::Qemu)?;
+    let qemu_elf = build::build(Build::Qemu)?;
     let (four, p2, lp) = four_cylinder_inputs()?;
     let mut q = Qemu::boot(&qemu_elf, false)?;
     pil::prime(&mut q, p2, lp, hold_p2())?;
@@ -241,8 +242,8 @@ fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
 
 /// Builds both firmwares, measures.
 pub fn measure() -> Result<Report, FwCostError> {
-    let qemu_elf = qemu::build(Build::Qemu)?;
-    let bench_elf = qemu::build(Build::Bench)?;
+    let qemu_elf = build::build(Build::Qemu)?;
+    let bench_elf = build::build(Build::Bench)?;
     let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(golden::FILE))
         .map_err(|source| FwCostError::Read {
             path: golden::FILE.into(),

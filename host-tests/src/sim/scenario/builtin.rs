@@ -335,10 +335,14 @@ pub fn sea_family() -> Vec<Scenario> {
     v
 }
 
+/// Every built-in scenario: the paper's runs ([`builtin`]) and the sea family ([`sea_family`]).
+pub fn every_builtin() -> Vec<Scenario> {
+    let mut v = builtin();
+    v.extend(sea_family());
+    v
+}
+
 /// The built-in scenario called `name` (the paper's runs and the sea family).
 pub fn builtin_named(name: &str) -> Option<Scenario> {
-    builtin()
-        .into_iter()
-        .chain(sea_family())
-        .find(|s| s.name == name)
+    every_builtin().into_iter().find(|s| s.name == name)
 }

@@ -9,7 +9,9 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 pub mod builtin;
-pub use builtin::{BLOCKED_APERTURES, SETS, TEST3_APERTURES, builtin, builtin_named, sea_family};
+pub use builtin::{
+    BLOCKED_APERTURES, SETS, TEST3_APERTURES, builtin, builtin_named, every_builtin, sea_family,
+};
 
 /// How the control valve is driven, as written in scenario files (apertures in %).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]

@@ -2,7 +2,7 @@
 //! σ coverage, the empty flag, the f64 mirror), and the closed-loop rows of [`super::closed_loop`].
 
 use super::closed_loop::{LoopRow, closed_loop_rows};
-use super::{commanded_aperture_pct, duty_mask, model_config};
+use super::{ModelError, commanded_aperture_pct, duty_mask, model_config};
 use crate::model::reference::Reference;
 use crate::model::sensors::{SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
@@ -14,6 +14,10 @@ use pto_model::fx::Pressure;
 use pto_model::table::Table1;
 use pto_model::{Coefficients, ModelConfig, coeffs};
 use rayon::prelude::*;
+use spread::WorstWindow;
+pub use spread::{FAMILY_GROUP, Spread, WORST_WINDOW_S};
+
+mod spread;
 use serde::Serialize;
 use std::path::Path;
 
@@ -371,116 +375,6 @@ impl Row {
     }
 }
 
-/// The scenario group whose spread the report gives ([`crate::sim::scenario::sea_family`]).
-pub const FAMILY_GROUP: &str = "sea-family";
-
-/// Length of the window of [`Row::torque_worst_4s_of_peak`], s.
-pub const WORST_WINDOW_S: f64 = 4.0;
-
-/// The largest mean of a quantity over a sliding window of `len` samples.
-struct WorstWindow {
-    len: usize,
-    ring: std::collections::VecDeque<(f64, f64)>,
-    sum: f64,
-    /// (largest mean, start of its window).
-    worst: Option<(f64, f64)>,
-}
-
-impl WorstWindow {
-    fn new(len: usize) -> Self {
-        WorstWindow {
-            len: len.max(1),
-            ring: std::collections::VecDeque::with_capacity(len.max(1) + 1),
-            sum: 0.0,
-            worst: None,
-        }
-    }
-
-    fn add(&mut self, t: f64, x: f64) {
-        self.ring.push_back((t, x));
-        self.sum += x;
-        if self.ring.len() > self.len {
-            let (_, old) = self.ring.pop_front().unwrap_or_default();
-            self.sum -= old;
-        }
-        if self.ring.len() == self.len {
-            // (The running sum's rounding is ≈ 1e-11 of it over a 300 s run; a NaN sample
-            // makes the worst window NaN, which shows.)
-            let mean = self.sum / self.len as f64;
-            let start = self.ring.front().map_or(t, |f| f.0);
-            if self.worst.is_none_or(|w| mean > w.0 || mean.is_nan()) {
-                self.worst = Some((mean, start));
-            }
-        }
-    }
-
-    /// (largest window mean, its start), None when fewer samples than a window came.
-    fn worst(&self) -> Option<(f64, f64)> {
-        self.worst
-    }
-}
-
-/// Worst and median of a family of rows, per figure.
-#[derive(Debug, Clone, Serialize)]
-pub struct Spread {
-    /// Rows in the family.
-    pub runs: usize,
-    /// Rows meeting every target.
-    pub runs_met: usize,
-    /// Torque RMS error / peak: (worst, median); every figure is such a pair (`[worst,
-    /// median]` in JSON), over the rows that have the figure.
-    pub torque_rms_of_peak: (f64, f64),
-    /// Worst 4 s torque error / peak: (worst, median).
-    pub torque_worst_4s_of_peak: (f64, f64),
-    /// P2 RMS error with the transducer, bar: (worst, median).
-    pub p2_rms_bar: (f64, f64),
-    /// Model-only P2 max error (first 60 s), bar: (worst, median).
-    pub p2_model_only_max_bar: (f64, f64),
-    /// 2σ coverage with the transducer: (worst, median).
-    pub cover_2s: (f64, f64),
-    /// 3σ coverage with the transducer: (worst, median).
-    pub cover_3s: (f64, f64),
-    /// Motor speed RMS error / RMS speed: (worst, median).
-    pub motor_rms_rel: (f64, f64),
-}
-
-impl Spread {
-    /// The spread of `rows` (None when empty).
-    pub fn of(rows: &[&Row]) -> Option<Spread> {
-        if rows.is_empty() {
-            return None;
-        }
-        // (worst, median) of the figures present; `high_is_bad` says which end is the worst.
-        let wm = |xs: Vec<f64>, high_is_bad: bool| {
-            let mut xs = xs;
-            xs.sort_by(f64::total_cmp);
-            if xs.is_empty() {
-                return (f64::NAN, f64::NAN);
-            }
-            let worst = if high_is_bad { xs[xs.len() - 1] } else { xs[0] };
-            let n = xs.len();
-            let median = if n % 2 == 1 {
-                xs[n / 2]
-            } else {
-                0.5 * (xs[n / 2 - 1] + xs[n / 2])
-            };
-            (worst, median)
-        };
-        let col = |f: &dyn Fn(&Row) -> Option<f64>| rows.iter().filter_map(|r| f(r)).collect();
-        Some(Spread {
-            runs: rows.len(),
-            runs_met: rows.iter().filter(|r| r.pass).count(),
-            torque_rms_of_peak: wm(col(&|r| r.torque_rms_of_peak), true),
-            torque_worst_4s_of_peak: wm(col(&|r| r.torque_worst_4s_of_peak), true),
-            p2_rms_bar: wm(col(&|r| Some(r.p2_rms_bar)), true),
-            p2_model_only_max_bar: wm(col(&|r| Some(r.p2_model_only_max_bar)), true),
-            cover_2s: wm(col(&|r| Some(r.cover_2s)), false),
-            cover_3s: wm(col(&|r| Some(r.cover_3s)), false),
-            motor_rms_rel: wm(col(&|r| r.motor_rms_rel), true),
-        })
-    }
-}
-
 /// Counts the samples whose P2 error lies within 2σ and 3σ of the estimate's own σ.
 #[derive(Default)]
 struct Coverage {
@@ -588,20 +482,12 @@ fn seed_of(name: &str) -> u64 {
 
 /// Validates `scenarios` (in parallel) and the closed loop.
 pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
-    let mcfg = match model_config(bench) {
-        Ok(c) => c,
-        Err(e) => {
-            return Report {
-                rows: vec![],
-                sea_family: None,
-                closed_loop: vec![],
-                errors: vec![crate::error_chain(&e)],
-                pass: false,
-            };
-        }
-    };
-    let k = match mcfg.coefficients() {
-        Ok(k) => k,
+    let configured = model_config(bench).and_then(|c| {
+        let k = c.coefficients().map_err(ModelError::from)?;
+        Ok((c, k))
+    });
+    let (mcfg, k) = match configured {
+        Ok(x) => x,
         Err(e) => {
             return Report {
                 rows: vec![],
