@@ -210,6 +210,64 @@ impl Controller {
         Ok(c)
     }
 
+    /// Runs another model configuration from the next step: the same checks as
+    /// [`Controller::new`] (a refusal changes nothing), then the estimator restarts as at boot
+    /// (P2 unknown until the host's next [`Controller::reset`]), so the scheduler holds the
+    /// valve at its safe aperture until a reading confirms P2. The mode, the cylinders on duty,
+    /// the health counters, the tick count and the applied aperture (the slew limit goes on
+    /// from it) carry over; a tripped latch stays tripped and releases as at boot.
+    pub fn reconfigure(
+        &mut self,
+        model: &ModelConfig,
+        sched: &SchedulerConfig,
+        cc: &ControlConfig,
+    ) -> Result<(), SetupError> {
+        self.check_step(model)?;
+        let mut next = Controller::new(model, sched, cc)?;
+        next.mode = self.mode;
+        (next.on_duty, next.config) = (self.on_duty, self.config);
+        next.status = self.status;
+        next.last_tick = self.last_tick;
+        next.applied = self.applied;
+        if self.status.tripped {
+            next.boot_tripped();
+        }
+        *self = next;
+        Ok(())
+    }
+
+    /// Whether [`Controller::reconfigure`] would take `model`, without changing anything (a
+    /// whole controller is built on the stack and dropped: ≈ 11 KB, once per upload).
+    pub fn check_reconfigure(
+        &self,
+        model: &ModelConfig,
+        sched: &SchedulerConfig,
+        cc: &ControlConfig,
+    ) -> Result<(), SetupError> {
+        self.check_step(model)?;
+        Controller::new(model, sched, cc).map(|_| ())
+    }
+
+    fn check_step(&self, model: &ModelConfig) -> Result<(), SetupError> {
+        if model.dt_log2 != self.k.dt_log2 {
+            // The step is the board's sampling period, fixed at boot.
+            let dt = f32::from(self.k.dt_log2);
+            return Err(SetupError::Model(ConfigError {
+                field: "dt_log2",
+                value: f32::from(model.dt_log2),
+                min: dt,
+                max: dt,
+            }));
+        }
+        Ok(())
+    }
+
+    /// The declared safe state in which the firmware may stall for a flash erase: the host set
+    /// mode `Fixed(0)` and the valve is closed (the relief valve caps HP), not tripped.
+    pub fn safe_to_store(&self) -> bool {
+        self.mode == Mode::Fixed(Aperture::ZERO) && self.applied == ZERO && !self.status.tripped
+    }
+
     /// Model step, dt = 2^−dt_log2 s.
     pub fn dt_log2(&self) -> u8 {
         self.k.dt_log2
@@ -461,6 +519,64 @@ mod tests {
         assert_ne!(o.estimate.faults & fault::HP_SENSOR, 0);
         assert_eq!(c.status.hp_loop_faults, 1);
         assert!((o.estimate.p2.to_f32() - 90.0).abs() < 1.0);
+    }
+
+    /// A new configuration runs from the next step, restarts the estimator (P2 unknown) and
+    /// keeps the mode, the duty, the counters and a tripped latch; a bad one changes nothing.
+    #[test]
+    fn a_reconfiguration_restarts_the_estimator_and_keeps_the_rest() {
+        let mut c = ctl();
+        c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0))
+            .unwrap();
+        c.set_mode(Mode::Fixed(Aperture::from_num(5.0)));
+        c.set_duty(0b0011, 2);
+        for i in 0..100 {
+            assert!(c.fresh(i));
+            c.sample(&frame(i, 100.0), &mut NoClock);
+        }
+        assert!(!c.safe_to_store());
+        let mut cfg = ModelConfig::reference();
+        cfg.trapped_air_fraction = 0.09;
+        let before = c.clone();
+        let mut bad = cfg.clone();
+        bad.trapped_air_fraction = 5.0;
+        assert!(matches!(
+            c.reconfigure(&bad, &SchedulerConfig::default(), &ControlConfig::default()),
+            Err(SetupError::Model(_))
+        ));
+        let mut other_dt = cfg.clone();
+        other_dt.dt_log2 += 1;
+        assert!(matches!(
+            c.reconfigure(
+                &other_dt,
+                &SchedulerConfig::default(),
+                &ControlConfig::default()
+            ),
+            Err(SetupError::Model(ConfigError {
+                field: "dt_log2",
+                ..
+            }))
+        ));
+        assert_eq!(c.status, before.status);
+        c.reconfigure(&cfg, &SchedulerConfig::default(), &ControlConfig::default())
+            .unwrap();
+        assert_eq!(c.duty(), (0b0011, 2));
+        assert_eq!(c.mode(), Mode::Fixed(Aperture::from_num(5.0)));
+        assert_eq!(c.status.steps, 100);
+        assert!(!c.fresh(99), "the tick count goes on");
+        // P2 unknown again: its σ is the boot value until a reading confirms it.
+        let o = c.sample(&frame(101, 100.0), &mut NoClock);
+        assert!(o.estimate.p2_sigma().to_f32() > 1.0, "{o:?}");
+        // A tripped latch stays tripped.
+        let trip = c.trip().to_f32();
+        c.sample(&frame(102, trip + 1.0), &mut NoClock);
+        c.reconfigure(&cfg, &SchedulerConfig::default(), &ControlConfig::default())
+            .unwrap();
+        assert!(c.status.tripped && c.status.dump_valve);
+        // The declared safe state: fixed 0 % with the valve closed.
+        let mut c = ctl();
+        c.set_mode(Mode::Fixed(Aperture::ZERO));
+        assert!(c.safe_to_store());
     }
 
     #[test]

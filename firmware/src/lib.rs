@@ -12,6 +12,9 @@
 //! - [`trip`]: the overpressure trip latch (a state machine that only a valid reading
 //!   releases).
 //! - [`built_config`]: the model configuration the firmware is built for (`PTO_BENCH`).
+//! - [`upload`]: a configuration uploaded over the link, chunk by chunk, checked whole.
+//! - [`store`]: the uploaded configuration kept across resets (`sequential-storage` on flash,
+//!   or on RAM under QEMU).
 #![cfg_attr(not(test), no_std)]
 #![forbid(unsafe_code)]
 
@@ -19,8 +22,10 @@ pub mod built_config;
 pub mod control;
 pub mod frontend;
 pub mod link;
+pub mod store;
 pub mod supervisor;
 pub mod trip;
+pub mod upload;
 
 /// Firmware version, major·256 + minor (reported in `Ready`).
 pub const VERSION: u16 = 0x0200;

@@ -143,6 +143,7 @@ mod tests {
             },
             frames_overrun: all,
             bytes_lost: all,
+            telemetry_dropped: all,
             steps: all,
             faults_seen: fault::HP_SENSOR | fault::OVERPRESSURE,
             hp_loop_faults: all,
@@ -155,6 +156,30 @@ mod tests {
             step_cost_sum: u64::MAX,
         });
         let m = t.encode(&st, &mut b).expect("Status fits");
-        println!("largest Output frame {n} B, Status {m} B (limit {MAX_FRAME})");
+        let tel = |e: Estimate| {
+            FromFirmware::Telemetry(pto_model::protocol::Telemetry {
+                sensors: pto_model::protocol::SensorFrame {
+                    tick: u32::MAX,
+                    encoder: i32::MIN,
+                    hp_adc: u16::MAX,
+                    lp_adc: u16::MAX,
+                    motor: Some(pto_model::fx::Rpm(big)),
+                },
+                estimate: e,
+                command: Command {
+                    aperture: Aperture(big),
+                    safety: Default::default(),
+                },
+                applied: Aperture(big),
+                dump: true,
+                on_duty: 0xff,
+                config: 0xff,
+            })
+        };
+        let k = t.encode(&tel(e2), &mut b).expect("Telemetry fits");
+        println!("largest frames: Output {n} B, Status {m} B, Telemetry {k} B (limit {MAX_FRAME})");
+        // The link budget (docs/bench.md): at 230 400 baud 8N1 (23 040 B/s), the default 64
+        // telemetry frames per second of the largest size take under half of the link.
+        assert!(k * 64 * 2 < 23_040, "{k} B × 64/s");
     }
 }

@@ -20,16 +20,21 @@ pub trait Watchdog {
 pub enum Task {
     /// Estimator + scheduler + actuator.
     Control = 0,
-    /// Receive link.
+    /// Receive, the bench link.
     Rx = 1,
-    /// Transmit link.
+    /// Transmit, the bench link.
     Tx = 2,
+    /// Receive, the QEMU twin's hardware port (its virtual sensors and actuators).
+    HwRx = 3,
+    /// Transmit, the QEMU twin's hardware port.
+    HwTx = 4,
 }
 
 /// Number of monitored tasks.
-pub const TASKS: usize = 3;
+pub const TASKS: usize = 5;
+const ALL: [Task; TASKS] = [Task::Control, Task::Rx, Task::Tx, Task::HwRx, Task::HwTx];
 
-/// Heartbeat counters, shared between tasks.
+/// One heartbeat counter per task.
 #[derive(Debug)]
 pub struct Heartbeats {
     beats: [AtomicU32; TASKS],
@@ -39,7 +44,7 @@ impl Heartbeats {
     /// All counters at zero.
     pub const fn new() -> Self {
         Heartbeats {
-            beats: [AtomicU32::new(0), AtomicU32::new(0), AtomicU32::new(0)],
+            beats: [const { AtomicU32::new(0) }; TASKS],
         }
     }
 
@@ -47,6 +52,14 @@ impl Heartbeats {
     pub fn beat(&self, task: Task) {
         let b = &self.beats[task as usize];
         b.store(b.load(Ordering::Relaxed).wrapping_add(1), Ordering::Relaxed);
+    }
+
+    /// Marks every task alive (after the controller stalled on purpose for a flash erase,
+    /// with the watchdog's timeout raised for it).
+    pub fn beat_all(&self) {
+        for t in ALL {
+            self.beat(t);
+        }
     }
 
     fn read(&self, i: usize) -> u32 {
@@ -60,20 +73,33 @@ impl Default for Heartbeats {
     }
 }
 
-/// The supervisor's memory of the last check.
-#[derive(Debug, Default)]
+/// Remembers the counters between two checks.
+#[derive(Debug)]
 pub struct Supervisor {
     last: [u32; TASKS],
+    watched: [bool; TASKS],
 }
 
 impl Supervisor {
-    /// Checks the heartbeats; returns the first task that has not beaten since the last check,
-    /// or `None` (feed the watchdog).
+    /// Watches `tasks` (the ones the board runs).
+    pub fn new(tasks: &[Task]) -> Self {
+        let mut watched = [false; TASKS];
+        for t in tasks {
+            watched[*t as usize] = true;
+        }
+        Supervisor {
+            last: [0; TASKS],
+            watched,
+        }
+    }
+
+    /// Checks the heartbeats; returns the first watched task that has not beaten since the
+    /// last check, or `None` (feed the watchdog).
     pub fn check(&mut self, hb: &Heartbeats) -> Option<Task> {
         let mut silent = None;
-        for (i, t) in [Task::Control, Task::Rx, Task::Tx].into_iter().enumerate() {
+        for (i, t) in ALL.into_iter().enumerate() {
             let now = hb.read(i);
-            if now == self.last[i] && silent.is_none() {
+            if self.watched[i] && now == self.last[i] && silent.is_none() {
                 silent = Some(t);
             }
             self.last[i] = now;
@@ -89,7 +115,7 @@ mod tests {
     #[test]
     fn a_silent_task_withholds_the_feed_until_it_beats_again() {
         let hb = Heartbeats::new();
-        let mut s = Supervisor::default();
+        let mut s = Supervisor::new(&[Task::Control, Task::Rx, Task::Tx]);
         hb.beat(Task::Control);
         hb.beat(Task::Rx);
         hb.beat(Task::Tx);
@@ -104,5 +130,13 @@ mod tests {
             hb.beat(t);
         }
         assert_eq!(s.check(&hb), None);
+        // A task the board does not run is not waited for; one it runs is.
+        let mut s = Supervisor::new(&[Task::Control, Task::Rx, Task::Tx, Task::HwRx]);
+        hb.beat_all();
+        assert_eq!(s.check(&hb), None);
+        for t in [Task::Control, Task::Rx, Task::Tx] {
+            hb.beat(t);
+        }
+        assert_eq!(s.check(&hb), Some(Task::HwRx));
     }
 }

@@ -207,6 +207,53 @@ enum Cmd {
         #[arg(long)]
         json: bool,
     },
+    /// The bench engineer's link to a controller: status, mode, duty, reset, configuration
+    /// upload and read-back, live monitor and bench log. Over a serial port (the bench) or the
+    /// QEMU twin's pseudo-terminal (`pto twin` prints it).
+    #[command(
+        after_help = "Examples:\n  pto link --port /dev/ttyUSB0 status\n  pto link --port /dev/ttyUSB0 monitor --log run1.csv --rate 64\n  pto link --port /dev/ttyUSB0 mode fixed 12\n  pto link --port /dev/ttyUSB0 duty --on 1001 --config 1\n  pto link --port /dev/ttyUSB0 reset --p2 60 --lp 8\n  pto link --port /dev/ttyUSB0 config upload fit/my-bench.model.toml --store\n  pto link --port /dev/ttyUSB0 config show --out running.model.toml\n\nExit status:\n  0 done (monitor: no frame lost or damaged)\n  1 monitor: frames were lost or damaged (the log has gaps)\n  2 bad input, port missing or busy, no answer, protocol mismatch, or a refusal (its reason named)\n  130 interrupted"
+    )]
+    Link {
+        /// Serial port of the controller (`/dev/ttyUSB0`, `COM3`), the QEMU twin's
+        /// pseudo-terminal, or `unix:PATH` for a QEMU USART's socket.
+        #[arg(long)]
+        port: String,
+        /// Baud rate (the firmware's: 230400 8N1).
+        #[arg(long, default_value_t = pto_host::hil::link::DEFAULT_BAUD)]
+        baud: u32,
+        /// Machine-readable output.
+        #[arg(long, global = true)]
+        json: bool,
+        #[command(subcommand)]
+        cmd: LinkCmd,
+    },
+    /// The bench's twin: the full simulation as the plant drives the QEMU firmware over its
+    /// hardware port (USART1) while the bench link (USART2) is a pseudo-terminal for
+    /// `pto link`. A Test III-like run (HC3.1 + HC3.4, ±40 mm at 0.1 Hz) at a fixed aperture.
+    #[command(
+        after_help = "Examples:\n  pto twin --duration 120 --start-after 5 &\n  pto link --port /dev/pts/3 monitor --log twin.csv\n  pto twin --set trapped_air=0.09 --p2-start 40 --aperture 4\n\nExit status:\n  0 the run finished\n  2 bad input, QEMU or the build missing, or the run failed\n  130 interrupted"
+    )]
+    Twin {
+        /// The plant's bench file (default: the reference bench).
+        #[arg(long)]
+        bench: Option<PathBuf>,
+        /// Override a value of the plant's bench (as for `pto simulate`).
+        #[arg(long = "set", value_name = "FIELD=VALUE")]
+        set: Vec<String>,
+        /// P2 at the start, bar.
+        #[arg(long, default_value_t = 60.0, value_parser = finite_in(10.0, 125.0, "bar"))]
+        p2_start: f64,
+        /// Valve aperture, % (the firmware's mode `fixed`).
+        #[arg(long, default_value_t = 10.0, value_parser = finite_in(0.0, 100.0, "%"))]
+        aperture: f64,
+        /// Simulated time, s.
+        #[arg(long, default_value_t = 60.0, value_parser = finite_in(1.0, 3600.0, "s"))]
+        duration: f64,
+        /// Wall-clock seconds between printing the bench link and starting the plant (time to
+        /// start `pto link … monitor`).
+        #[arg(long, default_value_t = 3.0, value_parser = finite_in(0.0, 600.0, "s"))]
+        start_after: f64,
+    },
     /// Firmware cost: instructions per estimator + scheduler step (QEMU, -icount shift=0,
     /// TIM2), flash and static RAM of the bench and QEMU builds.
     #[command(
@@ -236,6 +283,76 @@ enum Cmd {
         /// Machine-readable output.
         #[arg(long)]
         json: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum LinkCmd {
+    /// Firmware version, running configuration, link and health counters.
+    Status,
+    /// Scheduler mode: `fixed PCT`, `hold-pressure BAR`, `hold-speed RPM`, `max-autonomy RPM`.
+    Mode {
+        /// fixed, hold-pressure, hold-speed or max-autonomy.
+        kind: String,
+        /// Aperture %, P2 bar, or motor speed rpm.
+        #[arg(allow_negative_numbers = true)]
+        value: f64,
+    },
+    /// Cylinders on duty and geometry.
+    Duty {
+        /// HC3.1..HC3.4 as four 0/1 characters, e.g. 1001.
+        #[arg(long)]
+        on: String,
+        /// Geometry 1..=4.
+        #[arg(long, default_value_t = 1)]
+        config: u8,
+    },
+    /// Restart the estimator from known pressures (refused while the overpressure trip holds).
+    Reset {
+        /// P2, bar.
+        #[arg(long, allow_negative_numbers = true)]
+        p2: f64,
+        /// LP, bar.
+        #[arg(long, allow_negative_numbers = true)]
+        lp: f64,
+    },
+    /// The model configuration: upload (from `pto fit`'s *.model.toml or a bench file), show.
+    Config {
+        #[command(subcommand)]
+        cmd: ConfigCmd,
+    },
+    /// Live view of the estimates, command, faults and counters; `--log` writes the bench log
+    /// `pto fit` reads (the sensors as the firmware saw them), the estimates in extra columns.
+    Monitor {
+        /// Bench log CSV to write (written as FILE.part, renamed when the monitor stops).
+        #[arg(long)]
+        log: Option<PathBuf>,
+        /// Telemetry rate, Hz (default: the firmware's, 64 Hz).
+        #[arg(long)]
+        rate: Option<f64>,
+        /// Stop after this much firmware time, s (default: at Ctrl-C).
+        #[arg(long)]
+        duration: Option<f64>,
+    },
+}
+
+#[derive(Subcommand)]
+enum ConfigCmd {
+    /// Send a configuration; the firmware checks it (every field's range), applies it at once
+    /// (estimator restarted) and, with `--store`, keeps it in flash for the next boot.
+    Upload {
+        /// `pto fit`'s *.model.toml, or a bench file.
+        file: PathBuf,
+        /// Also store it (needs mode `fixed 0` with the valve closed: a flash erase stalls the
+        /// controller).
+        #[arg(long)]
+        store: bool,
+    },
+    /// The configuration the controller runs, and where it came from.
+    Show {
+        /// Write it to this file (TOML) instead of printing it.
+        #[arg(long)]
+        out: Option<PathBuf>,
     },
 }
 
@@ -320,6 +437,47 @@ fn main() -> ExitCode {
         ),
         Cmd::Pil { bench, json } => pil_cmd(bench.as_ref(), json),
         Cmd::FwCost { json, trace } => fw_cost_cmd(json, trace.as_deref()),
+        Cmd::Link {
+            port,
+            baud,
+            json,
+            cmd,
+        } => {
+            use cli::link::*;
+            let t = Target { port: &port, baud };
+            match cmd {
+                LinkCmd::Status => status_cmd(&t, json),
+                LinkCmd::Mode { kind, value } => mode_cmd(&t, &kind, value),
+                LinkCmd::Duty { on, config } => duty_cmd(&t, &on, config),
+                LinkCmd::Reset { p2, lp } => reset_cmd(&t, p2, lp),
+                LinkCmd::Config {
+                    cmd: ConfigCmd::Upload { file, store },
+                } => config_upload_cmd(&t, &file, store, json),
+                LinkCmd::Config {
+                    cmd: ConfigCmd::Show { out },
+                } => config_show_cmd(&t, out.as_ref(), json),
+                LinkCmd::Monitor {
+                    log,
+                    rate,
+                    duration,
+                } => monitor_cmd(&t, log.as_ref(), rate, duration, json),
+            }
+        }
+        Cmd::Twin {
+            bench,
+            set,
+            p2_start,
+            aperture,
+            duration,
+            start_after,
+        } => cli::firmware::twin_cmd(
+            bench.as_ref(),
+            &set,
+            p2_start,
+            aperture,
+            duration,
+            start_after,
+        ),
     };
     match result {
         Ok(true) => ExitCode::SUCCESS,

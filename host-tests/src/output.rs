@@ -109,6 +109,22 @@ pub fn write_atomic(path: &std::path::Path, bytes: &[u8]) -> Result<(), OutputEr
 /// The file that marks a folder as a `pto` output (so it may be replaced whole).
 pub const MARKER: &str = ".pto-output";
 
+/// A command that ends cleanly on the first Ctrl-C or SIGTERM (it polls [`stop_requested`]).
+static GRACEFUL: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+/// Ctrl-C or SIGTERM arrived while [`GRACEFUL`].
+static STOP: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// From now on the first Ctrl-C or SIGTERM only asks the command to stop
+/// ([`stop_requested`]): it finishes its files itself (a second one abandons it as usual).
+pub fn stop_on_interrupt() {
+    GRACEFUL.store(true, std::sync::atomic::Ordering::Relaxed);
+}
+
+/// A Ctrl-C or SIGTERM asked the command to stop.
+pub fn stop_requested() -> bool {
+    STOP.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 /// Staging folders not yet committed, for the interrupt handler.
 static STAGED: Mutex<Vec<PathBuf>> = Mutex::new(Vec::new());
 
@@ -270,6 +286,11 @@ pub fn remove_staged() {
 /// start of the program.
 pub fn install_interrupt_handler(end_children: fn()) -> Result<(), OutputError> {
     ctrlc::set_handler(move || {
+        use std::sync::atomic::Ordering;
+        if GRACEFUL.load(Ordering::Relaxed) && !STOP.swap(true, Ordering::Relaxed) {
+            eprintln!("\nstopping (Ctrl-C again to abandon)…");
+            return;
+        }
         end_children();
         remove_staged();
         eprintln!("interrupted: nothing left half-written, child processes stopped");

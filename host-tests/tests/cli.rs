@@ -508,6 +508,8 @@ fn every_command_help_shows_examples_and_exit_codes() {
         "pil",
         "fw-cost",
         "bench",
+        "link",
+        "twin",
     ] {
         let out = pto().args([cmd, "--help"]).output().unwrap();
         let help = String::from_utf8_lossy(&out.stdout);

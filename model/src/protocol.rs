@@ -1,4 +1,5 @@
-//! Messages between host tools and the firmware, defined once, and their framing (protocol v2).
+//! Messages between host tools and the firmware, defined once, and their framing (protocol v3:
+//! v2's frames, with telemetry and configuration upload).
 //!
 //! A frame on the wire is `COBS(seq ‖ payload ‖ crc) 0`:
 //! - `seq`: a `u16` (little-endian) counting the sender's frames, so the receiver counts the
@@ -63,7 +64,7 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 /// Protocol version (in `Hello`).
-pub const PROTOCOL_VERSION: u16 = 2;
+pub const PROTOCOL_VERSION: u16 = 3;
 
 /// Hash of the postcard schemas of [`ToFirmware`] and [`FromFirmware`] (each hashed with its
 /// path by `postcard-schema`, FNV-1a 64, the two combined): it changes with any field, variant
@@ -153,6 +154,279 @@ pub enum ToFirmware {
     Stall,
     /// Stop (QEMU: exit with this code).
     Exit(u8),
+    /// Telemetry on this link every `every` model steps (0: none). Answered with `Pong(every)`.
+    SetTelemetry {
+        /// Steps between two [`FromFirmware::Telemetry`] frames.
+        every: u16,
+    },
+    /// Start a configuration upload of `len` bytes ([`encode_config`]'s) whose CRC-32C is
+    /// `crc` ([`config_fingerprint`]). Answered with `ConfigProgress(0)`; a new `ConfigBegin`
+    /// abandons an upload in progress.
+    ConfigBegin {
+        /// Bytes to come.
+        len: u16,
+        /// Their CRC-32C.
+        crc: u32,
+    },
+    /// The next piece of the upload, which must start where the last one ended. Answered with
+    /// `ConfigProgress(bytes so far)`, or `Refused(Config(…))` (the upload is then abandoned).
+    ConfigChunk(Chunk),
+    /// Check the uploaded bytes (length, CRC, decoding, every field's range) and apply them at a
+    /// safe point: the estimator restarts (P2 unknown until the next `Reset`), the valve goes to
+    /// its safe state and slews back. With `persist`, store them in flash too, which is done
+    /// only in the declared safe state (mode `Fixed(0)` and the valve closed) and refused
+    /// otherwise, before anything changes. Answered with `ConfigApplied` or `Refused(Config(…))`.
+    ConfigCommit {
+        /// Also store the configuration (used at the next boot).
+        persist: bool,
+    },
+    /// Which configuration runs. Answered with `ConfigInfo`.
+    GetConfig,
+    /// Read back the running configuration's bytes from `offset`. Answered with `ConfigData`.
+    ConfigRead {
+        /// First byte.
+        offset: u16,
+    },
+}
+
+/// Bytes carried by one configuration frame.
+pub const CHUNK_BYTES: usize = 32;
+
+/// A piece of a configuration's bytes.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Chunk {
+    /// Offset of the first byte in the whole.
+    pub offset: u16,
+    /// Bytes used in `data` (≤ [`CHUNK_BYTES`]).
+    pub len: u8,
+    /// The bytes (the first `len`).
+    pub data: [u8; CHUNK_BYTES],
+}
+
+impl Chunk {
+    /// The piece of `bytes` starting at `offset` (empty past the end).
+    pub fn of(bytes: &[u8], offset: usize) -> Chunk {
+        let piece = bytes.get(offset..).unwrap_or(&[]);
+        let n = piece.len().min(CHUNK_BYTES);
+        let mut data = [0u8; CHUNK_BYTES];
+        data[..n].copy_from_slice(&piece[..n]);
+        Chunk {
+            offset: u16::try_from(offset).unwrap_or(u16::MAX),
+            len: n as u8,
+            data,
+        }
+    }
+
+    /// The bytes it carries (a `len` beyond [`CHUNK_BYTES`] is cut to it).
+    pub fn bytes(&self) -> &[u8] {
+        &self.data[..usize::from(self.len).min(CHUNK_BYTES)]
+    }
+}
+
+/// Where the running configuration came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ConfigSource {
+    /// Built into the image (`PTO_BENCH`).
+    BuiltIn,
+    /// Read from the configuration store at boot.
+    Stored,
+    /// Uploaded in this session (not stored).
+    Uploaded,
+    /// Uploaded in this session and stored.
+    UploadedStored,
+}
+
+impl core::fmt::Display for ConfigSource {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            ConfigSource::BuiltIn => "built into the image",
+            ConfigSource::Stored => "stored (read at boot)",
+            ConfigSource::Uploaded => "uploaded (not stored)",
+            ConfigSource::UploadedStored => "uploaded and stored",
+        })
+    }
+}
+
+/// The running configuration.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct ConfigInfo {
+    /// Where it came from.
+    pub source: ConfigSource,
+    /// [`config_fingerprint`] of its bytes.
+    pub fingerprint: u32,
+    /// Length of its bytes.
+    pub len: u16,
+}
+
+/// A configuration field's name on the wire (up to 64 bytes of UTF-8).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct FieldName {
+    head: [u8; 32],
+    tail: [u8; 32],
+    len: u8,
+}
+
+impl FieldName {
+    /// `name`, cut at 64 bytes (on a character boundary).
+    pub fn new(name: &str) -> FieldName {
+        let mut n = name.len().min(64);
+        while !name.is_char_boundary(n) {
+            n -= 1;
+        }
+        let b = &name.as_bytes()[..n];
+        let mut head = [0u8; 32];
+        let mut tail = [0u8; 32];
+        let h = n.min(32);
+        head[..h].copy_from_slice(&b[..h]);
+        tail[..n - h].copy_from_slice(&b[h..]);
+        FieldName {
+            head,
+            tail,
+            len: n as u8,
+        }
+    }
+
+    /// The name's bytes.
+    fn bytes(&self, out: &mut [u8; 64]) -> usize {
+        out[..32].copy_from_slice(&self.head);
+        out[32..].copy_from_slice(&self.tail);
+        usize::from(self.len).min(64)
+    }
+}
+
+impl core::fmt::Display for FieldName {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        let mut b = [0u8; 64];
+        let n = self.bytes(&mut b);
+        match core::str::from_utf8(&b[..n]) {
+            Ok(s) => f.write_str(s),
+            Err(_) => f.write_str("(bad field name)"),
+        }
+    }
+}
+
+/// Why an uploaded configuration was refused (nothing changed).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum ConfigRefusal {
+    /// A chunk or a commit without a `ConfigBegin`.
+    NotStarted,
+    /// The announced length is 0 or above the firmware's buffer.
+    Length {
+        /// Announced.
+        len: u16,
+        /// Largest taken.
+        max: u16,
+    },
+    /// A chunk that does not start where the last ended, or runs past the announced length.
+    OutOfOrder {
+        /// Where the next chunk must start.
+        expected: u16,
+        /// Where it started.
+        got: u16,
+    },
+    /// Committed before every byte arrived.
+    Incomplete {
+        /// Bytes received.
+        received: u16,
+        /// Bytes announced.
+        len: u16,
+    },
+    /// The bytes' CRC-32C is not the announced one.
+    Crc {
+        /// Announced.
+        expected: u32,
+        /// Computed over the bytes received.
+        got: u32,
+    },
+    /// The bytes are not a model configuration of this firmware's version.
+    Decode,
+    /// A field outside its range (the model's [`ConfigError`](crate::ConfigError)).
+    Field {
+        /// The field.
+        field: FieldName,
+        /// Its value.
+        value: f32,
+        /// Lowest allowed.
+        min: f32,
+        /// Highest allowed.
+        max: f32,
+    },
+    /// `persist` asked outside the declared safe state (mode `Fixed(0)`, valve closed): a
+    /// flash erase stalls the processor for up to 2 s.
+    NotSafeToStore,
+    /// The store failed to write (the configuration was not applied).
+    Store,
+}
+
+impl core::fmt::Display for ConfigRefusal {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        match self {
+            ConfigRefusal::NotStarted => f.write_str("no upload in progress (ConfigBegin first)"),
+            ConfigRefusal::Length { len, max } => {
+                write!(f, "length {len} bytes outside [1, {max}]")
+            }
+            ConfigRefusal::OutOfOrder { expected, got } => write!(
+                f,
+                "chunk at byte {got}, expected byte {expected} (or past the announced length)"
+            ),
+            ConfigRefusal::Incomplete { received, len } => {
+                write!(f, "committed after {received} of {len} bytes")
+            }
+            ConfigRefusal::Crc { expected, got } => write!(
+                f,
+                "CRC-32C of the bytes is {got:08x}, {expected:08x} announced"
+            ),
+            ConfigRefusal::Decode => {
+                f.write_str("the bytes are not a model configuration of this firmware's version")
+            }
+            ConfigRefusal::Field {
+                field,
+                value,
+                min,
+                max,
+            } => write!(f, "{field} = {value} outside [{min}, {max}]"),
+            ConfigRefusal::NotSafeToStore => f.write_str(
+                "storing needs the declared safe state: mode fixed 0 % and the valve closed \
+                 (a flash erase stalls the controller)",
+            ),
+            ConfigRefusal::Store => f.write_str("the configuration store failed to write"),
+        }
+    }
+}
+
+/// What became of a committed configuration's storing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum Stored {
+    /// Not asked (`persist: false`).
+    No,
+    /// Written to the store and read back.
+    Yes,
+}
+
+/// One step as the bench link reports it: what the firmware saw, estimated and did.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub struct Telemetry {
+    /// The raw sensor sample of this step (its `tick` is the step's).
+    pub sensors: SensorFrame,
+    /// Estimator output.
+    pub estimate: Estimate,
+    /// Scheduler output.
+    pub command: Command,
+    /// Aperture applied to the valve.
+    pub applied: Aperture,
+    /// Dump valve output.
+    pub dump: bool,
+    /// Cylinders on duty (bit i = HC3.(i+1)).
+    pub on_duty: u8,
+    /// Geometry, 0..=3.
+    pub config: u8,
 }
 
 /// Frames a [`Receiver`] took and the ones it could not, by cause.
@@ -209,6 +483,9 @@ pub struct Status {
     pub frames_overrun: u32,
     /// Received bytes lost because the receive buffer was full.
     pub bytes_lost: u32,
+    /// Telemetry frames not sent because the link's transmit queue was full (the telemetry
+    /// rate is above what the baud rate carries): the control loop never waits for the link.
+    pub telemetry_dropped: u32,
     /// Estimator steps run.
     pub steps: u32,
     /// OR of every fault flag seen.
@@ -261,6 +538,27 @@ pub enum FromFirmware {
     ResetDone,
     /// A command was refused, with the reason; nothing changed.
     Refused(Refusal),
+    /// Every [`ToFirmware::SetTelemetry`]'th step on the bench link.
+    Telemetry(Telemetry),
+    /// Configuration bytes received so far in an upload.
+    ConfigProgress(u16),
+    /// The uploaded configuration runs (and was stored when asked).
+    ConfigApplied {
+        /// The configuration now running.
+        info: ConfigInfo,
+        /// Whether it was stored.
+        stored: Stored,
+    },
+    /// Reply to `GetConfig`.
+    ConfigInfo(ConfigInfo),
+    /// Reply to `ConfigRead`: the running configuration's bytes from the chunk's offset (empty
+    /// past the end).
+    ConfigData {
+        /// The whole configuration's length.
+        total: u16,
+        /// The piece.
+        chunk: Chunk,
+    },
 }
 
 /// What the firmware says of itself at connect.
@@ -324,6 +622,8 @@ pub enum Refusal {
     /// `Stall` (the watchdog self-test) while the overpressure trip holds: the reset it ends in
     /// must not interrupt the safe state.
     StallWhileTripped,
+    /// A configuration upload step was refused; the running configuration is unchanged.
+    Config(ConfigRefusal),
 }
 
 /// Why a tripped latch cannot release now.
@@ -384,6 +684,7 @@ impl core::fmt::Display for Refusal {
             Refusal::StallWhileTripped => {
                 f.write_str("watchdog test refused: the overpressure trip holds")
             }
+            Refusal::Config(c) => write!(f, "configuration refused: {c}"),
         }
     }
 }
@@ -618,6 +919,17 @@ pub fn decode_config(bytes: &[u8]) -> Result<crate::ModelConfig, postcard::Error
     }
 }
 
+impl From<crate::ConfigError> for ConfigRefusal {
+    fn from(e: crate::ConfigError) -> Self {
+        ConfigRefusal::Field {
+            field: FieldName::new(e.field),
+            value: e.value,
+            min: e.min,
+            max: e.max,
+        }
+    }
+}
+
 /// A configuration's fingerprint: the CRC-32C of its [`encode_config`] bytes (the firmware logs
 /// it at boot; `pto` prints the same figure for a bench file).
 pub fn config_fingerprint(bytes: &[u8]) -> u32 {
@@ -738,15 +1050,57 @@ mod tests {
             dt_log2: 10,
         };
         assert!(h.check().is_ok());
-        let old = Hello { protocol: 1, ..h };
+        let old = Hello { protocol: 2, ..h };
         let e = old.check().unwrap_err().to_string();
-        assert!(e.contains("v1") && e.contains("v2"), "{e}");
+        assert!(e.contains("v2") && e.contains("v3"), "{e}");
         let other = Hello {
             schema: [0; 8],
             ..h
         };
         assert!(other.check().is_err());
         assert_ne!(SCHEMA_HASH, [0; 8]);
+    }
+
+    #[test]
+    fn chunks_cover_a_configuration_and_field_names_survive_the_wire() {
+        let bytes: Vec<u8> = (0..=200u8).collect();
+        let mut back = Vec::new();
+        let mut off = 0;
+        loop {
+            let c = Chunk::of(&bytes, off);
+            if c.len == 0 {
+                break;
+            }
+            assert_eq!(usize::from(c.offset), off);
+            back.extend_from_slice(c.bytes());
+            off += usize::from(c.len);
+        }
+        assert_eq!(back, bytes);
+        let long = "relief_process_noise_bar_per_sqrt_s_and_then_some_more_text_past_64";
+        let f = FieldName::new(long);
+        let mut buf = [0u8; MAX_FRAME];
+        let n = encode(
+            0,
+            &FromFirmware::Refused(Refusal::Config(ConfigRefusal::Field {
+                field: f,
+                value: 1.0,
+                min: 0.0,
+                max: 0.5,
+            })),
+            &mut buf,
+        )
+        .unwrap();
+        let (_, m): (u16, FromFirmware) = decode(&buf[..n]).unwrap();
+        let s = m_text(&m);
+        assert!(s.contains(&long[..64]) && !s.contains(long), "{s}");
+        assert_eq!(FieldName::new("motor.x").to_string(), "motor.x");
+    }
+
+    fn m_text(m: &FromFirmware) -> String {
+        match m {
+            FromFirmware::Refused(r) => r.to_string(),
+            other => format!("{other:?}"),
+        }
     }
 
     /// The reference configuration survives the embedding's round trip field for field, and a

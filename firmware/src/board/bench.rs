@@ -16,10 +16,12 @@
 //! | Telemetry / host commands        | USART1 230400 8N1 | PA9 (TX), PA10 (RX)      |
 //! | Debug (probe-rs, defmt over RTT) | SWD               | PA13 (SWDIO), PA14 (SWCLK) |
 //! | Watchdog                         | IWDG              | —                        |
+//! | Configuration store              | flash sectors 10–11 | 0x080C_0000–0x080F_FFFF |
 
 use crate::app::{self, Board, ToControl};
 use core::sync::atomic::Ordering;
 use defmt_rtt as _;
+use embassy_embedded_hal::adapter::BlockingAsync;
 use embassy_executor::Spawner;
 use embassy_stm32::adc::{Adc, SampleTime};
 use embassy_stm32::gpio::{Level, Output, OutputType, Speed};
@@ -34,6 +36,7 @@ use embassy_stm32::usart::{
 use embassy_stm32::wdg::IndependentWatchdog;
 use embassy_stm32::{Peri, bind_interrupts, rcc, usart};
 use embassy_time::{Duration, Ticker};
+use embedded_storage::nor_flash::{ErrorType, NorFlash, ReadNorFlash};
 use pto_firmware::control::StepClock;
 use pto_firmware::frontend::Unwrap16;
 use pto_model::fx::Rpm;
@@ -42,8 +45,12 @@ use static_cell::StaticCell;
 
 /// Board name in the boot log.
 pub const NAME: &str = "bench-stm32f405";
-/// Telemetry every 16th step (64 frames/s fit 230400 baud with room for replies).
-pub const TELEMETRY_EVERY: u32 = 16;
+/// Telemetry every 16th step by default (64 frames/s at 2^-10 s; docs/bench.md has the link
+/// budget at 230 400 baud).
+pub const TELEMETRY_EVERY: u16 = 16;
+/// The configuration store: the last two 128 KiB sectors (offsets from the flash's start;
+/// `memory.x` ends the code region before them).
+const STORE: core::ops::Range<u32> = 0x000C_0000..0x0010_0000;
 /// Sampling period: 977 µs ≈ 2^-10 s (1 MHz time base; the model's dt is 2^-10 s exactly, a
 /// 0.05 % timing difference the encoder tracker absorbs).
 const SAMPLE_US: u64 = 977;
@@ -56,6 +63,8 @@ bind_interrupts!(struct Irqs {
     USART1 => BufferedInterruptHandler<USART1>;
 });
 
+/// The configuration store's flash.
+pub type Flash = BlockingAsync<WatchedFlash>;
 /// Receive side of the link.
 pub type Rx = BufferedUartRx<'static>;
 /// Transmit side of the link.
@@ -141,9 +150,14 @@ pub fn init(spawner: Spawner) -> Board {
     cp.DCB.enable_trace();
     cp.DWT.enable_cycle_counter();
 
+    let flash = BlockingAsync::new(WatchedFlash(embassy_stm32::flash::Flash::new_blocking(
+        p.FLASH,
+    )));
+
     Board {
-        rx,
-        tx,
+        link: (rx, tx),
+        hardware: None,
+        store: (flash, STORE),
         clock: DwtClock,
         valve,
         dump,
@@ -187,7 +201,10 @@ async fn sampling_task(
             lp_adc,
             motor,
         };
-        if app::TO_CONTROL.try_send(ToControl::Sample(frame)).is_err() {
+        if app::TO_CONTROL
+            .try_send(ToControl::Sample { frame, from: None })
+            .is_err()
+        {
             app::FRAMES_OVERRUN.fetch_add(1, Ordering::Relaxed);
         }
         tick = tick.wrapping_add(1);
@@ -244,5 +261,50 @@ impl StepClock for DwtClock {
             let r = f();
             (r, cortex_m::peripheral::DWT::cycle_count().wrapping_sub(t0))
         })
+    }
+}
+
+/// The internal flash, with the watchdog's timeout raised to its longest (≈ 32 s) around each
+/// erase: a 128 KiB sector takes up to ≈ 2 s, during which every flash read, and so all code,
+/// stalls (RM0090 §3.6). The store only writes in the declared safe state.
+pub struct WatchedFlash(embassy_stm32::flash::Flash<'static, embassy_stm32::flash::Blocking>);
+
+impl ErrorType for WatchedFlash {
+    type Error = embassy_stm32::flash::Error;
+}
+
+impl ReadNorFlash for WatchedFlash {
+    const READ_SIZE: usize = 1;
+    fn read(&mut self, offset: u32, bytes: &mut [u8]) -> Result<(), Self::Error> {
+        self.0.blocking_read(offset, bytes)
+    }
+    fn capacity(&self) -> usize {
+        embassy_stm32::flash::FLASH_SIZE
+    }
+}
+
+impl NorFlash for WatchedFlash {
+    const WRITE_SIZE: usize = <embassy_stm32::flash::Flash<'static, embassy_stm32::flash::Blocking> as NorFlash>::WRITE_SIZE;
+    const ERASE_SIZE: usize = <embassy_stm32::flash::Flash<'static, embassy_stm32::flash::Blocking> as NorFlash>::ERASE_SIZE;
+
+    fn erase(&mut self, from: u32, to: u32) -> Result<(), Self::Error> {
+        use embassy_stm32::pac::{IWDG, iwdg::vals};
+        // Longest timeout (prescaler /256, reload 0xFFF), then reload the counter.
+        let (pr, rl) = (IWDG.pr().read().pr(), IWDG.rlr().read().rl());
+        let set = |pr: vals::Pr, rl: u16| {
+            while IWDG.sr().read().pvu() || IWDG.sr().read().rvu() {}
+            IWDG.kr().write(|w| w.set_key(vals::Key::ENABLE));
+            IWDG.pr().write(|w| w.set_pr(pr));
+            IWDG.rlr().write(|w| w.set_rl(rl));
+            IWDG.kr().write(|w| w.set_key(vals::Key::RESET));
+        };
+        set(vals::Pr::DIVIDE_BY256, 0x0FFF);
+        let r = self.0.blocking_erase(from, to);
+        set(pr, rl);
+        r
+    }
+
+    fn write(&mut self, offset: u32, bytes: &[u8]) -> Result<(), Self::Error> {
+        self.0.blocking_write(offset, bytes)
     }
 }

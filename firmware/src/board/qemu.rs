@@ -1,7 +1,12 @@
-//! Board: QEMU `netduinoplus2` (STM32F405 memory map). Thin by design:
-//! - USART1 through stm32-metapac registers: RXNE interrupt into a byte pipe, polled transmit
-//!   (QEMU's USART never stalls); RCC is left alone (QEMU does not gate clocks, and
-//!   embassy-stm32's clock setup spins forever under QEMU);
+//! Board: QEMU `netduinoplus2` (STM32F405 memory map), the bench's twin. Thin by design:
+//! - USART1, the hardware port: the plant's sensor samples arrive on it and each step's output
+//!   goes back (the virtual sensors and actuators); USART2, the bench link, with exactly the
+//!   bench's protocol (QEMU's second `-serial`, e.g. `-serial pty`). Both through stm32-metapac
+//!   registers: RXNE interrupt into a byte pipe, polled transmit (QEMU's USART never stalls);
+//!   RCC is left alone (QEMU does not gate clocks, and embassy-stm32's clock setup spins
+//!   forever under QEMU);
+//! - the configuration store on 8 KiB of RAM (QEMU's flash is read-only): the same
+//!   `sequential-storage` map as the bench's flash, lost when QEMU exits;
 //! - a SysTick time driver for embassy-time (1 kHz ticks) and, in the same interrupt, a software
 //!   watchdog that ends the run with exit code 3 (the real board's IWDG resets the MCU);
 //! - TIM2 free-running: under `-icount shift=0` it counts executed instructions, the cost metric;
@@ -26,16 +31,24 @@ use stm32_metapac as pac;
 
 /// Board name in the boot log.
 pub const NAME: &str = "qemu-netduinoplus2";
-/// Every step is answered (lockstep with the host).
-pub const TELEMETRY_EVERY: u32 = 1;
+/// Telemetry on the bench link every 16th step, as on the bench (the hardware port answers
+/// every step).
+pub const TELEMETRY_EVERY: u16 = 16;
 /// SysTick reload for 1 ms at the 168 MHz core clock.
 const SYSTICK_RELOAD: u32 = 168_000 - 1;
 
-static RX_PIPE: Pipe<CriticalSectionRawMutex, 512> = Pipe::new();
+static RX_PIPE: [Pipe<CriticalSectionRawMutex, 512>; 2] = [Pipe::new(), Pipe::new()];
 static BYTES_LOST: AtomicU32 = AtomicU32::new(0);
 
-/// Receive side of the link.
+/// Receive side of a port.
 pub type Rx = &'static Pipe<CriticalSectionRawMutex, 512>;
+/// The configuration store's flash: RAM (QEMU's flash is read-only), in a static (never moved
+/// through the stack).
+pub type Flash = &'static mut RamStore;
+/// 8 KiB of RAM in two 4 KiB pages.
+pub type RamStore = pto_firmware::store::RamFlash<{ 8 * 1024 }, { 4 * 1024 }>;
+static STORE: static_cell::ConstStaticCell<RamStore> =
+    static_cell::ConstStaticCell::new(RamStore::new());
 /// Step-cost clock.
 pub type Clock = Tim2Clock;
 /// Valve driver.
@@ -45,8 +58,8 @@ pub type Pin = VirtualPin;
 /// Watchdog.
 pub type Watchdog = SoftWatchdog;
 
-/// Starts SysTick, TIM2 and USART1 (with its interrupt). Under QEMU the sensor samples arrive
-/// over the link: there is no sampling task.
+/// Starts SysTick, TIM2, USART1 and USART2 (with their interrupts). Under QEMU the sensor
+/// samples arrive on the hardware port: there is no sampling task.
 pub fn init(_spawner: Spawner) -> Board {
     // SAFETY: called once at boot, before any other user of the core peripherals.
     let mut cp = unsafe { cortex_m::Peripherals::steal() };
@@ -59,18 +72,23 @@ pub fn init(_spawner: Spawner) -> Board {
     tim.psc().write_value(0);
     tim.arr().write_value(u32::MAX);
     tim.cr1().modify(|w| w.set_cen(true));
-    let u = pac::USART1;
-    u.cr1().modify(|w| {
-        w.set_ue(true);
-        w.set_te(true);
-        w.set_re(true);
-        w.set_rxneie(true);
-    });
-    // SAFETY: the handler below only touches the pipe and an atomic.
-    unsafe { cortex_m::peripheral::NVIC::unmask(pac::Interrupt::USART1) };
+    for u in [pac::USART1, pac::USART2] {
+        u.cr1().modify(|w| {
+            w.set_ue(true);
+            w.set_te(true);
+            w.set_re(true);
+            w.set_rxneie(true);
+        });
+    }
+    // SAFETY: the handlers below only touch their pipe and an atomic.
+    unsafe {
+        cortex_m::peripheral::NVIC::unmask(pac::Interrupt::USART1);
+        cortex_m::peripheral::NVIC::unmask(pac::Interrupt::USART2);
+    }
     Board {
-        rx: &RX_PIPE,
-        tx: Tx,
+        link: (&RX_PIPE[1], Tx(pac::USART2)),
+        hardware: Some((&RX_PIPE[0], Tx(pac::USART1))),
+        store: (STORE.take(), 0..8 * 1024),
         clock: Tim2Clock::calibrated(),
         valve: VirtualPwm(0),
         dump: VirtualPin(false),
@@ -94,9 +112,7 @@ pub fn fail(code: u8) -> ! {
     exit(code)
 }
 
-#[unsafe(no_mangle)]
-extern "C" fn USART1() {
-    let u = pac::USART1;
+fn receive(u: pac::usart::Usart, pipe: &Pipe<CriticalSectionRawMutex, 512>) {
     loop {
         let sr = u.sr().read();
         if !sr.rxne() && !sr.ore() {
@@ -104,14 +120,24 @@ extern "C" fn USART1() {
         }
         // Reading DR after SR clears RXNE and ORE.
         let b = u.dr().read().dr() as u8;
-        if RX_PIPE.try_write(&[b]).is_err() {
+        if pipe.try_write(&[b]).is_err() {
             BYTES_LOST.fetch_add(1, Ordering::Relaxed);
         }
     }
 }
 
-/// Transmit side of the link (blocking on TXE, which QEMU sets at once).
-pub struct Tx;
+#[unsafe(no_mangle)]
+extern "C" fn USART1() {
+    receive(pac::USART1, &RX_PIPE[0]);
+}
+
+#[unsafe(no_mangle)]
+extern "C" fn USART2() {
+    receive(pac::USART2, &RX_PIPE[1]);
+}
+
+/// Transmit side of a port (blocking on TXE, which QEMU sets at once).
+pub struct Tx(pac::usart::Usart);
 
 impl embedded_io_async::ErrorType for Tx {
     type Error = Infallible;
@@ -119,7 +145,7 @@ impl embedded_io_async::ErrorType for Tx {
 
 impl embedded_io_async::Write for Tx {
     async fn write(&mut self, buf: &[u8]) -> Result<usize, Infallible> {
-        let u = pac::USART1;
+        let u = self.0;
         for b in buf {
             while !u.sr().read().txe() {}
             u.dr().write(|w| w.set_dr(u16::from(*b)));

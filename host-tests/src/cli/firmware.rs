@@ -153,3 +153,68 @@ pub(crate) fn fw_cost_cmd(json: bool, trace: Option<&Path>) -> Result<bool> {
     }
     Ok(r.pass)
 }
+
+pub(crate) fn twin_cmd(
+    bench: Option<&PathBuf>,
+    set: &[String],
+    p2_start: f64,
+    aperture: f64,
+    duration: f64,
+    start_after: f64,
+) -> Result<bool> {
+    use pto_host::hil::build::{self, Build};
+    use pto_host::hil::pil;
+    use pto_host::hil::qemu::Qemu;
+    use pto_host::model::sensors::SensorSpec;
+    let plant = super::load_bench_with(bench, set)?;
+    eprintln!("building the QEMU firmware…");
+    let elf = build::build(Build::Qemu)?;
+    let q = Qemu::boot_twin(&elf, false)?;
+    let pty = q
+        .pty
+        .clone()
+        .ok_or_else(|| anyhow::anyhow!("no pseudo-terminal"))?;
+    println!("bench link on {}", pty.display());
+    println!(
+        "  e.g. pto link --port {} monitor --log twin.csv",
+        pty.display()
+    );
+    use std::io::Write as _;
+    let _ = std::io::stdout().flush();
+    std::thread::sleep(std::time::Duration::from_secs_f64(start_after));
+    eprintln!(
+        "plant: {} from P2 {p2_start} bar, valve fixed {aperture} %, {duration} s",
+        plant.source
+    );
+    let t0 = std::time::Instant::now();
+    let (q, res, rows) = pil::closed_loop(
+        q,
+        &plant,
+        pil::fixed(aperture as f32),
+        p2_start,
+        duration,
+        SensorSpec::default(),
+        Box::new(|_| pil::Injection::None),
+    )?;
+    let err: Vec<f64> = rows
+        .iter()
+        .filter_map(|r| r.estimate.map(|e| f64::from(e.p2.to_f32()) - r.p2_bar))
+        .collect();
+    let rms = (err.iter().map(|e| e * e).sum::<f64>() / err.len().max(1) as f64).sqrt();
+    println!(
+        "{} steps in {:.1} s wall ({:.2}× real time); plant P2 {:.1} → {:.1} bar; firmware P2 error RMS {rms:.3} bar",
+        rows.len(),
+        t0.elapsed().as_secs_f64(),
+        duration / t0.elapsed().as_secs_f64(),
+        res.trace
+            .p2_pa
+            .first()
+            .map_or(f64::NAN, |p| p / pto_host::sim::bench::BAR),
+        res.trace
+            .p2_pa
+            .last()
+            .map_or(f64::NAN, |p| p / pto_host::sim::bench::BAR),
+    );
+    drop(q);
+    Ok(true)
+}

@@ -2,6 +2,7 @@
 
 pub(crate) mod firmware;
 pub(crate) mod fit;
+pub(crate) mod link;
 pub(crate) mod model;
 pub(crate) mod sim;
 

@@ -1,7 +1,11 @@
-//! The firmware in the loop: its builds ([`build`]), QEMU runs of the firmware ([`qemu`]), processor-in-the-loop with
-//! the full simulation ([`pil`]), and the firmware's cost per step and per build ([`fw_cost`]).
+//! The firmware in the loop: its builds ([`build`]), the link to a controller over a serial
+//! port or a QEMU socket ([`link`]) and what the bench engineer does over it ([`client`]), QEMU
+//! runs of the firmware ([`qemu`]), processor-in-the-loop with the full simulation ([`pil`]),
+//! and the firmware's cost per step and per build ([`fw_cost`]).
 
 pub mod build;
+pub mod client;
 pub mod fw_cost;
+pub mod link;
 pub mod pil;
 pub mod qemu;

@@ -199,6 +199,8 @@ pub struct PilRow {
     pub injection: Injection,
     /// The firmware's answer to a `Reset` asked in this step.
     pub reset_reply: Option<Result<(), Refusal>>,
+    /// The sensor frame sent (what a host-side copy of the controller replays).
+    pub frame: SensorFrame,
 }
 
 /// The firmware as the plant's valve controller.
@@ -355,6 +357,7 @@ impl ValveController for FirmwareController {
             dump: self.dump,
             injection: inj,
             reset_reply: None,
+            frame: f,
         };
         if self.error.is_none() {
             match self.exchange(f, inj) {

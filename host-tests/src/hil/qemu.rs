@@ -4,11 +4,10 @@
 //!
 //! Every QEMU child is owned by a [`Qemu`], whose `Drop` kills and reaps it, pass or fail.
 
+pub use super::link::{Link, LinkError};
 use defmt_decoder::Table;
-use pto_model::protocol::{
-    self, FromFirmware, Hello, LinkCounts, MAX_FRAME, Receiver, Status, ToFirmware,
-};
-use std::io::{Read, Write};
+use pto_model::protocol::{LinkCounts, Status, ToFirmware};
+use std::io::Read;
 use std::os::unix::net::UnixStream;
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
@@ -85,46 +84,6 @@ pub enum QemuError {
     StillRunning(Duration),
 }
 
-/// Why an exchange with the firmware over its USART failed.
-#[derive(Debug, thiserror::Error)]
-pub enum LinkError {
-    /// Sending failed.
-    #[error("link write")]
-    Write(#[source] std::io::Error),
-    /// Setting the read timeout failed.
-    #[error("link")]
-    SetTimeout(#[source] std::io::Error),
-    /// Receiving failed.
-    #[error("link read")]
-    Read(#[source] std::io::Error),
-    /// No reply within the link's timeout.
-    #[error("no reply from the firmware in {0:?}")]
-    NoReply(Duration),
-    /// The firmware closed its end.
-    #[error("the firmware closed the link (QEMU exited?)")]
-    Closed,
-    /// A frame from the firmware failed to decode or was lost.
-    #[error(
-        "bad frame from the firmware (link counts now {0:?}); a firmware built from another \
-         revision speaks another protocol: rebuild both"
-    )]
-    BadFrame(LinkCounts),
-    /// The firmware speaks another protocol.
-    #[error("{0}")]
-    Protocol(protocol::HelloMismatch),
-    /// Another message came where the firmware's `Hello` was due.
-    #[error("expected the firmware's Hello, got {0:?}")]
-    NotHello(Box<FromFirmware>),
-    /// A reply the request did not accept.
-    #[error("unexpected reply to {sent:?}: {got:?}")]
-    Unexpected {
-        /// The request.
-        sent: Box<ToFirmware>,
-        /// The reply.
-        got: Box<FromFirmware>,
-    },
-}
-
 /// QEMU arguments for an instruction trace when `PTO_QEMU_TRACE=<file>` is set: every translated
 /// block and every execution of one is logged there (`-d exec,nochain,in_asm`), which
 /// `scripts/profile-step` turns into instructions per step by function and source line. Several
@@ -157,8 +116,11 @@ pub struct Qemu {
     sock: PathBuf,
     log: Arc<Mutex<Vec<LogLine>>>,
     reader: Option<JoinHandle<()>>,
-    /// The firmware's USART1.
+    /// The firmware's USART1, the twin's hardware port (sensor frames in, each step's output
+    /// back; it also takes every command).
     pub link: Link,
+    /// The pseudo-terminal of USART2, the bench link, when booted with [`Qemu::boot_twin`].
+    pub pty: Option<PathBuf>,
 }
 
 static SEQ: AtomicU32 = AtomicU32::new(0);
@@ -190,6 +152,16 @@ pub const ICOUNT: &str = "shift=0,align=off,sleep=off";
 impl Qemu {
     /// Boots `elf`; `echo` prints every log line to stderr as it arrives.
     pub fn boot(elf: &Path, echo: bool) -> Result<Qemu, QemuError> {
+        Self::boot_with(elf, echo, false)
+    }
+
+    /// Boots `elf` as the bench's twin: USART1 on a socket (the hardware port, [`Qemu::link`])
+    /// and USART2, the bench link, on a pseudo-terminal ([`Qemu::pty`]) for `pto link`.
+    pub fn boot_twin(elf: &Path, echo: bool) -> Result<Qemu, QemuError> {
+        Self::boot_with(elf, echo, true)
+    }
+
+    fn boot_with(elf: &Path, echo: bool, pty: bool) -> Result<Qemu, QemuError> {
         let bytes = std::fs::read(elf).map_err(|source| QemuError::ReadElf {
             elf: elf.to_path_buf(),
             source,
@@ -218,7 +190,9 @@ impl Qemu {
                 "socket,id=u0,path={},server=on,wait=on",
                 sock.display()
             ))
-            .args(["-serial", "chardev:u0", "-kernel"])
+            .args(["-serial", "chardev:u0"])
+            .args(if pty { &["-serial", "pty"][..] } else { &[] })
+            .arg("-kernel")
             .arg(elf)
             // Its own process group: a terminal's Ctrl-C reaches `pto`, which ends it (and
             // `end_all_children` kills the whole group).
@@ -243,6 +217,7 @@ impl Qemu {
                 g.push_str(&s);
             }
         });
+        let (pty_tx, pty_rx) = std::sync::mpsc::channel::<PathBuf>();
         let qemu_said = move || {
             errors
                 .lock()
@@ -252,6 +227,25 @@ impl Qemu {
         let log = Arc::new(Mutex::new(Vec::new()));
         let log2 = log.clone();
         let reader = std::thread::spawn(move || {
+            if pty {
+                // QEMU's first line on stdout (before the guest runs): "char device redirected
+                // to /dev/pts/3 (label serial1)"; the defmt stream follows.
+                let mut line = Vec::new();
+                let mut b = [0u8; 1];
+                while let Ok(1) = stdout.read(&mut b) {
+                    if b[0] == b'\n' {
+                        break;
+                    }
+                    line.push(b[0]);
+                }
+                let line = String::from_utf8_lossy(&line);
+                if let Some(rest) = line.split("redirected to ").nth(1)
+                    && let Some(path) = rest.split_whitespace().next()
+                {
+                    let _ = pty_tx.send(PathBuf::from(path));
+                }
+            }
+            drop(pty_tx);
             let mut dec = table.new_stream_decoder();
             let mut buf = [0u8; 4096];
             while let Ok(n) = stdout.read(&mut buf) {
@@ -317,13 +311,24 @@ impl Qemu {
                 }
             }
         };
+        // QEMU names the pseudo-terminal once the socket is connected, before the guest runs.
+        let pty_path = if pty {
+            pty_rx.recv_timeout(Duration::from_secs(10)).ok()
+        } else {
+            None
+        };
         let mut q = Qemu {
             child,
             sock,
             log,
             reader: Some(reader),
-            link: Link::new(stream),
+            link: Link::new(Box::new(stream)),
+            pty: pty_path,
         };
+        if pty && q.pty.is_none() {
+            // `q`'s Drop ends and reaps QEMU.
+            return Err(QemuError::NoPipe("pseudo-terminal for USART2"));
+        }
         // The firmware's boot `Hello`, then a session of our own (its count of our sequence
         // numbers starts from our `Hello`).
         q.link.hello()?;
@@ -381,131 +386,6 @@ impl Drop for Qemu {
     }
 }
 
-/// The host end of the firmware's USART: numbers the frames it sends, takes the firmware's
-/// through a [`Receiver`] that counts what it drops by cause and the gaps in their numbers.
-pub struct Link {
-    stream: UnixStream,
-    rx: Receiver<FromFirmware>,
-    queue: std::collections::VecDeque<FromFirmware>,
-    seq: u16,
-    /// Wall-clock limit on one reply.
-    pub timeout: Duration,
-}
-
-impl Link {
-    fn new(stream: UnixStream) -> Self {
-        Link {
-            stream,
-            rx: Receiver::new(),
-            queue: std::collections::VecDeque::new(),
-            seq: 0,
-            timeout: Duration::from_secs(30),
-        }
-    }
-
-    /// What the host's receiver took from the firmware and dropped, by cause.
-    pub fn counts(&self) -> LinkCounts {
-        self.rx.counts
-    }
-
-    /// The bytes of the next frame as the host sends it: a leading 0 (resynchronises after a
-    /// truncated frame), the COBS frame numbered with the host's next sequence number, its 0
-    /// terminator. Each call uses up a number (a frame the tests then damage counts as lost at
-    /// the firmware).
-    pub fn frame(&mut self, msg: &ToFirmware) -> Vec<u8> {
-        let mut b = [0u8; MAX_FRAME];
-        let n = protocol::encode(self.seq, msg, &mut b).expect("host messages fit a frame");
-        self.seq = self.seq.wrapping_add(1);
-        let mut v = Vec::with_capacity(n + 1);
-        v.push(0);
-        v.extend_from_slice(&b[..n]);
-        v
-    }
-
-    /// Sends a message.
-    pub fn send(&mut self, msg: &ToFirmware) -> Result<(), LinkError> {
-        if matches!(msg, ToFirmware::Hello) {
-            // A new session: numbered from 0 again.
-            self.seq = 0;
-        }
-        let f = self.frame(msg);
-        self.send_raw(&f)
-    }
-
-    /// Sends raw bytes (corrupted or truncated frames in the fault tests).
-    pub fn send_raw(&mut self, bytes: &[u8]) -> Result<(), LinkError> {
-        self.stream.write_all(bytes).map_err(LinkError::Write)
-    }
-
-    /// Receives the next message. A frame from the firmware that fails to decode is an error
-    /// (its replies must always be valid), named with its cause.
-    pub fn recv(&mut self) -> Result<FromFirmware, LinkError> {
-        let t0 = Instant::now();
-        let mut buf = [0u8; 4096];
-        loop {
-            if let Some(m) = self.queue.pop_front() {
-                return Ok(m);
-            }
-            let left = self.timeout.saturating_sub(t0.elapsed());
-            if left.is_zero() {
-                return Err(LinkError::NoReply(self.timeout));
-            }
-            self.stream
-                .set_read_timeout(Some(left))
-                .map_err(LinkError::SetTimeout)?;
-            let n = match self.stream.read(&mut buf) {
-                Ok(0) => return Err(LinkError::Closed),
-                Ok(n) => n,
-                Err(e)
-                    if matches!(
-                        e.kind(),
-                        std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
-                    ) =>
-                {
-                    return Err(LinkError::NoReply(self.timeout));
-                }
-                Err(e) => return Err(LinkError::Read(e)),
-            };
-            let before = self.rx.counts;
-            for b in &buf[..n] {
-                if let Some(m) = self.rx.push(*b) {
-                    self.queue.push_back(m);
-                }
-            }
-            let after = self.rx.counts;
-            if after.dropped() != before.dropped() || after.lost != before.lost {
-                return Err(LinkError::BadFrame(after));
-            }
-        }
-    }
-
-    /// Receives the firmware's `Hello` and checks its protocol version and schema hash.
-    pub fn hello(&mut self) -> Result<Hello, LinkError> {
-        match self.recv()? {
-            FromFirmware::Hello(h) => {
-                h.check().map_err(LinkError::Protocol)?;
-                Ok(h)
-            }
-            other => Err(LinkError::NotHello(Box::new(other))),
-        }
-    }
-
-    /// Sends `msg` and returns the first reply `pick` accepts, failing on anything else
-    /// arriving first.
-    pub fn request<T>(
-        &mut self,
-        msg: &ToFirmware,
-        pick: impl Fn(&FromFirmware) -> Option<T>,
-    ) -> Result<T, LinkError> {
-        self.send(msg)?;
-        let r = self.recv()?;
-        pick(&r).ok_or_else(|| LinkError::Unexpected {
-            sent: Box::new(*msg),
-            got: Box::new(r),
-        })
-    }
-}
-
 /// The firmware's status and the host's link counts as a labelled table, one quantity a line.
 pub fn status_table(st: &Status, host: &LinkCounts) -> String {
     let mean = if st.steps == 0 {
@@ -535,6 +415,10 @@ pub fn status_table(st: &Status, host: &LinkCounts) -> String {
         "sensor frames overrun", st.frames_overrun
     );
     s += &format!("{:<28} {:>10}\n", "received bytes lost", st.bytes_lost);
+    s += &format!(
+        "{:<28} {:>10} (the link's transmit queue was full: rate above the baud rate's)\n",
+        "telemetry frames dropped", st.telemetry_dropped
+    );
     s += &format!("{:<28} {:>10}\n", "estimator steps", st.steps);
     s += &format!(
         "{:<28} {:>10} (steps with the HP loop outside 4–20 mA)\n",

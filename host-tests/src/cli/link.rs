@@ -1,0 +1,367 @@
+//! `pto link`: the bench engineer's tool, over a serial port to the controller or the QEMU
+//! twin's pseudo-terminal.
+
+use anyhow::{Context, Result, bail};
+use pto_host::hil::client::{self, LogWriter, Units};
+use pto_host::hil::link::{self, Link};
+use pto_model::ModelConfig;
+use pto_model::fx::{Aperture, Pressure, Rpm};
+use pto_model::protocol::{FromFirmware, Hello, Stored, config_fingerprint};
+use pto_model::scheduler::Mode;
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+/// The port and how to reach it.
+pub(crate) struct Target<'a> {
+    pub(crate) port: &'a str,
+    pub(crate) baud: u32,
+}
+
+fn connect(t: &Target) -> Result<(Link, Hello)> {
+    Ok(link::connect(t.port, t.baud, Duration::from_secs(3))?)
+}
+
+pub(crate) fn status_cmd(t: &Target, json: bool) -> Result<bool> {
+    let (mut l, h) = connect(t)?;
+    let st = client::status(&mut l)?;
+    let (info, _) = client::read_config(&mut l)?;
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "port": t.port,
+                "firmware": format!("{}.{}", h.firmware >> 8, h.firmware & 0xff),
+                "protocol": h.protocol,
+                "dt_log2": h.dt_log2,
+                "configuration": { "source": format!("{:?}", info.source),
+                    "fingerprint": format!("{:08x}", info.fingerprint), "bytes": info.len },
+                "status": st,
+                "host_link": l.counts(),
+            }))?
+        );
+    } else {
+        println!(
+            "{}: pto-firmware {}.{}, protocol v{}, model step 2^-{} s",
+            t.port,
+            h.firmware >> 8,
+            h.firmware & 0xff,
+            h.protocol,
+            h.dt_log2
+        );
+        println!(
+            "{:<28} {} (fingerprint {:08x})",
+            "model configuration", info.source, info.fingerprint
+        );
+        print!("{}", pto_host::hil::qemu::status_table(&st, &l.counts()));
+    }
+    Ok(true)
+}
+
+/// `fixed 12` (%), `hold-pressure 100` (bar), `hold-speed 200` (rpm), `max-autonomy 150` (rpm).
+pub(crate) fn parse_mode(kind: &str, value: f64) -> Result<Mode> {
+    let in_range = |lo: f64, hi: f64, unit: &str| -> Result<f32> {
+        if value.is_finite() && (lo..=hi).contains(&value) {
+            Ok(value as f32)
+        } else {
+            bail!("mode {kind} {value}: outside [{lo}, {hi}] {unit}")
+        }
+    };
+    Ok(match kind {
+        "fixed" => Mode::Fixed(Aperture::from_num(in_range(0.0, 100.0, "%")?)),
+        "hold-pressure" => Mode::HoldPressure(Pressure::from_num(in_range(1.0, 130.0, "bar")?)),
+        "hold-speed" => Mode::HoldSpeed(Rpm::from_num(in_range(1.0, 3000.0, "rpm")?)),
+        "max-autonomy" => Mode::MaxAutonomy(Rpm::from_num(in_range(1.0, 3000.0, "rpm")?)),
+        other => bail!(
+            "mode {other:?}: want fixed PCT, hold-pressure BAR, hold-speed RPM or max-autonomy RPM"
+        ),
+    })
+}
+
+pub(crate) fn mode_cmd(t: &Target, kind: &str, value: f64) -> Result<bool> {
+    let mode = parse_mode(kind, value)?;
+    let (mut l, _) = connect(t)?;
+    client::set_mode(&mut l, mode)?;
+    println!("mode {kind} {value} set");
+    Ok(true)
+}
+
+pub(crate) fn duty_cmd(t: &Target, on: &str, config: u8) -> Result<bool> {
+    let mask = match on.as_bytes() {
+        [a, b, c, d] if on.bytes().all(|x| x == b'0' || x == b'1') => [a, b, c, d]
+            .iter()
+            .enumerate()
+            .fold(0u8, |m, (i, x)| m | (u8::from(**x == b'1') << i)),
+        _ => bail!("--on {on:?}: want four 0/1 characters for HC3.1..HC3.4, e.g. 1001"),
+    };
+    if mask == 0 {
+        bail!("--on 0000: no cylinder on duty");
+    }
+    if !(1..=4).contains(&config) {
+        bail!("--config {config}: want 1, 2, 3 or 4");
+    }
+    let (mut l, _) = connect(t)?;
+    client::set_duty(&mut l, mask, config - 1)?;
+    println!("on duty {on}, config {config}");
+    Ok(true)
+}
+
+pub(crate) fn reset_cmd(t: &Target, p2: f64, lp: f64) -> Result<bool> {
+    for (name, v, hi) in [("--p2", p2, 400.0), ("--lp", lp, 100.0)] {
+        if !(v.is_finite() && (0.0..=hi).contains(&v)) {
+            bail!("{name} {v}: outside [0, {hi}] bar");
+        }
+    }
+    let (mut l, _) = connect(t)?;
+    client::reset(&mut l, p2 as f32, lp as f32)?;
+    println!("estimator restarted from P2 {p2} bar, LP {lp} bar");
+    Ok(true)
+}
+
+/// A model configuration from `pto fit`'s `*.model.toml`, or converted from a bench file.
+pub(crate) fn load_config(path: &Path) -> Result<ModelConfig> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let model_err = match toml::from_str::<ModelConfig>(&text) {
+        Ok(cfg) => {
+            cfg.coefficients()
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            return Ok(cfg);
+        }
+        Err(e) => e,
+    };
+    match pto_host::sim::bench::Bench::load(path) {
+        Ok(b) => {
+            let cfg = pto_host::model::model_config(&b)?;
+            cfg.coefficients()
+                .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            Ok(cfg)
+        }
+        Err(bench_err) => bail!(
+            "{} is neither a model configuration (`pto fit`'s *.model.toml: {}) nor a bench \
+             file ({bench_err})",
+            path.display(),
+            model_err.message().trim()
+        ),
+    }
+}
+
+pub(crate) fn config_upload_cmd(t: &Target, file: &Path, store: bool, json: bool) -> Result<bool> {
+    let cfg = load_config(file)?;
+    let bytes = client::config_bytes(&cfg)?;
+    let (mut l, _) = connect(t)?;
+    let quiet = json || !std::io::stderr().is_terminal();
+    let (info, stored) = client::upload(&mut l, &cfg, store, |n, total| {
+        if !quiet {
+            eprint!("\ruploading {n}/{total} bytes");
+        }
+    })?;
+    if !quiet {
+        eprintln!();
+    }
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "file": file,
+                "bytes": bytes.len(),
+                "fingerprint": format!("{:08x}", config_fingerprint(&bytes)),
+                "source": format!("{:?}", info.source),
+                "stored": stored == Stored::Yes,
+            }))?
+        );
+    } else {
+        println!(
+            "{}: {} bytes, fingerprint {:08x}; the firmware runs it ({})",
+            file.display(),
+            bytes.len(),
+            info.fingerprint,
+            info.source
+        );
+        println!(
+            "the estimator restarted: P2 is unknown until `pto link --port {} reset --p2 BAR --lp BAR`",
+            t.port
+        );
+    }
+    Ok(true)
+}
+
+pub(crate) fn config_show_cmd(t: &Target, out: Option<&PathBuf>, json: bool) -> Result<bool> {
+    let (mut l, _) = connect(t)?;
+    let (info, cfg) = client::read_config(&mut l)?;
+    let text = format!(
+        "# Model configuration read from the controller on {}: {} (fingerprint {:08x}).\n{}",
+        t.port,
+        info.source,
+        info.fingerprint,
+        toml::to_string_pretty(&cfg)?
+    );
+    if let Some(p) = out {
+        super::write_atomic(p, text.as_bytes())?;
+    }
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "source": format!("{:?}", info.source),
+                "fingerprint": format!("{:08x}", info.fingerprint),
+                "configuration": cfg,
+            }))?
+        );
+    } else if out.is_none() {
+        print!("{text}");
+    } else {
+        println!(
+            "{} ({}, fingerprint {:08x})",
+            out.map_or(String::new(), |p| p.display().to_string()),
+            info.source,
+            info.fingerprint
+        );
+    }
+    Ok(true)
+}
+
+pub(crate) fn monitor_cmd(
+    t: &Target,
+    log: Option<&PathBuf>,
+    rate_hz: Option<f64>,
+    duration_s: Option<f64>,
+    json: bool,
+) -> Result<bool> {
+    if let Some(r) = rate_hz
+        && !(r.is_finite() && r > 0.0 && r <= 1024.0)
+    {
+        bail!("--rate {r}: outside (0, 1024] Hz");
+    }
+    if let Some(d) = duration_s
+        && !(d.is_finite() && d > 0.0)
+    {
+        bail!("--duration {d}: want a positive number of seconds");
+    }
+    let (mut l, h) = connect(t)?;
+    let (_, cfg) = client::read_config(&mut l)?;
+    let units = Units::new(h.dt_log2, &cfg);
+    let steps_per_s = 2f64.powi(i32::from(h.dt_log2));
+    if let Some(r) = rate_hz {
+        let every = (steps_per_s / r).round().clamp(1.0, 65_535.0) as u16;
+        client::set_telemetry(&mut l, every)?;
+        eprintln!(
+            "telemetry every {every} steps ({:.1} Hz)",
+            steps_per_s / f64::from(every)
+        );
+    }
+    let mut writer = log.map(|p| LogWriter::create(p)).transpose()?;
+    pto_host::output::stop_on_interrupt();
+    eprintln!(
+        "monitoring {}{} — Ctrl-C stops{}",
+        t.port,
+        log.map_or(String::new(), |p| format!(", logging to {}", p.display())),
+        duration_s.map_or(String::new(), |d| format!(" (or {d} s of firmware time)"))
+    );
+    let tty = std::io::stderr().is_terminal();
+    let before = l.counts();
+    l.timeout = Duration::from_millis(500);
+    let (mut first, mut frames, mut last_print) = (None::<f64>, 0u64, Instant::now());
+    let mut last = None;
+    let mut silent = Instant::now();
+    while !pto_host::output::stop_requested() {
+        let m = match l.recv() {
+            Ok(m) => m,
+            Err(link::LinkError::NoReply(_)) => {
+                if silent.elapsed() > Duration::from_secs(5) {
+                    eprintln!("no telemetry for 5 s (is the controller stepping?)");
+                    silent = Instant::now();
+                }
+                continue;
+            }
+            Err(e) => return Err(e.into()),
+        };
+        let FromFirmware::Telemetry(tel) = m else {
+            continue;
+        };
+        silent = Instant::now();
+        let s = units.sample(&tel);
+        let t0 = *first.get_or_insert(s.t_s);
+        if duration_s.is_some_and(|d| s.t_s - t0 > d) {
+            break;
+        }
+        frames += 1;
+        if let Some(w) = writer.as_mut() {
+            w.row(&s)?;
+        }
+        if !json && last_print.elapsed() > Duration::from_millis(if tty { 200 } else { 2000 }) {
+            last_print = Instant::now();
+            let c = l.counts();
+            let e = &tel.estimate;
+            let line = format!(
+                "t {:>8.2} s  P2 {:>6.2} ± {:.2} bar (HP {})  LP {:>5.2}  motor {:>6.1} rpm  \
+                 torque {:>7.0} N·m  valve {:>5.1} %{}  faults {:#06x}  frames {} ok, {} lost, {} bad",
+                s.t_s,
+                e.p2.to_f32(),
+                e.p2_sigma().to_f32(),
+                s.hp_bar.map_or("—".into(), |p| format!("{p:.2}")),
+                s.lp_bar.unwrap_or(f64::NAN),
+                s.motor_rpm,
+                e.torque.to_f32(),
+                tel.applied.to_f32(),
+                if tel.dump { " DUMP" } else { "" },
+                e.faults,
+                c.ok - before.ok,
+                c.lost - before.lost,
+                c.dropped() - before.dropped()
+            );
+            if tty {
+                eprint!("\r{line}");
+            } else {
+                eprintln!("{line}");
+            }
+        }
+        last = Some(s);
+    }
+    if tty && !json {
+        eprintln!();
+    }
+    let c = l.counts();
+    let (lost, bad) = (c.lost - before.lost, c.dropped() - before.dropped());
+    let written = match writer {
+        Some(w) => {
+            let (rows, skipped) = (w.rows, w.skipped);
+            Some((w.finish()?, rows, skipped))
+        }
+        None => None,
+    };
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "frames": frames,
+                "lost": lost,
+                "dropped": bad,
+                "first_s": first,
+                "last_s": last.map(|s| s.t_s),
+                "log": written.as_ref().map(|w| &w.0),
+                "rows": written.as_ref().map(|w| w.1),
+                "rows_skipped_missing_reading": written.as_ref().map(|w| w.2),
+            }))?
+        );
+    } else {
+        println!(
+            "{frames} telemetry frames ({} – {} s), {lost} lost, {bad} damaged",
+            first.map_or("—".into(), |t| format!("{t:.2}")),
+            last.map_or("—".into(), |s| format!("{:.2}", s.t_s))
+        );
+        if let Some((p, rows, skipped)) = &written {
+            println!(
+                "bench log {} ({rows} rows{})",
+                p.display(),
+                if *skipped > 0 {
+                    format!(", {skipped} frames left out: a pressure reading was missing")
+                } else {
+                    String::new()
+                }
+            );
+        }
+    }
+    // Frames lost on the way are a miss: the log has gaps.
+    Ok(lost == 0 && bad == 0)
+}

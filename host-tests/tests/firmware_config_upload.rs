@@ -1,0 +1,149 @@
+//! Configuration upload to the QEMU twin over its bench link (the pseudo-terminal, through the
+//! serial-port code path): stored in the declared safe state, refused outside it, refused with
+//! its reason when damaged or out of range, and a refusal leaves the running configuration as
+//! it was.
+
+use pto_host::hil::build::{self, Build};
+use pto_host::hil::client;
+use pto_host::hil::link::{self, LinkError};
+use pto_host::hil::qemu::Qemu;
+use pto_model::ModelConfig;
+use pto_model::protocol::{
+    Chunk, ConfigRefusal, ConfigSource, FromFirmware, Refusal, Stored, ToFirmware,
+    config_fingerprint,
+};
+use pto_model::scheduler::Mode;
+use std::time::Duration;
+
+fn refusal(e: client::ClientError) -> ConfigRefusal {
+    match e {
+        client::ClientError::Link(LinkError::Refused(Refusal::Config(c))) => c,
+        other => panic!("expected a configuration refusal, got {other}"),
+    }
+}
+
+#[test]
+fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
+    let elf = build::build(Build::Qemu).expect("QEMU build");
+    let q = Qemu::boot_twin(&elf, false).expect("twin");
+    let pty = q.pty.clone().unwrap();
+    let (mut l, hello) = link::connect(&pty.display().to_string(), 230_400, Duration::from_secs(5))
+        .expect("connect over the pseudo-terminal");
+    assert_eq!(hello.dt_log2, 10);
+
+    let (info, cfg) = client::read_config(&mut l).unwrap();
+    assert_eq!(info.source, ConfigSource::BuiltIn);
+    assert_eq!(info.fingerprint, pto_firmware::built_config::FINGERPRINT);
+    assert_eq!(cfg, ModelConfig::reference());
+
+    // At boot the mode is fixed 0 % with the valve closed: the declared safe state.
+    let mut wet = ModelConfig::reference();
+    wet.trapped_air_fraction = 0.09;
+    let (info, stored) = client::upload(&mut l, &wet, true, |_, _| {}).unwrap();
+    assert_eq!(
+        (info.source, stored),
+        (ConfigSource::UploadedStored, Stored::Yes)
+    );
+    let (back, cfg) = client::read_config(&mut l).unwrap();
+    assert_eq!((back, cfg.clone()), (info, wet.clone()));
+
+    // Outside the safe state: storing is refused, nothing changes.
+    client::set_mode(&mut l, Mode::Fixed(pto_model::fx::Aperture::from_num(10.0))).unwrap();
+    let mut other = wet.clone();
+    other.trapped_air_fraction = 0.03;
+    let e = refusal(client::upload(&mut l, &other, true, |_, _| {}).unwrap_err());
+    assert_eq!(e, ConfigRefusal::NotSafeToStore);
+    // Not stored, it runs at once.
+    let (info, stored) = client::upload(&mut l, &other, false, |_, _| {}).unwrap();
+    assert_eq!((info.source, stored), (ConfigSource::Uploaded, Stored::No));
+
+    // A field out of range (not checked by the host here): the firmware names it.
+    let mut bad = other.clone();
+    bad.trapped_air_fraction = 0.9;
+    let e = refusal(client::upload(&mut l, &bad, false, |_, _| {}).unwrap_err());
+    let text = e.to_string();
+    assert!(
+        text.contains("trapped_air_fraction = 0.9 outside"),
+        "{text}"
+    );
+    // Another model step than the board samples at.
+    let mut dt = other.clone();
+    dt.dt_log2 = 11;
+    let e = refusal(client::upload(&mut l, &dt, false, |_, _| {}).unwrap_err());
+    assert!(
+        e.to_string().contains("dt_log2 = 11 outside [10, 10]"),
+        "{e}"
+    );
+
+    // Damaged on the way (a byte changed inside a chunk whose frame was fine): the CRC over
+    // the whole catches it.
+    let bytes = client::config_bytes(&wet).unwrap();
+    let ask = |l: &mut link::Link, m: ToFirmware| {
+        l.request(&m, |r| match r {
+            FromFirmware::Telemetry(_) => None,
+            other => Some(*other),
+        })
+        .unwrap()
+    };
+    ask(
+        &mut l,
+        ToFirmware::ConfigBegin {
+            len: bytes.len() as u16,
+            crc: config_fingerprint(&bytes),
+        },
+    );
+    let mut damaged = bytes.clone();
+    damaged[100] ^= 0x04;
+    let mut off = 0;
+    while off < damaged.len() {
+        let c = Chunk::of(&damaged, off);
+        off += usize::from(c.len);
+        ask(&mut l, ToFirmware::ConfigChunk(c));
+    }
+    let r = ask(&mut l, ToFirmware::ConfigCommit { persist: false });
+    assert!(
+        matches!(
+            r,
+            FromFirmware::Refused(Refusal::Config(ConfigRefusal::Crc { .. }))
+        ),
+        "{r:?}"
+    );
+    // A chunk out of order.
+    ask(
+        &mut l,
+        ToFirmware::ConfigBegin {
+            len: bytes.len() as u16,
+            crc: config_fingerprint(&bytes),
+        },
+    );
+    let r = ask(&mut l, ToFirmware::ConfigChunk(Chunk::of(&bytes, 64)));
+    assert!(
+        matches!(
+            r,
+            FromFirmware::Refused(Refusal::Config(ConfigRefusal::OutOfOrder {
+                expected: 0,
+                got: 64
+            }))
+        ),
+        "{r:?}"
+    );
+
+    // Every refusal left the last accepted configuration running.
+    let (info, cfg) = client::read_config(&mut l).unwrap();
+    assert_eq!((info.source, cfg), (ConfigSource::Uploaded, other));
+    let st = client::status(&mut l).unwrap();
+    println!(
+        "bench link: {} frames taken by the firmware, {} dropped, {} lost; host: {:?}",
+        st.link.ok,
+        st.link.dropped(),
+        st.link.lost,
+        l.counts()
+    );
+    assert_eq!((st.link.dropped(), st.link.lost), (0, 0));
+    let log: Vec<String> = q.log().iter().map(ToString::to_string).collect();
+    assert!(
+        log.iter()
+            .any(|l| l.contains("uploaded") && l.contains("stored")),
+        "{log:#?}"
+    );
+}
