@@ -14,9 +14,9 @@ use embassy_time::{Duration, Timer, with_timeout};
 use embedded_hal::digital::OutputPin;
 use embedded_hal::pwm::SetDutyCycle;
 use embedded_io_async::{Read, Write};
-use pto_firmware::control::{ControlConfig, Controller, SetupError};
+use pto_firmware::control::{ControlConfig, Controller, ReconfigureError, SetupError};
 use pto_firmware::link::{HostReceiver, Transmitter};
-use pto_firmware::store::{ConfigStore, Loaded};
+use pto_firmware::store::{ConfigStore, Loaded, NotStored, stored_config};
 use pto_firmware::supervisor::{Heartbeats, Supervisor, Task, Watchdog as _};
 use pto_firmware::upload::Upload;
 use pto_firmware::{HEARTBEAT_MS, SUPERVISOR_PERIOD_MS, VERSION};
@@ -25,7 +25,7 @@ use pto_model::fx::Aperture;
 use pto_model::protocol::{
     CONFIG_MAX_BYTES, Chunk, ConfigInfo, ConfigRefusal, ConfigSource, FromFirmware, Hello,
     LinkCounts, MAX_FRAME, PROTOCOL_VERSION, Refusal, SCHEMA_HASH, SensorFrame, Stored, Telemetry,
-    ToFirmware, config_fingerprint, decode_config,
+    ToFirmware, config_fingerprint,
 };
 use pto_model::scheduler::SchedulerConfig;
 use static_cell::StaticCell;
@@ -105,7 +105,13 @@ pub struct Outputs {
 
 /// Samples and commands for the control task. Samples are dropped (and counted) when it is full.
 pub static TO_CONTROL: Channel<CriticalSectionRawMutex, ToControl, 4> = Channel::new();
-static TO_TX: [Channel<CriticalSectionRawMutex, ToTx, 8>; 2] = [Channel::new(), Channel::new()];
+/// Frames queued for each port's transmit task.
+const TX_QUEUE: usize = 8;
+/// Queue slots telemetry leaves free for replies (the host waits for each reply, so a couple
+/// are ever outstanding).
+const REPLY_SLOTS: usize = 2;
+static TO_TX: [Channel<CriticalSectionRawMutex, ToTx, TX_QUEUE>; 2] =
+    [Channel::new(), Channel::new()];
 static ACTUATE: Signal<CriticalSectionRawMutex, Outputs> = Signal::new();
 static HEARTBEATS: Heartbeats = Heartbeats::new();
 /// What each port's receive task took and dropped, by cause, for `Status`.
@@ -282,50 +288,45 @@ async fn boot_config(
     cc: &ControlConfig,
 ) -> (ModelConfig, Running) {
     let src = pto_firmware::built_config::SOURCE;
-    let mut buf = [0u8; CONFIG_MAX_BYTES];
-    let stored = match store.as_mut() {
-        Some(s) => s.load(&mut buf).await,
-        None => Loaded::Failed,
-    };
-    match stored {
-        Loaded::Found(n) => {
-            let bytes = &buf[..n];
-            match decode_config(bytes) {
-                Ok(cfg) => match valid(&cfg, sched, cc) {
-                    Ok(()) => {
-                        defmt::info!(
-                            "model configuration: stored (fingerprint {=u32:08x}); the built-in \
-                             one for {=str} (fingerprint {=u32:08x}) is not used",
-                            config_fingerprint(bytes),
-                            src,
-                            pto_firmware::built_config::FINGERPRINT
-                        );
-                        return (cfg, Running::new(bytes, ConfigSource::Stored));
-                    }
-                    Err(e) => {
-                        defmt::warn!("the stored configuration is not valid for this firmware:");
-                        log_setup_error(&e);
-                    }
-                },
-                Err(_) => {
-                    defmt::warn!("the stored configuration does not decode (another version?)")
-                }
-            }
-        }
-        Loaded::Empty => defmt::info!("no stored configuration"),
-        Loaded::OtherVersion(v) => {
-            defmt::warn!("stored configuration of record version {=u8} ignored", v)
-        }
-        Loaded::Failed => defmt::warn!("the configuration store cannot be read"),
-    }
+    let built_in = pto_firmware::built_config::FINGERPRINT;
     let Some(model) = pto_firmware::built_config::model() else {
         defmt::error!("the built-in model configuration does not decode: damaged image");
         board::fail(2)
     };
+    let mut buf = [0u8; CONFIG_MAX_BYTES];
+    let loaded = match store.as_mut() {
+        Some(s) => s.load(&mut buf).await,
+        None => Loaded::Failed,
+    };
+    match stored_config(loaded, &buf, built_in, model.dt_log2) {
+        Ok(cfg) => match board::unwatched(|| valid(&cfg, sched, cc)) {
+            Ok(()) => {
+                let len = match loaded {
+                    Loaded::Found { len, .. } => len,
+                    _ => 0,
+                };
+                let bytes = &buf[..len];
+                defmt::info!(
+                    "model configuration: stored (fingerprint {=u32:08x}); the built-in one for \
+                     {=str} (fingerprint {=u32:08x}) is not used",
+                    config_fingerprint(bytes),
+                    src,
+                    built_in
+                );
+                return (cfg, Running::new(bytes, ConfigSource::Stored));
+            }
+            Err(e) => {
+                defmt::warn!("the stored configuration is not valid for this firmware:");
+                log_setup_error(&e);
+            }
+        },
+        Err(NotStored::Empty) => defmt::info!("no stored configuration"),
+        Err(why) => defmt::warn!("the stored configuration is not used: {}", why),
+    }
     defmt::info!(
         "model configuration: built for {=str} (fingerprint {=u32:08x})",
         src,
-        pto_firmware::built_config::FINGERPRINT
+        built_in
     );
     (
         model,
@@ -357,30 +358,30 @@ struct Session {
 }
 
 impl Session {
-    /// `ConfigCommit`: checks, stores when asked (only in the declared safe state), applies.
+    /// `ConfigCommit`: checks (the declared safe state, then the configuration), stores when
+    /// asked, applies. The controller stops stepping meanwhile (its tables are built twice,
+    /// ≈ 136 M instructions each), with the watchdog's timeout raised for it.
     async fn commit(
         &mut self,
         ctl: &mut Controller,
         persist: bool,
     ) -> Result<FromFirmware, ConfigRefusal> {
-        if persist && !ctl.safe_to_store() {
-            return Err(ConfigRefusal::NotSafeToStore);
-        }
+        ctl.safe_to_apply().map_err(ConfigRefusal::NotSafe)?;
         let (cfg, bytes) = self.upload.finish()?;
         let refusal = |e| match e {
-            SetupError::Model(m) => ConfigRefusal::from(m),
-            _ => ConfigRefusal::Decode,
+            ReconfigureError::NotSafe(n) => ConfigRefusal::NotSafe(n),
+            ReconfigureError::Setup(SetupError::Model(m)) => ConfigRefusal::from(m),
+            ReconfigureError::Setup(_) => ConfigRefusal::Decode,
         };
         // Checked before anything is stored or changed (no controller is kept across the
         // store's await: one is ≈ 11 KB).
-        ctl.check_reconfigure(&cfg, &self.sched, &self.cc)
-            .map_err(refusal)?;
+        board::unwatched(|| ctl.check_reconfigure(&cfg, &self.sched, &self.cc)).map_err(refusal)?;
         let stored = if persist {
             let store = self.store.as_mut().ok_or(ConfigRefusal::Store)?;
             defmt::info!("storing the configuration (the controller stalls during an erase)");
-            let r = store.save(bytes).await;
-            // Every task stalled with us: none of them is stuck.
-            HEARTBEATS.beat_all();
+            let r = store
+                .save(bytes, pto_firmware::built_config::FINGERPRINT)
+                .await;
             r.map_err(|e| {
                 defmt::error!("configuration store: {}", e);
                 ConfigRefusal::Store
@@ -389,13 +390,14 @@ impl Session {
         } else {
             Stored::No
         };
+        board::unwatched(|| ctl.reconfigure(&cfg, &self.sched, &self.cc)).map_err(refusal)?;
+        // Every task stalled with us: none of them is stuck.
+        HEARTBEATS.beat_all();
         let source = if persist {
             ConfigSource::UploadedStored
         } else {
             ConfigSource::Uploaded
         };
-        ctl.reconfigure(&cfg, &self.sched, &self.cc)
-            .map_err(refusal)?;
         self.running = Running::new(bytes, source);
         defmt::info!(
             "model configuration: uploaded (fingerprint {=u32:08x}), {=str}; estimator restarted",
@@ -406,6 +408,17 @@ impl Session {
             info: self.running.info,
             stored,
         })
+    }
+
+    /// `ConfigClear`: erases the store (in the declared safe state).
+    async fn clear(&mut self, ctl: &Controller) -> Result<FromFirmware, ConfigRefusal> {
+        ctl.safe_to_apply().map_err(ConfigRefusal::NotSafe)?;
+        let store = self.store.as_mut().ok_or(ConfigRefusal::Store)?;
+        let r = store.clear().await;
+        HEARTBEATS.beat_all();
+        r.map_err(|_| ConfigRefusal::Store)?;
+        defmt::info!("configuration store cleared: the next boot runs the built-in one");
+        Ok(FromFirmware::ConfigCleared)
     }
 }
 
@@ -418,13 +431,14 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
         defmt::error!("configuration store: bad flash range");
     }
     let (model, running) = boot_config(&mut store, &sched, &cc).await;
-    let ctl: &'static mut Controller = match Controller::new(&model, &sched, &cc) {
-        Ok(c) => CONTROLLER.init(c),
-        Err(e) => {
-            log_setup_error(&e);
-            board::fail(2)
-        }
-    };
+    let ctl: &'static mut Controller =
+        match board::unwatched(|| Controller::new(&model, &sched, &cc)) {
+            Ok(c) => CONTROLLER.init(c),
+            Err(e) => {
+                log_setup_error(&e);
+                board::fail(2)
+            }
+        };
     if crate::trip_memory::remembered() {
         ctl.boot_tripped();
     }
@@ -526,8 +540,11 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                         on_duty,
                         config,
                     });
-                    // Never wait for the link: a frame the queue cannot take is counted.
-                    if TO_TX[Port::Link as usize].try_send(ToTx::Send(t)).is_err() {
+                    // Never wait for the link: telemetry leaves room in the queue for the
+                    // replies to commands (which the loop sends waiting), and a frame it
+                    // cannot take is counted.
+                    let q = &TO_TX[Port::Link as usize];
+                    if q.len() + REPLY_SLOTS > TX_QUEUE || q.try_send(ToTx::Send(t)).is_err() {
                         TELEMETRY_DROPPED.fetch_add(1, Ordering::Relaxed);
                     }
                 }
@@ -560,6 +577,12 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                     ctl.set_duty(on_duty, config);
                 }
                 ToFirmware::SetTelemetry { every } => {
+                    // No faster than the link carries (0 stays off).
+                    let every = if every == 0 {
+                        0
+                    } else {
+                        every.max(board::MIN_TELEMETRY_EVERY)
+                    };
                     defmt::info!("telemetry every {=u16} steps", every);
                     s.telemetry_every = every;
                     send(port, FromFirmware::Pong(u32::from(every))).await;
@@ -599,6 +622,13 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                     match &r {
                         Ok(_) => faults_prev = 0,
                         Err(e) => defmt::warn!("configuration refused: {}", e),
+                    }
+                    send(port, config_reply(r)).await;
+                }
+                ToFirmware::ConfigClear => {
+                    let r = s.clear(ctl).await;
+                    if let Err(e) = &r {
+                        defmt::warn!("configuration store not cleared: {}", e);
                     }
                     send(port, config_reply(r)).await;
                 }

@@ -94,6 +94,23 @@ impl core::fmt::Display for SetupError {
     }
 }
 
+pub use pto_model::protocol::NotSafe;
+
+/// Why a configuration cannot replace the running one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum ReconfigureError {
+    /// Not in the declared safe state.
+    NotSafe(NotSafe),
+    /// The configuration is not valid.
+    Setup(SetupError),
+}
+
+impl From<SetupError> for ReconfigureError {
+    fn from(e: SetupError) -> Self {
+        ReconfigureError::Setup(e)
+    }
+}
+
 /// What one closed-loop step produced.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct StepOut {
@@ -210,42 +227,54 @@ impl Controller {
         Ok(c)
     }
 
-    /// Runs another model configuration from the next step: the same checks as
-    /// [`Controller::new`] (a refusal changes nothing), then the estimator restarts as at boot
-    /// (P2 unknown until the host's next [`Controller::reset`]), so the scheduler holds the
-    /// valve at its safe aperture until a reading confirms P2. The mode, the cylinders on duty,
-    /// the health counters, the tick count and the applied aperture (the slew limit goes on
-    /// from it) carry over; a tripped latch stays tripped and releases as at boot.
+    /// Runs another model configuration from the next step, refused (nothing changed) outside
+    /// the declared safe state ([`Controller::safe_to_apply`]) or with another model step than
+    /// the board samples at; otherwise the same checks as [`Controller::new`]. The estimator
+    /// restarts from its last P2 and LP with the boot uncertainty (a missing HP reading keeps
+    /// it there until a reading confirms P2, as after a host reset); the mode, the cylinders
+    /// on duty, the health counters, the tick count, the trip latch (its count; its state when
+    /// the trip pressure is unchanged) and the applied aperture carry over.
     pub fn reconfigure(
         &mut self,
         model: &ModelConfig,
         sched: &SchedulerConfig,
         cc: &ControlConfig,
-    ) -> Result<(), SetupError> {
+    ) -> Result<(), ReconfigureError> {
+        self.safe_to_apply().map_err(ReconfigureError::NotSafe)?;
         self.check_step(model)?;
         let mut next = Controller::new(model, sched, cc)?;
         next.mode = self.mode;
         (next.on_duty, next.config) = (self.on_duty, self.config);
         next.status = self.status;
         next.last_tick = self.last_tick;
+        next.last = self.last;
         next.applied = self.applied;
-        if self.status.tripped {
-            next.boot_tripped();
+        if next.k.trip_bar == self.k.trip_bar {
+            next.latch = self.latch;
+        } else {
+            next.latch.trips = self.latch.trips;
         }
+        next.st = State::new(
+            Pressure(self.st.node.p2),
+            Pressure(self.st.node.lp),
+            Pressure(Fx::saturating_from_num(cc.boot_sigma_bar)),
+        );
         *self = next;
         Ok(())
     }
 
     /// Whether [`Controller::reconfigure`] would take `model`, without changing anything (a
-    /// whole controller is built on the stack and dropped: ≈ 11 KB, once per upload).
+    /// whole controller is built on the stack and dropped).
     pub fn check_reconfigure(
         &self,
         model: &ModelConfig,
         sched: &SchedulerConfig,
         cc: &ControlConfig,
-    ) -> Result<(), SetupError> {
+    ) -> Result<(), ReconfigureError> {
+        self.safe_to_apply().map_err(ReconfigureError::NotSafe)?;
         self.check_step(model)?;
-        Controller::new(model, sched, cc).map(|_| ())
+        Controller::new(model, sched, cc)?;
+        Ok(())
     }
 
     fn check_step(&self, model: &ModelConfig) -> Result<(), SetupError> {
@@ -262,10 +291,20 @@ impl Controller {
         Ok(())
     }
 
-    /// The declared safe state in which the firmware may stall for a flash erase: the host set
-    /// mode `Fixed(0)` and the valve is closed (the relief valve caps HP), not tripped.
-    pub fn safe_to_store(&self) -> bool {
-        self.mode == Mode::Fixed(Aperture::ZERO) && self.applied == ZERO && !self.status.tripped
+    /// The declared safe state in which the controller may stop stepping for a while (building
+    /// a configuration's tables, ≈ 1 s on the bench; a flash erase, up to ≈ 2 s): the host set
+    /// mode `Fixed(0)`, the valve is closed (the relief valve caps HP), the trip latch is armed
+    /// and the last sample had a valid HP reading (P2 is known).
+    pub fn safe_to_apply(&self) -> Result<(), NotSafe> {
+        if self.status.tripped {
+            Err(NotSafe::Tripped)
+        } else if self.mode != Mode::Fixed(Aperture::ZERO) || self.applied != ZERO {
+            Err(NotSafe::ValveOpen)
+        } else if !self.last.is_some_and(|s| s.in_range) {
+            Err(NotSafe::NoReading)
+        } else {
+            Ok(())
+        }
     }
 
     /// Model step, dt = 2^−dt_log2 s.
@@ -521,11 +560,20 @@ mod tests {
         assert!((o.estimate.p2.to_f32() - 90.0).abs() < 1.0);
     }
 
-    /// A new configuration runs from the next step, restarts the estimator (P2 unknown) and
-    /// keeps the mode, the duty, the counters and a tripped latch; a bad one changes nothing.
+    /// A configuration is applied only in the declared safe state; it restarts the estimator
+    /// from its last P2 with the boot uncertainty and keeps the mode, the duty, the counters
+    /// and the latch; a bad one changes nothing.
     #[test]
-    fn a_reconfiguration_restarts_the_estimator_and_keeps_the_rest() {
+    fn a_reconfiguration_needs_the_safe_state_and_keeps_the_rest() {
+        let (sc, cc) = (SchedulerConfig::default(), ControlConfig::default());
+        let mut cfg = ModelConfig::reference();
+        cfg.trapped_air_fraction = 0.09;
         let mut c = ctl();
+        // No sample yet: P2 unknown.
+        assert_eq!(
+            c.reconfigure(&cfg, &sc, &cc),
+            Err(ReconfigureError::NotSafe(NotSafe::NoReading))
+        );
         c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0))
             .unwrap();
         c.set_mode(Mode::Fixed(Aperture::from_num(5.0)));
@@ -534,49 +582,56 @@ mod tests {
             assert!(c.fresh(i));
             c.sample(&frame(i, 100.0), &mut NoClock);
         }
-        assert!(!c.safe_to_store());
-        let mut cfg = ModelConfig::reference();
-        cfg.trapped_air_fraction = 0.09;
+        assert_eq!(
+            c.safe_to_apply(),
+            Err(NotSafe::ValveOpen),
+            "valve open: not safe"
+        );
+        assert!(matches!(
+            c.check_reconfigure(&cfg, &sc, &cc),
+            Err(ReconfigureError::NotSafe(NotSafe::ValveOpen))
+        ));
+        // Fixed 0: the valve slews shut (5 % at 100 %/s ≈ 52 steps).
+        c.set_mode(Mode::Fixed(Aperture::ZERO));
+        for i in 100..200 {
+            assert!(c.fresh(i));
+            c.sample(&frame(i, 100.0), &mut NoClock);
+        }
+        assert_eq!(c.safe_to_apply(), Ok(()));
         let before = c.clone();
         let mut bad = cfg.clone();
         bad.trapped_air_fraction = 5.0;
         assert!(matches!(
-            c.reconfigure(&bad, &SchedulerConfig::default(), &ControlConfig::default()),
-            Err(SetupError::Model(_))
+            c.reconfigure(&bad, &sc, &cc),
+            Err(ReconfigureError::Setup(SetupError::Model(_)))
         ));
         let mut other_dt = cfg.clone();
         other_dt.dt_log2 += 1;
         assert!(matches!(
-            c.reconfigure(
-                &other_dt,
-                &SchedulerConfig::default(),
-                &ControlConfig::default()
-            ),
-            Err(SetupError::Model(ConfigError {
+            c.reconfigure(&other_dt, &sc, &cc),
+            Err(ReconfigureError::Setup(SetupError::Model(ConfigError {
                 field: "dt_log2",
                 ..
-            }))
+            })))
         ));
         assert_eq!(c.status, before.status);
-        c.reconfigure(&cfg, &SchedulerConfig::default(), &ControlConfig::default())
-            .unwrap();
+        c.reconfigure(&cfg, &sc, &cc).unwrap();
         assert_eq!(c.duty(), (0b0011, 2));
-        assert_eq!(c.mode(), Mode::Fixed(Aperture::from_num(5.0)));
-        assert_eq!(c.status.steps, 100);
-        assert!(!c.fresh(99), "the tick count goes on");
-        // P2 unknown again: its σ is the boot value until a reading confirms it.
-        let o = c.sample(&frame(101, 100.0), &mut NoClock);
-        assert!(o.estimate.p2_sigma().to_f32() > 1.0, "{o:?}");
-        // A tripped latch stays tripped.
+        assert_eq!(c.mode(), Mode::Fixed(Aperture::ZERO));
+        assert_eq!(c.status.steps, 200);
+        assert!(!c.fresh(199), "the tick count goes on");
+        // The estimate goes on from where it was, as uncertain as at boot until a reading.
+        let mut f = frame(201, 100.0);
+        f.hp_adc = 0;
+        let o = c.sample(&f, &mut NoClock);
+        assert!((o.estimate.p2.to_f32() - 100.0).abs() < 1.0, "{o:?}");
+        assert!(o.estimate.p2_sigma().to_f32() > 10.0, "{o:?}");
+        // Tripped: refused, the latch untouched.
         let trip = c.trip().to_f32();
-        c.sample(&frame(102, trip + 1.0), &mut NoClock);
-        c.reconfigure(&cfg, &SchedulerConfig::default(), &ControlConfig::default())
-            .unwrap();
-        assert!(c.status.tripped && c.status.dump_valve);
-        // The declared safe state: fixed 0 % with the valve closed.
-        let mut c = ctl();
-        c.set_mode(Mode::Fixed(Aperture::ZERO));
-        assert!(c.safe_to_store());
+        c.sample(&frame(202, trip + 1.0), &mut NoClock);
+        assert_eq!(c.safe_to_apply(), Err(NotSafe::Tripped));
+        assert!(c.reconfigure(&cfg, &sc, &cc).is_err());
+        assert!(c.status.tripped && c.status.dump_valve && c.status.trips == 1);
     }
 
     #[test]

@@ -3,9 +3,12 @@
 //! any `embedded-storage-async` [`NorFlash`]: the STM32F405's last two 128 KiB sectors on the
 //! bench, a [`RamFlash`] under QEMU (whose flash is read-only) and in the host tests.
 //!
-//! One record, key [`CONFIG_KEY`]: a [`RECORD_VERSION`] byte, then the configuration's
-//! [`encode_config`](pto_model::protocol::encode_config) bytes. A record of another version, or
-//! whose bytes do not decode, is reported as such and the built-in configuration runs.
+//! One record, key [`CONFIG_KEY`]: a [`RECORD_VERSION`] byte, the fingerprint of the built-in
+//! configuration of the firmware that stored it (4 bytes, little-endian), then the
+//! configuration's [`encode_config`](pto_model::protocol::encode_config) bytes. At boot a record
+//! of another version, one stored under a firmware built for another configuration (a bench
+//! reflashed for another bench file), or one whose bytes do not decode or check is reported as
+//! such and the built-in configuration runs.
 
 use core::ops::Range;
 use embedded_storage_async::nor_flash::{
@@ -17,10 +20,13 @@ use sequential_storage::map::{MapConfig, MapStorage};
 
 /// The map key of the configuration record.
 pub const CONFIG_KEY: u8 = 1;
-/// Version of the record's layout (bumped when the model configuration's encoding changes).
-pub const RECORD_VERSION: u8 = 1;
-/// Working buffer: key, version byte and configuration, rounded up to the flash's words.
-const BUF: usize = CONFIG_MAX_BYTES + 8;
+/// Version of the record's layout (bumped when it or the model configuration's encoding
+/// changes).
+pub const RECORD_VERSION: u8 = 2;
+/// Version byte and built-in fingerprint.
+const HEADER: usize = 5;
+/// Working buffer: key, header and configuration, rounded up to the flash's words.
+const BUF: usize = CONFIG_MAX_BYTES + HEADER + 8;
 
 /// What the store held at boot.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -28,8 +34,14 @@ const BUF: usize = CONFIG_MAX_BYTES + 8;
 pub enum Loaded {
     /// Nothing stored.
     Empty,
-    /// A record of this version, `len` configuration bytes copied out.
-    Found(usize),
+    /// A record of this version: `len` configuration bytes copied out, stored by a firmware
+    /// whose built-in configuration had fingerprint `built_in`.
+    Found {
+        /// Configuration bytes.
+        len: usize,
+        /// The storing firmware's built-in fingerprint.
+        built_in: u32,
+    },
     /// A record of another layout version.
     OtherVersion(u8),
     /// The flash or the map failed (corrupted beyond repair, or a driver error).
@@ -72,24 +84,31 @@ impl<F: NorFlash> ConfigStore<F> {
             .await
         {
             Ok(None) => Loaded::Empty,
-            Ok(Some(rec)) => match rec.split_first() {
-                Some((&RECORD_VERSION, bytes)) if bytes.len() <= CONFIG_MAX_BYTES => {
+            Ok(Some(rec)) => match rec {
+                [RECORD_VERSION, a, b, c, d, bytes @ ..] if bytes.len() <= CONFIG_MAX_BYTES => {
                     out[..bytes.len()].copy_from_slice(bytes);
-                    Loaded::Found(bytes.len())
+                    Loaded::Found {
+                        len: bytes.len(),
+                        built_in: u32::from_le_bytes([*a, *b, *c, *d]),
+                    }
                 }
-                Some((v, _)) => Loaded::OtherVersion(*v),
-                None => Loaded::OtherVersion(0),
+                [v, ..] => Loaded::OtherVersion(*v),
+                [] => Loaded::OtherVersion(0),
             },
             Err(_) => Loaded::Failed,
         }
     }
 
-    /// Stores `bytes` (replacing the record), then reads it back.
-    pub async fn save(&mut self, bytes: &[u8]) -> Result<(), StoreError> {
-        let mut rec = [0u8; CONFIG_MAX_BYTES + 1];
-        let r = rec.get_mut(..bytes.len() + 1).ok_or(StoreError::TooLong)?;
+    /// Stores `bytes` (replacing the record) under the running firmware's built-in
+    /// configuration fingerprint `built_in`, then reads it back.
+    pub async fn save(&mut self, bytes: &[u8], built_in: u32) -> Result<(), StoreError> {
+        let mut rec = [0u8; CONFIG_MAX_BYTES + HEADER];
+        let r = rec
+            .get_mut(..bytes.len() + HEADER)
+            .ok_or(StoreError::TooLong)?;
         r[0] = RECORD_VERSION;
-        r[1..].copy_from_slice(bytes);
+        r[1..HEADER].copy_from_slice(&built_in.to_le_bytes());
+        r[HEADER..].copy_from_slice(bytes);
         let rec: &[u8] = r;
         self.map
             .store_item(&mut self.buf, &CONFIG_KEY, &rec)
@@ -97,14 +116,66 @@ impl<F: NorFlash> ConfigStore<F> {
             .map_err(|_| StoreError::Flash)?;
         let mut back = [0u8; CONFIG_MAX_BYTES];
         match self.load(&mut back).await {
-            Loaded::Found(n) if back[..n] == *bytes => Ok(()),
+            Loaded::Found { len, built_in: b } if back[..len] == *bytes && b == built_in => Ok(()),
             _ => Err(StoreError::Verify),
         }
+    }
+
+    /// Erases the store (every page of its range).
+    pub async fn clear(&mut self) -> Result<(), StoreError> {
+        self.map.erase_all().await.map_err(|_| StoreError::Flash)
     }
 
     /// The flash (for the tests' power cuts).
     pub fn into_flash(self) -> F {
         self.map.destroy().0
+    }
+}
+
+/// Why the stored configuration is not used at boot.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(target_os = "none", derive(defmt::Format))]
+pub enum NotStored {
+    /// Nothing stored.
+    Empty,
+    /// A record of another layout version.
+    OtherVersion(u8),
+    /// The flash or the map failed.
+    Failed,
+    /// Stored by a firmware built for another configuration (this fingerprint): the bench was
+    /// reflashed for another bench file.
+    OtherFirmware(u32),
+    /// The bytes are not a configuration of this firmware's version.
+    Decode,
+    /// Another model step than the board samples at.
+    OtherStep(u8),
+}
+
+/// The configuration to boot with from what the store held (`bytes`: the bytes it copied out),
+/// for a firmware whose built-in configuration has fingerprint `built_in` and step `dt_log2`.
+/// The caller still checks that a controller can be made from it.
+pub fn stored_config(
+    loaded: Loaded,
+    bytes: &[u8],
+    built_in: u32,
+    dt_log2: u8,
+) -> Result<pto_model::ModelConfig, NotStored> {
+    match loaded {
+        Loaded::Empty => Err(NotStored::Empty),
+        Loaded::OtherVersion(v) => Err(NotStored::OtherVersion(v)),
+        Loaded::Failed => Err(NotStored::Failed),
+        Loaded::Found { built_in: b, .. } if b != built_in => Err(NotStored::OtherFirmware(b)),
+        Loaded::Found { len, .. } => {
+            let cfg = bytes
+                .get(..len)
+                .and_then(|b| pto_model::protocol::decode_config(b).ok())
+                .ok_or(NotStored::Decode)?;
+            if cfg.dt_log2 == dt_log2 {
+                Ok(cfg)
+            } else {
+                Err(NotStored::OtherStep(cfg.dt_log2))
+            }
+        }
     }
 }
 
@@ -211,6 +282,8 @@ mod tests {
     use pto_model::protocol::encode_config;
 
     type Flash = RamFlash<{ 4 * 1024 }, 1024>;
+    /// The built-in fingerprint the tests store under.
+    const FP: u32 = 0x07a8_78ed;
 
     /// A flash whose power fails after `budget` words written or pages erased: the failing
     /// operation is left half done (half of its words written, half of its page erased).
@@ -274,7 +347,10 @@ mod tests {
     fn load<F: NorFlash>(s: &mut ConfigStore<F>) -> Option<std::vec::Vec<u8>> {
         let mut out = [0u8; CONFIG_MAX_BYTES];
         match block_on(s.load(&mut out)) {
-            Loaded::Found(n) => Some(out[..n].to_vec()),
+            Loaded::Found { len, built_in } => {
+                assert_eq!(built_in, FP);
+                Some(out[..len].to_vec())
+            }
             Loaded::Empty => None,
             other => panic!("{other:?}"),
         }
@@ -286,20 +362,24 @@ mod tests {
         assert_eq!(load(&mut s), None);
         let a = config(0.05);
         let b = config(0.09);
-        block_on(s.save(&a)).unwrap();
+        block_on(s.save(&a, FP)).unwrap();
         assert_eq!(load(&mut s).as_deref(), Some(&a[..]));
         // Many replacements: the map wraps around its pages and keeps only the newest.
         for i in 0..40 {
             let c = if i % 2 == 0 { &b } else { &a };
-            block_on(s.save(c)).unwrap();
+            block_on(s.save(c, FP)).unwrap();
             assert_eq!(load(&mut s).as_deref(), Some(&c[..]), "write {i}");
         }
         // A new store on the same flash (a reboot) finds the last one.
         let flash = s.into_flash();
         let mut s = ConfigStore::new(flash, 0..4096).unwrap();
         assert_eq!(load(&mut s).as_deref(), Some(&a[..]));
+        // Cleared: nothing stored.
+        block_on(s.clear()).unwrap();
+        assert_eq!(load(&mut s), None);
+        block_on(s.save(&a, FP)).unwrap();
         assert_eq!(
-            block_on(s.save(&[0u8; CONFIG_MAX_BYTES + 1])),
+            block_on(s.save(&[0u8; CONFIG_MAX_BYTES + 1], FP)),
             Err(StoreError::TooLong)
         );
     }
@@ -315,7 +395,7 @@ mod tests {
         // in page erasures.
         let mut s = ConfigStore::new(Flash::new(), 0..4096).unwrap();
         for _ in 0..7 {
-            block_on(s.save(&old)).unwrap();
+            block_on(s.save(&old, FP)).unwrap();
         }
         let base = s.into_flash();
         let (mut kept, mut took, mut cuts) = (0, 0, 0);
@@ -328,7 +408,7 @@ mod tests {
                 0..4096,
             )
             .unwrap();
-            let done = block_on(s.save(&new)).is_ok();
+            let done = block_on(s.save(&new, FP)).is_ok();
             let after = s.into_flash().flash;
             let mut s = ConfigStore::new(after, 0..4096).unwrap();
             let got = load(&mut s).expect("a configuration survives");
@@ -341,11 +421,39 @@ mod tests {
                 kept += usize::from(got == old);
             }
             // The store still works after the cut.
-            block_on(s.save(&new)).unwrap();
+            block_on(s.save(&new, FP)).unwrap();
             assert_eq!(load(&mut s), Some(new.clone()));
         }
         println!("power cuts: {cuts} (previous kept {kept}), completed writes: {took}");
         assert!(cuts > 50 && kept > 0 && took > 0);
+    }
+
+    /// At boot the stored configuration is taken only when it was stored by a firmware built
+    /// for the same configuration, decodes, and has the board's step.
+    #[test]
+    fn the_boot_takes_a_stored_configuration_only_when_it_fits_this_firmware() {
+        let mut s = ConfigStore::new(Flash::new(), 0..4096).unwrap();
+        let mut out = [0u8; CONFIG_MAX_BYTES];
+        let l = block_on(s.load(&mut out));
+        assert_eq!(stored_config(l, &out, FP, 10), Err(NotStored::Empty));
+        let b = config(0.09);
+        block_on(s.save(&b, FP)).unwrap();
+        let l = block_on(s.load(&mut out));
+        assert_eq!(
+            stored_config(l, &out, FP, 10).unwrap().trapped_air_fraction,
+            0.09
+        );
+        assert_eq!(
+            stored_config(l, &out, FP ^ 1, 10),
+            Err(NotStored::OtherFirmware(FP))
+        );
+        assert_eq!(
+            stored_config(l, &out, FP, 11),
+            Err(NotStored::OtherStep(10))
+        );
+        block_on(s.save(&[1, 2, 3], FP)).unwrap();
+        let l = block_on(s.load(&mut out));
+        assert_eq!(stored_config(l, &out, FP, 10), Err(NotStored::Decode));
     }
 
     #[test]

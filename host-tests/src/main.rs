@@ -338,16 +338,20 @@ enum LinkCmd {
 
 #[derive(Subcommand)]
 enum ConfigCmd {
-    /// Send a configuration; the firmware checks it (every field's range), applies it at once
-    /// (estimator restarted) and, with `--store`, keeps it in flash for the next boot.
+    /// Send a configuration; the firmware checks it (every field's range) and, in the declared
+    /// safe state (mode `fixed 0`, valve closed, trip armed, a valid HP reading), applies it
+    /// (estimator restarted from its last P2, uncertain as at boot) and, with `--store`, keeps
+    /// it in flash for the next boot.
     Upload {
         /// `pto fit`'s *.model.toml, or a bench file.
         file: PathBuf,
-        /// Also store it (needs mode `fixed 0` with the valve closed: a flash erase stalls the
-        /// controller).
+        /// Also store it for the next boot.
         #[arg(long)]
         store: bool,
     },
+    /// Erase the stored configuration: the next boot runs the built-in one (the running one
+    /// is unchanged). Needs the declared safe state, as `upload`.
+    Clear,
     /// The configuration the controller runs, and where it came from.
     Show {
         /// Write it to this file (TOML) instead of printing it.
@@ -456,6 +460,9 @@ fn main() -> ExitCode {
                 LinkCmd::Config {
                     cmd: ConfigCmd::Show { out },
                 } => config_show_cmd(&t, out.as_ref(), json),
+                LinkCmd::Config {
+                    cmd: ConfigCmd::Clear,
+                } => config_clear_cmd(&t),
                 LinkCmd::Monitor {
                     log,
                     rate,

@@ -1,7 +1,7 @@
 //! Configuration upload to the QEMU twin over its bench link (the pseudo-terminal, through the
-//! serial-port code path): stored in the declared safe state, refused outside it, refused with
-//! its reason when damaged or out of range, and a refusal leaves the running configuration as
-//! it was.
+//! serial-port code path): applied and stored only in the declared safe state (fixed 0 %, the
+//! valve closed, a valid HP reading), refused with its reason when damaged or out of range, and
+//! a refusal leaves the running configuration as it was.
 
 use pto_host::hil::build::{self, Build};
 use pto_host::hil::client;
@@ -9,11 +9,35 @@ use pto_host::hil::link::{self, LinkError};
 use pto_host::hil::qemu::Qemu;
 use pto_model::ModelConfig;
 use pto_model::protocol::{
-    Chunk, ConfigRefusal, ConfigSource, FromFirmware, Refusal, Stored, ToFirmware,
+    Chunk, ConfigRefusal, ConfigSource, FromFirmware, NotSafe, Refusal, Stored, ToFirmware,
     config_fingerprint,
 };
 use pto_model::scheduler::Mode;
 use std::time::Duration;
+
+/// `n` sensor frames on the hardware port, HP reading 60 bar, each step's output awaited.
+fn feed(q: &mut Qemu, tick: &mut u32, n: u32) {
+    use pto_firmware::frontend::{LoopSpec, Transducer};
+    let hp = Transducer::new(LoopSpec::HP).unwrap();
+    let lp = Transducer::new(LoopSpec::LP).unwrap();
+    for _ in 0..n {
+        let f = pto_model::protocol::SensorFrame {
+            tick: *tick,
+            encoder: 0,
+            hp_adc: hp.counts_at_bar(60.0),
+            lp_adc: lp.counts_at_bar(8.0),
+            motor: Some(pto_model::fx::Rpm::from_num(0.0)),
+        };
+        let t = *tick;
+        q.link
+            .request(&ToFirmware::Sensors(f), |r| match r {
+                FromFirmware::Output { tick, .. } if *tick == t => Some(()),
+                _ => None,
+            })
+            .expect("a step's output");
+        *tick += 1;
+    }
+}
 
 fn refusal(e: client::ClientError) -> ConfigRefusal {
     match e {
@@ -25,7 +49,7 @@ fn refusal(e: client::ClientError) -> ConfigRefusal {
 #[test]
 fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
     let elf = build::build(Build::Qemu).expect("QEMU build");
-    let q = Qemu::boot_twin(&elf, false).expect("twin");
+    let mut q = Qemu::boot_twin(&elf, false).expect("twin");
     let pty = q.pty.clone().unwrap();
     let (mut l, hello) = link::connect(&pty.display().to_string(), 230_400, Duration::from_secs(5))
         .expect("connect over the pseudo-terminal");
@@ -36,9 +60,14 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
     assert_eq!(info.fingerprint, pto_firmware::built_config::FINGERPRINT);
     assert_eq!(cfg, ModelConfig::reference());
 
-    // At boot the mode is fixed 0 % with the valve closed: the declared safe state.
+    // At boot the mode is fixed 0 % with the valve closed, but P2 is not known yet.
     let mut wet = ModelConfig::reference();
     wet.trapped_air_fraction = 0.09;
+    let e = refusal(client::upload(&mut l, &wet, true, |_, _| {}).unwrap_err());
+    assert_eq!(e, ConfigRefusal::NotSafe(NotSafe::NoReading));
+    // The plant's samples on the hardware port: a valid HP reading of 60 bar.
+    let mut tick = 0;
+    feed(&mut q, &mut tick, 10);
     let (info, stored) = client::upload(&mut l, &wet, true, |_, _| {}).unwrap();
     assert_eq!(
         (info.source, stored),
@@ -47,13 +76,17 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
     let (back, cfg) = client::read_config(&mut l).unwrap();
     assert_eq!((back, cfg.clone()), (info, wet.clone()));
 
-    // Outside the safe state: storing is refused, nothing changes.
+    // Outside the safe state (the valve open): refused, nothing changes.
     client::set_mode(&mut l, Mode::Fixed(pto_model::fx::Aperture::from_num(10.0))).unwrap();
+    feed(&mut q, &mut tick, 10);
     let mut other = wet.clone();
     other.trapped_air_fraction = 0.03;
-    let e = refusal(client::upload(&mut l, &other, true, |_, _| {}).unwrap_err());
-    assert_eq!(e, ConfigRefusal::NotSafeToStore);
-    // Not stored, it runs at once.
+    let e = refusal(client::upload(&mut l, &other, false, |_, _| {}).unwrap_err());
+    assert_eq!(e, ConfigRefusal::NotSafe(NotSafe::ValveOpen));
+    assert_eq!(client::read_config(&mut l).unwrap().1, wet);
+    // Back to fixed 0: the valve slews shut (100 %/s), then it runs at once.
+    client::set_mode(&mut l, Mode::Fixed(pto_model::fx::Aperture::ZERO)).unwrap();
+    feed(&mut q, &mut tick, 200);
     let (info, stored) = client::upload(&mut l, &other, false, |_, _| {}).unwrap();
     assert_eq!((info.source, stored), (ConfigSource::Uploaded, Stored::No));
 
@@ -131,6 +164,12 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
     // Every refusal left the last accepted configuration running.
     let (info, cfg) = client::read_config(&mut l).unwrap();
     assert_eq!((info.source, cfg), (ConfigSource::Uploaded, other));
+    // The store can be cleared (in the safe state); the running configuration stays.
+    client::clear_store(&mut l).unwrap();
+    assert_eq!(
+        client::read_config(&mut l).unwrap().0.source,
+        ConfigSource::Uploaded
+    );
     let st = client::status(&mut l).unwrap();
     println!(
         "bench link: {} frames taken by the firmware, {} dropped, {} lost; host: {:?}",

@@ -180,6 +180,10 @@ pub enum ToFirmware {
         /// Also store the configuration (used at the next boot).
         persist: bool,
     },
+    /// Erase the stored configuration (the next boot runs the built-in one; the running one
+    /// is unchanged). Only in the declared safe state, like a commit. Answered with
+    /// `ConfigCleared` or `Refused(Config(…))`.
+    ConfigClear,
     /// Which configuration runs. Answered with `ConfigInfo`.
     GetConfig,
     /// Read back the running configuration's bytes from `offset`. Answered with `ConfigData`.
@@ -356,10 +360,11 @@ pub enum ConfigRefusal {
         /// Highest allowed.
         max: f32,
     },
-    /// `persist` asked outside the declared safe state (mode `Fixed(0)`, valve closed): a
-    /// flash erase stalls the processor for up to 2 s.
-    NotSafeToStore,
-    /// The store failed to write (the configuration was not applied).
+    /// Committed outside the declared safe state: applying a configuration stops the control
+    /// loop for about a second (its tables are built twice: checked, then applied), a flash
+    /// erase for up to two more.
+    NotSafe(NotSafe),
+    /// The store failed (a commit: the configuration was not applied).
     Store,
 }
 
@@ -390,12 +395,37 @@ impl core::fmt::Display for ConfigRefusal {
                 min,
                 max,
             } => write!(f, "{field} = {value} outside [{min}, {max}]"),
-            ConfigRefusal::NotSafeToStore => f.write_str(
-                "storing needs the declared safe state: mode fixed 0 % and the valve closed \
-                 (a flash erase stalls the controller)",
+            ConfigRefusal::NotSafe(why) => write!(
+                f,
+                "not in the declared safe state ({why}): a configuration is applied only in \
+                 mode fixed 0 % with the valve closed, the trip armed and a valid HP reading \
+                 (the controller stops stepping for about a second while it builds the tables)"
             ),
-            ConfigRefusal::Store => f.write_str("the configuration store failed to write"),
+            ConfigRefusal::Store => f.write_str("the configuration store failed"),
         }
+    }
+}
+
+/// Why the controller is not in the declared safe state in which it may stop stepping for a
+/// while (a configuration's tables built, a flash erase).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Schema)]
+#[cfg_attr(feature = "defmt", derive(defmt::Format))]
+pub enum NotSafe {
+    /// The overpressure trip holds.
+    Tripped,
+    /// The mode is not `Fixed(0)`, or the valve has not closed yet.
+    ValveOpen,
+    /// No valid HP reading in the last sample (or no sample yet): P2 is not known.
+    NoReading,
+}
+
+impl core::fmt::Display for NotSafe {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        f.write_str(match self {
+            NotSafe::Tripped => "the overpressure trip holds",
+            NotSafe::ValveOpen => "the mode is not fixed 0 % or the valve has not closed yet",
+            NotSafe::NoReading => "no valid HP reading: P2 is not known",
+        })
     }
 }
 
@@ -549,6 +579,8 @@ pub enum FromFirmware {
         /// Whether it was stored.
         stored: Stored,
     },
+    /// The stored configuration was erased.
+    ConfigCleared,
     /// Reply to `GetConfig`.
     ConfigInfo(ConfigInfo),
     /// Reply to `ConfigRead`: the running configuration's bytes from the chunk's offset (empty

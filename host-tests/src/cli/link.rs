@@ -179,10 +179,18 @@ pub(crate) fn config_upload_cmd(t: &Target, file: &Path, store: bool, json: bool
             info.source
         );
         println!(
-            "the estimator restarted: P2 is unknown until `pto link --port {} reset --p2 BAR --lp BAR`",
+            "the estimator restarted from its last P2, as uncertain as at boot until a valid HP \
+             reading confirms it (or `pto link --port {} reset --p2 BAR --lp BAR`)",
             t.port
         );
     }
+    Ok(true)
+}
+
+pub(crate) fn config_clear_cmd(t: &Target) -> Result<bool> {
+    let (mut l, _) = connect(t)?;
+    client::clear_store(&mut l)?;
+    println!("stored configuration erased: the next boot runs the built-in one");
     Ok(true)
 }
 
@@ -243,13 +251,21 @@ pub(crate) fn monitor_cmd(
     let units = Units::new(h.dt_log2, &cfg);
     let steps_per_s = 2f64.powi(i32::from(h.dt_log2));
     if let Some(r) = rate_hz {
-        let every = (steps_per_s / r).round().clamp(1.0, 65_535.0) as u16;
-        client::set_telemetry(&mut l, every)?;
+        let asked = (steps_per_s / r).round().clamp(1.0, 65_535.0) as u16;
+        let every = client::set_telemetry(&mut l, asked)?;
         eprintln!(
-            "telemetry every {every} steps ({:.1} Hz)",
-            steps_per_s / f64::from(every)
+            "telemetry every {every} steps ({:.1} Hz){}",
+            steps_per_s / f64::from(every),
+            if every != asked {
+                " — the fastest this controller's link carries"
+            } else {
+                ""
+            }
         );
     }
+    // Frames the firmware could not queue never get a sequence number: its own count, before
+    // and after, shows them.
+    let dropped_before = client::status(&mut l)?.telemetry_dropped;
     let mut writer = log.map(|p| LogWriter::create(p)).transpose()?;
     pto_host::output::stop_on_interrupt();
     eprintln!(
@@ -262,8 +278,10 @@ pub(crate) fn monitor_cmd(
     let before = l.counts();
     l.timeout = Duration::from_millis(500);
     let (mut first, mut frames, mut last_print) = (None::<f64>, 0u64, Instant::now());
-    let mut last = None;
+    let mut last: Option<client::Sample> = None;
     let mut silent = Instant::now();
+    let mut restarts = 0u32;
+    let mut failure = None;
     while !pto_host::output::stop_requested() {
         let m = match l.recv() {
             Ok(m) => m,
@@ -274,13 +292,35 @@ pub(crate) fn monitor_cmd(
                 }
                 continue;
             }
-            Err(e) => return Err(e.into()),
+            // The log so far is kept (finished below), then the error is reported.
+            Err(e) => {
+                failure = Some(e);
+                break;
+            }
         };
-        let FromFirmware::Telemetry(tel) = m else {
-            continue;
+        let tel = match m {
+            FromFirmware::Telemetry(tel) => tel,
+            FromFirmware::Hello(_) => {
+                eprintln!("the controller restarted (its boot Hello arrived)");
+                restarts += 1;
+                continue;
+            }
+            _ => continue,
         };
         silent = Instant::now();
         let s = units.sample(&tel);
+        if last.is_some_and(|p| s.t_s <= p.t_s) {
+            // Time went back: the controller restarted or reset its tick count. A log must
+            // keep increasing time: the monitor stops here.
+            eprintln!(
+                "firmware time went back ({:.3} s after {:.3} s): the controller restarted; \
+                 the log ends here",
+                s.t_s,
+                last.map_or(0.0, |p| p.t_s)
+            );
+            restarts += 1;
+            break;
+        }
         let t0 = *first.get_or_insert(s.t_s);
         if duration_s.is_some_and(|d| s.t_s - t0 > d) {
             break;
@@ -323,6 +363,13 @@ pub(crate) fn monitor_cmd(
     }
     let c = l.counts();
     let (lost, bad) = (c.lost - before.lost, c.dropped() - before.dropped());
+    let not_sent = if failure.is_none() {
+        client::status(&mut l)
+            .ok()
+            .map(|st| st.telemetry_dropped.wrapping_sub(dropped_before))
+    } else {
+        None
+    };
     let written = match writer {
         Some(w) => {
             let (rows, skipped) = (w.rows, w.skipped);
@@ -337,6 +384,8 @@ pub(crate) fn monitor_cmd(
                 "frames": frames,
                 "lost": lost,
                 "dropped": bad,
+                "not_sent_by_the_firmware": not_sent,
+                "restarts": restarts,
                 "first_s": first,
                 "last_s": last.map(|s| s.t_s),
                 "log": written.as_ref().map(|w| &w.0),
@@ -346,9 +395,16 @@ pub(crate) fn monitor_cmd(
         );
     } else {
         println!(
-            "{frames} telemetry frames ({} – {} s), {lost} lost, {bad} damaged",
+            "{frames} telemetry frames ({} – {} s), {lost} lost, {bad} damaged, {} not sent \
+             (the firmware's queue was full){}",
             first.map_or("—".into(), |t| format!("{t:.2}")),
-            last.map_or("—".into(), |s| format!("{:.2}", s.t_s))
+            last.map_or("—".into(), |s| format!("{:.2}", s.t_s)),
+            not_sent.map_or("?".into(), |n| n.to_string()),
+            if restarts > 0 {
+                format!(", the controller restarted {restarts}×")
+            } else {
+                String::new()
+            }
         );
         if let Some((p, rows, skipped)) = &written {
             println!(
@@ -362,6 +418,15 @@ pub(crate) fn monitor_cmd(
             );
         }
     }
-    // Frames lost on the way are a miss: the log has gaps.
-    Ok(lost == 0 && bad == 0)
+    if let Some(e) = failure {
+        return Err(anyhow::Error::from(e).context(match &written {
+            Some((p, rows, _)) => format!(
+                "the link failed; the {rows} rows so far are in {}",
+                p.display()
+            ),
+            None => "the link failed".into(),
+        }));
+    }
+    // Frames lost on the way, or never sent, are a miss: the log has gaps.
+    Ok(lost == 0 && bad == 0 && not_sent == Some(0) && restarts == 0)
 }

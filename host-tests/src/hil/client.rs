@@ -108,12 +108,21 @@ pub fn reset(link: &mut Link, p2_bar: f32, lp_bar: f32) -> Result<(), LinkError>
     }
 }
 
-/// Telemetry every `every` model steps on this link (0: none).
-pub fn set_telemetry(link: &mut Link, every: u16) -> Result<(), LinkError> {
+/// Telemetry every `every` model steps on this link (0: none); returns what the firmware
+/// set (it goes no faster than its link carries).
+pub fn set_telemetry(link: &mut Link, every: u16) -> Result<u16, LinkError> {
     let msg = ToFirmware::SetTelemetry { every };
     match ask(link, &msg)? {
-        FromFirmware::Pong(n) if n == u32::from(every) => Ok(()),
+        FromFirmware::Pong(n) if n <= u32::from(u16::MAX) => Ok(n as u16),
         other => Err(unexpected(msg, other)),
+    }
+}
+
+/// Erases the stored configuration (the next boot runs the built-in one).
+pub fn clear_store(link: &mut Link) -> Result<(), LinkError> {
+    match ask(link, &ToFirmware::ConfigClear)? {
+        FromFirmware::ConfigCleared => Ok(()),
+        other => Err(unexpected(ToFirmware::ConfigClear, other)),
     }
 }
 

@@ -65,6 +65,19 @@ pub fn open(port: &str, baud: u32) -> Result<Box<dyn Port>, LinkError> {
     Ok(Box::new(b))
 }
 
+/// Reads until the pong numbered `nonce`, within the link's timeout.
+fn drain_to_pong(link: &mut Link, nonce: u32) -> Result<(), LinkError> {
+    let deadline = Instant::now() + link.timeout;
+    while Instant::now() < deadline {
+        match link.recv() {
+            Ok(FromFirmware::Pong(n)) if n == nonce => return Ok(()),
+            Ok(_) | Err(LinkError::NoReply(_)) => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Err(LinkError::NoReply(link.timeout))
+}
+
 fn available_hint(v: &[String]) -> String {
     if v.is_empty() {
         " (no serial ports found)".into()
@@ -82,7 +95,7 @@ pub fn connect(port: &str, baud: u32, timeout: Duration) -> Result<(Link, Hello)
     link.timeout = Duration::from_millis(300);
     while t0.elapsed() < timeout {
         link.send(&ToFirmware::Hello)?;
-        loop {
+        while t0.elapsed() < timeout {
             match link.recv() {
                 Ok(FromFirmware::Hello(h)) => {
                     h.check().map_err(LinkError::Protocol)?;
@@ -91,13 +104,7 @@ pub fn connect(port: &str, baud: u32, timeout: Duration) -> Result<(Link, Hello)
                     // follow: everything up to the answer to this ping is the past.
                     let nonce = 0x5a17_0000 | u32::from(link.seq);
                     link.send(&ToFirmware::Ping(nonce))?;
-                    loop {
-                        if let FromFirmware::Pong(n) = link.recv()?
-                            && n == nonce
-                        {
-                            break;
-                        }
-                    }
+                    drain_to_pong(&mut link, nonce)?;
                     return Ok((link, h));
                 }
                 // Telemetry or an answer to another program's request: not ours.
@@ -290,6 +297,8 @@ impl Link {
                 {
                     return Err(LinkError::NoReply(self.timeout));
                 }
+                // A signal (Ctrl-C asking a monitor to stop): read again until the timeout.
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
                 Err(e) => return Err(LinkError::Read(e)),
             };
             let before = self.rx.counts;
@@ -324,8 +333,22 @@ impl Link {
         pick: impl Fn(&FromFirmware) -> Option<T>,
     ) -> Result<T, LinkError> {
         self.send(msg)?;
+        // One deadline for the answer, however much telemetry arrives meanwhile.
+        let deadline = Instant::now() + self.timeout;
+        let timeout = self.timeout;
         loop {
-            let r = self.recv()?;
+            let left = deadline.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                self.timeout = timeout;
+                return Err(LinkError::NoReply(timeout));
+            }
+            self.timeout = left;
+            let r = self.recv();
+            self.timeout = timeout;
+            let r = r.map_err(|e| match e {
+                LinkError::NoReply(_) => LinkError::NoReply(timeout),
+                e => e,
+            })?;
             if let FromFirmware::Telemetry(_) = r {
                 // The bench link's stream goes on between a request and its answer.
                 self.skipped = self.skipped.wrapping_add(1);
