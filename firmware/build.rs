@@ -8,7 +8,7 @@
 //! field and its range.
 
 use pto_bench::Bench;
-use pto_bench::model::model_config;
+use pto_bench::model::{controller_config, model_config};
 use pto_model::protocol::{CONFIG_MAX_BYTES, config_fingerprint, decode_config, encode_config};
 use std::{env, fs, path::PathBuf, process};
 
@@ -75,6 +75,11 @@ fn embed_bench(workspace: &std::path::Path, out: &std::path::Path) {
         Ok(back) if back == cfg => {}
         _ => fail("the configuration does not survive its encoding"),
     }
+    let (sched, control) = controller_config(&bench);
+    let k = cfg.coefficients().unwrap_or_else(|e| fail(&format!("{source}: {e}")));
+    if let Err(e) = sched.coefficients(&k) {
+        fail(&format!("{source}:controller.scheduler.{e}"));
+    }
     let fingerprint = config_fingerprint(bytes);
     fs::write(out.join("bench-config.bin"), &*bytes).expect("OUT_DIR is writable");
     fs::write(
@@ -84,8 +89,47 @@ fn embed_bench(workspace: &std::path::Path, out: &std::path::Path) {
              /// It is the reference bench's (`PTO_BENCH` unset).\n\
              pub const REFERENCE: bool = {reference};\n\
              /// Its fingerprint (`pto_model::protocol::config_fingerprint`).\n\
-             pub const FINGERPRINT: u32 = {fingerprint:#010x};\n"
+             pub const FINGERPRINT: u32 = {fingerprint:#010x};\n\
+             /// The scheduler's settings (the bench file's `[controller.scheduler]`).\n\
+             pub const SCHEDULER: pto_model::scheduler::SchedulerConfig = {};\n\
+             /// The control settings (the bench file's `[controller]`).\n\
+             pub const CONTROL: pto_model::control::ControlConfig = {};\n",
+            rust_literal(&format!("{sched:?}"), "pto_model::scheduler::"),
+            rust_literal(&format!("{control:?}"), "pto_model::control::"),
         ),
     )
     .expect("OUT_DIR is writable");
+}
+
+/// A `Debug` rendering of a struct of f32 fields (and nested structs) as a Rust literal: type
+/// names qualified with `path`, numbers suffixed `f32` (`Debug` prints the shortest decimal that
+/// gives the same f32 back, so the literal is the value to the bit).
+fn rust_literal(debug: &str, path: &str) -> String {
+    let mut out = String::new();
+    let mut word = String::new();
+    let flush = |word: &mut String, out: &mut String| {
+        if word.is_empty() {
+            return;
+        }
+        if word.chars().next().is_some_and(|c| c.is_ascii_uppercase()) {
+            out.push_str(path);
+            out.push_str(word);
+        } else if word.chars().next().is_some_and(|c| c.is_ascii_digit() || c == '-') {
+            out.push_str(word);
+            out.push_str("f32");
+        } else {
+            out.push_str(word);
+        }
+        word.clear();
+    };
+    for ch in debug.chars() {
+        if ch.is_ascii_alphanumeric() || ch == '_' || ch == '.' || ch == '-' {
+            word.push(ch);
+        } else {
+            flush(&mut word, &mut out);
+            out.push(ch);
+        }
+    }
+    flush(&mut word, &mut out);
+    out
 }

@@ -424,8 +424,8 @@ impl Session {
 
 #[embassy_executor::task]
 async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range<u32>) {
-    let sched = SchedulerConfig::default();
-    let cc = ControlConfig::default();
+    let sched = pto_firmware::built_config::SCHEDULER;
+    let cc = pto_firmware::built_config::CONTROL;
     let mut store = ConfigStore::new(flash, range);
     if store.is_none() {
         defmt::error!("configuration store: bad flash range");

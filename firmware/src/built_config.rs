@@ -1,9 +1,10 @@
-//! The model configuration the firmware is built for: `PTO_BENCH=FILE cargo fw-bench` (a path
-//! from the workspace root; default the reference bench). The build script loads and checks
-//! the bench file with the host tools' own code, converts it into a [`ModelConfig`]
-//! (`pto_bench::model::model_config`), checks that it gives coefficients, and embeds it as
-//! postcard bytes; a bench the model cannot take fails the build with the file, the field and
-//! its range.
+//! The configuration the firmware is built for: `PTO_BENCH=FILE cargo fw-bench` (a path from
+//! the workspace root; default the reference bench). The build script loads and checks the
+//! bench file with the host tools' own code, converts it (`pto_bench::model::model_config` and
+//! `controller_config`), checks that the model gives coefficients and the scheduler takes them,
+//! and embeds the model configuration as postcard bytes ([`BYTES`], the form an upload takes)
+//! and the scheduler and control settings as constants ([`SCHEDULER`], [`CONTROL`]); a bench the
+//! firmware cannot take fails the build with the file, the field and its range.
 
 use pto_model::ModelConfig;
 use pto_model::protocol::decode_config;
@@ -35,8 +36,11 @@ mod tests {
         );
         assert_eq!(FINGERPRINT, pto_model::protocol::config_fingerprint(BYTES));
         assert!(cfg.coefficients().is_ok());
+        assert!(crate::control::Controller::new(&cfg, &SCHEDULER, &CONTROL).is_ok());
         if REFERENCE {
             assert_eq!(cfg, ModelConfig::reference());
+            assert_eq!(SCHEDULER, pto_model::SchedulerConfig::default());
+            assert_eq!(CONTROL, crate::control::ControlConfig::default());
         }
     }
 }

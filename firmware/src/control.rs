@@ -4,7 +4,7 @@
 //! Configuration ([`ControlConfig`], [`ModelConfig`], [`SchedulerConfig`]) is validated once by
 //! [`Controller::new`]; the per-step functions cannot fail.
 
-use crate::frontend::{LoopSpec, SpecError, Transducer};
+use crate::frontend::{SpecError, Transducer};
 use crate::trip::{TripLatch, TripSample};
 use pto_model::estimator::{self, Estimate, Inputs, State, fault};
 use pto_model::fx::{Aperture, Fx, Pressure, ZERO, clamp, mul_dt};
@@ -34,37 +34,7 @@ impl StepClock for NoClock {
 /// the pair of the paper's Test III.
 pub const BOOT_ON_DUTY: u8 = 0b1001;
 
-/// Firmware settings beyond the model and the scheduler.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct ControlConfig {
-    /// HP transducer loop.
-    pub hp: LoopSpec,
-    /// LP transducer loop.
-    pub lp: LoopSpec,
-    /// The trip latch releases only when a valid HP reading and the P2 estimate are both this
-    /// far below the trip pressure, bar …
-    pub trip_release_margin_bar: f32,
-    /// … for this long without a break, ms.
-    pub trip_release_hold_ms: f32,
-    /// Actuator slew limit (a second line behind the scheduler's rate limit), %/s. Safety
-    /// overrides are applied at once.
-    pub valve_slew_pct_per_s: f32,
-    /// Start P2 standard deviation at boot (P2 unknown), bar.
-    pub boot_sigma_bar: f32,
-}
-
-impl Default for ControlConfig {
-    fn default() -> Self {
-        ControlConfig {
-            hp: LoopSpec::HP,
-            lp: LoopSpec::LP,
-            trip_release_margin_bar: 15.0,
-            trip_release_hold_ms: 500.0,
-            valve_slew_pct_per_s: 100.0,
-            boot_sigma_bar: 50.0,
-        }
-    }
-}
+pub use pto_model::control::ControlConfig;
 
 /// Why the controller cannot start.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -471,6 +441,7 @@ impl Controller {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::frontend::LoopSpec;
 
     fn ctl() -> Controller {
         Controller::new(

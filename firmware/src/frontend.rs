@@ -7,30 +7,7 @@
 
 use pto_model::fx::{Fx, Pressure};
 
-/// A 4–20 mA pressure transducer loop.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct LoopSpec {
-    /// Pressure at 20 mA, bar (0 bar at 4 mA).
-    pub full_scale_bar: f32,
-    /// Shunt resistor, Ω.
-    pub shunt_ohm: f32,
-    /// ADC reference, V.
-    pub vref_v: f32,
-}
-
-impl LoopSpec {
-    /// The bench's HP transducer: 0–250 bar, 150 Ω shunt, 3.3 V reference.
-    pub const HP: LoopSpec = LoopSpec {
-        full_scale_bar: 250.0,
-        shunt_ohm: 150.0,
-        vref_v: 3.3,
-    };
-    /// The bench's LP transducer: 0–40 bar.
-    pub const LP: LoopSpec = LoopSpec {
-        full_scale_bar: 40.0,
-        ..LoopSpec::HP
-    };
-}
+pub use pto_model::control::LoopSpec;
 
 /// ADC full scale (12 bits).
 pub const ADC_MAX: u16 = 4095;

@@ -1,10 +1,11 @@
-//! The one conversion from the bench file to the model's configuration
-//! (`pto_host::model::model_config`), checked over every field: the reference bench gives
-//! `ModelConfig::reference()` to the bit in every field, and every
-//! numeric field of the bench file either changes the model's configuration or is named below
-//! with the reason it does not apply to the reduced model.
+//! The one conversion from the bench file to the firmware's configuration
+//! (`pto_host::model::model_config` and `controller_config`: the model, the scheduler and the
+//! control settings), checked over every field: the reference bench gives
+//! `ModelConfig::reference()`, `SchedulerConfig::default()` and `ControlConfig::default()` to
+//! the bit in every field, and every numeric field of the bench file either changes the
+//! firmware's configuration or is named below with the reason it does not apply.
 
-use pto_host::model::{ModelError, model_config};
+use pto_host::model::{ModelError, controller_config, model_config};
 use pto_host::sim::bench::Bench;
 use std::collections::BTreeMap;
 
@@ -37,10 +38,15 @@ fn leaves(v: &serde_json::Value, path: &str, out: &mut BTreeMap<String, (f64, bo
     }
 }
 
+/// Every number of the firmware's configuration made from a bench: the model's, the
+/// scheduler's and the control settings (`scheduler.…`, `control.…`).
 fn model_leaves(b: &Bench) -> Result<BTreeMap<String, (f64, bool)>, ModelError> {
     let m = model_config(b)?;
+    let (sched, control) = controller_config(b);
     let mut out = BTreeMap::new();
     leaves(&serde_json::to_value(m).unwrap(), "", &mut out);
+    leaves(&serde_json::to_value(sched).unwrap(), "scheduler", &mut out);
+    leaves(&serde_json::to_value(control).unwrap(), "control", &mut out);
     Ok(out)
 }
 
@@ -116,6 +122,16 @@ fn the_reference_bench_gives_the_firmware_default_in_every_field() {
     leaves(
         &serde_json::to_value(pto_model::ModelConfig::reference()).unwrap(),
         "",
+        &mut fw,
+    );
+    leaves(
+        &serde_json::to_value(pto_model::SchedulerConfig::default()).unwrap(),
+        "scheduler",
+        &mut fw,
+    );
+    leaves(
+        &serde_json::to_value(pto_model::control::ControlConfig::default()).unwrap(),
+        "control",
         &mut fw,
     );
     assert_eq!(

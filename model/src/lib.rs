@@ -5,6 +5,7 @@
 pub mod advisor;
 pub mod coeffs;
 pub mod config;
+pub mod control;
 pub mod estimator;
 pub mod fx;
 #[cfg(feature = "protocol")]

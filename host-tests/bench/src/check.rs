@@ -459,6 +459,66 @@ impl BenchFile {
             100.0,
             "bar/(L/min)",
         );
+        // The controller's settings: the firmware's own ranges (Controller::new,
+        // SchedulerConfig::coefficients), so that a bench the firmware cannot take stops here
+        // with the field's path.
+        let k = &self.controller;
+        c.range(
+            "controller.trip_release_margin_bar",
+            k.trip_release_margin_bar,
+            1.0,
+            100.0,
+            "bar",
+        );
+        c.range(
+            "controller.trip_release_hold_ms",
+            k.trip_release_hold_ms,
+            1.0,
+            60_000.0,
+            "ms",
+        );
+        c.range(
+            "controller.valve_slew_pct_per_s",
+            k.valve_slew_pct_per_s,
+            1.0,
+            10_000.0,
+            "%/s",
+        );
+        c.range("controller.boot_sigma_bar", k.boot_sigma_bar, 0.1, 200.0, "bar");
+        for (name, t) in [("hp_transducer", &k.hp_transducer), ("lp_transducer", &k.lp_transducer)] {
+            let p = format!("controller.{name}");
+            c.range(format!("{p}.full_scale_bar"), t.full_scale_bar, 1.0, 1000.0, "bar");
+            c.range(format!("{p}.shunt_ohm"), t.shunt_ohm, 10.0, 1000.0, "Ω");
+            c.range(format!("{p}.vref_v"), t.vref_v, 1.0, 5.0, "V");
+            if t.shunt_ohm * 0.021 > t.vref_v {
+                c.fail(
+                    format!("{p}.shunt_ohm"),
+                    format!(
+                        "{} Ω puts 21 mA at {:.2} V, above the ADC reference vref_v = {} V (a \
+                         short could not be told from full scale)",
+                        t.shunt_ohm,
+                        t.shunt_ohm * 0.021,
+                        t.vref_v
+                    ),
+                );
+            }
+        }
+        let s = &k.scheduler;
+        for (field, v, lo, hi, unit) in [
+            ("pressure_kp_pct_per_bar", s.pressure_kp_pct_per_bar, 0.0, 100.0, "%/bar"),
+            ("pressure_ki_pct_per_bar_s", s.pressure_ki_pct_per_bar_s, 0.0, 100.0, "%/(bar·s)"),
+            ("speed_kp_pct_per_rpm", s.speed_kp_pct_per_rpm, 0.0, 10.0, "%/rpm"),
+            ("speed_ki_pct_per_rpm_s", s.speed_ki_pct_per_rpm_s, 0.0, 10.0, "%/(rpm·s)"),
+            ("rate_limit_pct_per_s", s.rate_limit_pct_per_s, 0.1, 10_000.0, "%/s"),
+            ("min_aperture_pct", s.min_aperture_pct, 0.0, 100.0, "%"),
+            ("max_aperture_pct", s.max_aperture_pct, s.min_aperture_pct, 100.0, "%"),
+            ("autonomy_margin", s.autonomy_margin, 0.0, 2.0, "-"),
+            ("overpressure_aperture_pct", s.overpressure_aperture_pct, 0.0, 100.0, "%"),
+            ("sensor_fault_aperture_pct", s.sensor_fault_aperture_pct, 0.0, 100.0, "%"),
+            ("sensor_fault_sigma_bar", s.sensor_fault_sigma_bar, 0.1, 100.0, "bar"),
+        ] {
+            c.range(format!("controller.scheduler.{field}"), v, lo, hi, unit);
+        }
         if c.errors.is_empty() {
             Ok(())
         } else {

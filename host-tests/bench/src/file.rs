@@ -23,6 +23,10 @@ pub struct BenchFile {
     pub lp_accumulator: AccumulatorSection,
     pub motor: MotorSection,
     pub lines: LinesSection,
+    /// The controller's settings (scheduler, transducer loops, trip release, slew); a file
+    /// without the section gets the firmware's defaults.
+    #[serde(default)]
+    pub controller: ControllerSection,
 }
 
 #[allow(missing_docs)]
@@ -174,6 +178,85 @@ pub struct LinesSection {
     /// Same for the LP line between the LP accumulator and the manifold.
     #[serde(default)]
     pub lp_line_resistance_bar_per_lpm: f64,
+}
+
+/// The controller's settings beyond its model: what the firmware's `SchedulerConfig` and
+/// `ControlConfig` hold.
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ControllerSection {
+    pub trip_release_margin_bar: f64,
+    pub trip_release_hold_ms: f64,
+    pub valve_slew_pct_per_s: f64,
+    pub boot_sigma_bar: f64,
+    pub hp_transducer: TransducerSection,
+    pub lp_transducer: TransducerSection,
+    pub scheduler: SchedulerSection,
+}
+
+/// A 4–20 mA pressure transducer loop read by the controller's 12-bit ADC.
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct TransducerSection {
+    pub full_scale_bar: f64,
+    pub shunt_ohm: f64,
+    pub vref_v: f64,
+}
+
+/// The valve scheduler's gains, limits and safe apertures.
+#[allow(missing_docs)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SchedulerSection {
+    pub pressure_kp_pct_per_bar: f64,
+    pub pressure_ki_pct_per_bar_s: f64,
+    pub speed_kp_pct_per_rpm: f64,
+    pub speed_ki_pct_per_rpm_s: f64,
+    pub rate_limit_pct_per_s: f64,
+    pub min_aperture_pct: f64,
+    pub max_aperture_pct: f64,
+    pub autonomy_margin: f64,
+    pub overpressure_aperture_pct: f64,
+    pub sensor_fault_aperture_pct: f64,
+    pub sensor_fault_sigma_bar: f64,
+}
+
+impl Default for ControllerSection {
+    /// The firmware's defaults (`SchedulerConfig::default()`, `ControlConfig::default()`; a
+    /// test keeps them equal).
+    fn default() -> Self {
+        ControllerSection {
+            trip_release_margin_bar: 15.0,
+            trip_release_hold_ms: 500.0,
+            valve_slew_pct_per_s: 100.0,
+            boot_sigma_bar: 50.0,
+            hp_transducer: TransducerSection {
+                full_scale_bar: 250.0,
+                shunt_ohm: 150.0,
+                vref_v: 3.3,
+            },
+            lp_transducer: TransducerSection {
+                full_scale_bar: 40.0,
+                shunt_ohm: 150.0,
+                vref_v: 3.3,
+            },
+            scheduler: SchedulerSection {
+                pressure_kp_pct_per_bar: 1.0,
+                pressure_ki_pct_per_bar_s: 0.2,
+                speed_kp_pct_per_rpm: 0.02,
+                speed_ki_pct_per_rpm_s: 0.02,
+                rate_limit_pct_per_s: 20.0,
+                min_aperture_pct: 0.0,
+                max_aperture_pct: 100.0,
+                autonomy_margin: 0.1,
+                overpressure_aperture_pct: 100.0,
+                sensor_fault_aperture_pct: 12.0,
+                sensor_fault_sigma_bar: 3.0,
+            },
+        }
+    }
 }
 
 impl BenchFile {

@@ -1,9 +1,12 @@
-//! The one conversion of a bench into the fixed-point model's configuration
-//! ([`pto_model::ModelConfig`]), for the host tools and for the firmware's build script.
+//! The one conversion of a bench into the controller's configuration: the fixed-point model's
+//! ([`pto_model::ModelConfig`]), the scheduler's ([`SchedulerConfig`]) and the firmware's
+//! control settings ([`ControlConfig`]), for the host tools and for the firmware's build script.
 
 use crate::{BAR, Bench, Load};
 use pto_model::ModelConfig;
 use pto_model::config::{AccumulatorConfig, ConfigError, CylinderConfig, GeometryConfig};
+use pto_model::control::{ControlConfig, LoopSpec};
+use pto_model::scheduler::SchedulerConfig;
 
 /// rpm per rad/s.
 const RPM: f64 = 30.0 / std::f64::consts::PI;
@@ -88,4 +91,38 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, ModelError> {
     };
     c.validate()?;
     Ok(c)
+}
+
+/// The scheduler and control settings of a bench's `[controller]` section (already
+/// range-checked when the bench was loaded).
+pub fn controller_config(b: &Bench) -> (SchedulerConfig, ControlConfig) {
+    let k = &b.file.controller;
+    let s = &k.scheduler;
+    let sched = SchedulerConfig {
+        pressure_kp_pct_per_bar: s.pressure_kp_pct_per_bar as f32,
+        pressure_ki_pct_per_bar_s: s.pressure_ki_pct_per_bar_s as f32,
+        speed_kp_pct_per_rpm: s.speed_kp_pct_per_rpm as f32,
+        speed_ki_pct_per_rpm_s: s.speed_ki_pct_per_rpm_s as f32,
+        rate_limit_pct_per_s: s.rate_limit_pct_per_s as f32,
+        min_aperture_pct: s.min_aperture_pct as f32,
+        max_aperture_pct: s.max_aperture_pct as f32,
+        autonomy_margin: s.autonomy_margin as f32,
+        overpressure_aperture_pct: s.overpressure_aperture_pct as f32,
+        sensor_fault_aperture_pct: s.sensor_fault_aperture_pct as f32,
+        sensor_fault_sigma_bar: s.sensor_fault_sigma_bar as f32,
+    };
+    let spec = |t: &crate::TransducerSection| LoopSpec {
+        full_scale_bar: t.full_scale_bar as f32,
+        shunt_ohm: t.shunt_ohm as f32,
+        vref_v: t.vref_v as f32,
+    };
+    let control = ControlConfig {
+        hp: spec(&k.hp_transducer),
+        lp: spec(&k.lp_transducer),
+        trip_release_margin_bar: k.trip_release_margin_bar as f32,
+        trip_release_hold_ms: k.trip_release_hold_ms as f32,
+        valve_slew_pct_per_s: k.valve_slew_pct_per_s as f32,
+        boot_sigma_bar: k.boot_sigma_bar as f32,
+    };
+    (sched, control)
 }

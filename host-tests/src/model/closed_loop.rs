@@ -79,8 +79,10 @@ pub struct ModelController {
 
 impl ModelController {
     /// A controller holding `mode`, with the model stepping at its configured dt.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         mcfg: &ModelConfig,
+        sched: &SchedulerConfig,
         mode: Mode,
         p2: f64,
         lp: f64,
@@ -89,7 +91,7 @@ impl ModelController {
         seed: u64,
     ) -> Result<Self, ModelError> {
         let k = mcfg.coefficients()?;
-        let sc = SchedulerConfig::default().coefficients(&k)?;
+        let sc = sched.coefficients(&k)?;
         Ok(ModelController {
             st: State::new(
                 Pressure::from_num(p2 as f32),
@@ -177,9 +179,11 @@ pub fn closed_loop(
 ) -> Result<(crate::sim::solver::SimResult, ModelController), LoopError> {
     let mut mcfg = model_config(bench)?;
     mcfg.dt_log2 = dt_log2;
+    let (sched, _) = super::controller_config(bench);
     test3_like_loop(bench, p2_start, duration, |prep| {
         Ok(ModelController::new(
             &mcfg,
+            &sched,
             mode,
             p2_start,
             LOOP_LP_START_BAR,

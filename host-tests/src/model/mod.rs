@@ -33,7 +33,7 @@ use pto_model::fx::{Aperture, Pressure, Rpm};
 
 /// The one conversion of a bench into the model's configuration (in the bench crate, so the
 /// firmware's build script uses the same code).
-pub use pto_bench::model::{ModelError, model_config};
+pub use pto_bench::model::{ModelError, controller_config, model_config};
 
 /// The aperture the scenario commands at time t (the trace holds the spool's lagged aperture).
 pub fn commanded_aperture_pct(s: &Scenario, res: &SimResult, t: f64) -> f64 {
