@@ -76,7 +76,9 @@ fn embed_bench(workspace: &std::path::Path, out: &std::path::Path) {
         _ => fail("the configuration does not survive its encoding"),
     }
     let (sched, control) = controller_config(&bench);
-    let k = cfg.coefficients().unwrap_or_else(|e| fail(&format!("{source}: {e}")));
+    let k = cfg
+        .coefficients()
+        .unwrap_or_else(|e| fail(&format!("{source}: {e}")));
     if let Err(e) = sched.coefficients(&k) {
         fail(&format!("{source}:controller.scheduler.{e}"));
     }
@@ -114,7 +116,11 @@ fn rust_literal(debug: &str, path: &str) -> String {
         if word.chars().next().is_some_and(|c| c.is_ascii_uppercase()) {
             out.push_str(path);
             out.push_str(word);
-        } else if word.chars().next().is_some_and(|c| c.is_ascii_digit() || c == '-') {
+        } else if word
+            .chars()
+            .next()
+            .is_some_and(|c| c.is_ascii_digit() || c == '-')
+        {
             out.push_str(word);
             out.push_str("f32");
         } else {

@@ -25,12 +25,22 @@ fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
     std::fs::create_dir_all(&dir).unwrap();
     // A bench whose trapped air differs from the reference's.
     let path = dir.join("more-air.toml");
+    // … and whose controller falls back to 15 % (not 12 %) when the HP transducer is lost.
     std::fs::write(
         &path,
-        bench_with("trapped_air_fraction = 0.06", "trapped_air_fraction = 0.09"),
+        bench_with("trapped_air_fraction = 0.06", "trapped_air_fraction = 0.09").replace(
+            "sensor_fault_aperture_pct = 12.0",
+            "sensor_fault_aperture_pct = 15.0",
+        ),
     )
     .unwrap();
     let bench = Bench::load(&path).unwrap();
+    assert_eq!(
+        pto_host::model::controller_config(&bench)
+            .0
+            .sensor_fault_aperture_pct,
+        15.0
+    );
     let cfg = model_config(&bench).unwrap();
     assert_eq!(cfg.trapped_air_fraction, 0.09);
     let mut buf = [0u8; CONFIG_MAX_BYTES];
@@ -67,6 +77,14 @@ fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
         fw.len()
     );
     assert!(line.text.contains("more-air.toml"), "{line}");
+    let sched = log
+        .iter()
+        .find(|l| l.text.starts_with("scheduler:"))
+        .expect("the boot log gives the scheduler's settings");
+    assert!(
+        sched.text.contains("15.0 % (sensor fault)"),
+        "the bench file's controller settings are built in: {sched}"
+    );
     assert!(
         line.text
             .contains(&format!("fingerprint {fingerprint:08x}")),
@@ -92,4 +110,14 @@ fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
     println!("{text}");
     assert!(text.contains("bad.toml"), "{text}");
     assert!(text.contains("oil.trapped_air_fraction"), "{text}");
+    // The same for the controller's settings.
+    std::fs::write(&bad, bench_with("shunt_ohm = 150.0", "shunt_ohm = 1500.0")).unwrap();
+    let err = build::build_for_bench(Build::Qemu, &bad, &dir.join("target"))
+        .expect_err("an out-of-range controller section does not build");
+    let text = format!("{err:#}");
+    println!("{text}");
+    assert!(
+        text.contains("bad.toml") && text.contains("controller.hp_transducer.shunt_ohm"),
+        "{text}"
+    );
 }

@@ -484,10 +484,25 @@ impl BenchFile {
             10_000.0,
             "%/s",
         );
-        c.range("controller.boot_sigma_bar", k.boot_sigma_bar, 0.1, 200.0, "bar");
-        for (name, t) in [("hp_transducer", &k.hp_transducer), ("lp_transducer", &k.lp_transducer)] {
+        c.range(
+            "controller.boot_sigma_bar",
+            k.boot_sigma_bar,
+            0.1,
+            200.0,
+            "bar",
+        );
+        for (name, t) in [
+            ("hp_transducer", &k.hp_transducer),
+            ("lp_transducer", &k.lp_transducer),
+        ] {
             let p = format!("controller.{name}");
-            c.range(format!("{p}.full_scale_bar"), t.full_scale_bar, 1.0, 1000.0, "bar");
+            c.range(
+                format!("{p}.full_scale_bar"),
+                t.full_scale_bar,
+                1.0,
+                1000.0,
+                "bar",
+            );
             c.range(format!("{p}.shunt_ohm"), t.shunt_ohm, 10.0, 1000.0, "Ω");
             c.range(format!("{p}.vref_v"), t.vref_v, 1.0, 5.0, "V");
             if t.shunt_ohm * 0.021 > t.vref_v {
@@ -505,17 +520,71 @@ impl BenchFile {
         }
         let s = &k.scheduler;
         for (field, v, lo, hi, unit) in [
-            ("pressure_kp_pct_per_bar", s.pressure_kp_pct_per_bar, 0.0, 100.0, "%/bar"),
-            ("pressure_ki_pct_per_bar_s", s.pressure_ki_pct_per_bar_s, 0.0, 100.0, "%/(bar·s)"),
-            ("speed_kp_pct_per_rpm", s.speed_kp_pct_per_rpm, 0.0, 10.0, "%/rpm"),
-            ("speed_ki_pct_per_rpm_s", s.speed_ki_pct_per_rpm_s, 0.0, 10.0, "%/(rpm·s)"),
-            ("rate_limit_pct_per_s", s.rate_limit_pct_per_s, 0.1, 10_000.0, "%/s"),
+            (
+                "pressure_kp_pct_per_bar",
+                s.pressure_kp_pct_per_bar,
+                0.0,
+                100.0,
+                "%/bar",
+            ),
+            (
+                "pressure_ki_pct_per_bar_s",
+                s.pressure_ki_pct_per_bar_s,
+                0.0,
+                100.0,
+                "%/(bar·s)",
+            ),
+            (
+                "speed_kp_pct_per_rpm",
+                s.speed_kp_pct_per_rpm,
+                0.0,
+                10.0,
+                "%/rpm",
+            ),
+            (
+                "speed_ki_pct_per_rpm_s",
+                s.speed_ki_pct_per_rpm_s,
+                0.0,
+                10.0,
+                "%/(rpm·s)",
+            ),
+            (
+                "rate_limit_pct_per_s",
+                s.rate_limit_pct_per_s,
+                0.1,
+                10_000.0,
+                "%/s",
+            ),
             ("min_aperture_pct", s.min_aperture_pct, 0.0, 100.0, "%"),
-            ("max_aperture_pct", s.max_aperture_pct, s.min_aperture_pct, 100.0, "%"),
+            (
+                "max_aperture_pct",
+                s.max_aperture_pct,
+                s.min_aperture_pct,
+                100.0,
+                "%",
+            ),
             ("autonomy_margin", s.autonomy_margin, 0.0, 2.0, "-"),
-            ("overpressure_aperture_pct", s.overpressure_aperture_pct, 0.0, 100.0, "%"),
-            ("sensor_fault_aperture_pct", s.sensor_fault_aperture_pct, 0.0, 100.0, "%"),
-            ("sensor_fault_sigma_bar", s.sensor_fault_sigma_bar, 0.1, 100.0, "bar"),
+            (
+                "overpressure_aperture_pct",
+                s.overpressure_aperture_pct,
+                0.0,
+                100.0,
+                "%",
+            ),
+            (
+                "sensor_fault_aperture_pct",
+                s.sensor_fault_aperture_pct,
+                0.0,
+                100.0,
+                "%",
+            ),
+            (
+                "sensor_fault_sigma_bar",
+                s.sensor_fault_sigma_bar,
+                0.1,
+                100.0,
+                "bar",
+            ),
         ] {
             c.range(format!("controller.scheduler.{field}"), v, lo, hi, unit);
         }
