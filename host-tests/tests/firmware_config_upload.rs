@@ -186,3 +186,63 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
         "{log:#?}"
     );
 }
+
+/// Ctrl-C (SIGINT) stops `pto link monitor` cleanly: the log is finished under its name (no
+/// `.part` left), every frame it took is in it, and the exit status says no frame was missed.
+#[test]
+fn a_monitor_stopped_by_ctrl_c_keeps_its_log() {
+    use nix::sys::signal::{Signal, kill};
+    use nix::unistd::Pid;
+    use std::io::{BufRead, BufReader};
+    use std::process::{Command, Stdio};
+    let elf = build::build(Build::Qemu).expect("QEMU build");
+    let mut q = Qemu::boot_twin(&elf, false).expect("twin");
+    let pty = q.pty.clone().unwrap();
+    let dir = std::env::temp_dir().join(format!("pto-monitor-int-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let log = dir.join("run.csv");
+    let mut mon = Command::new(env!("CARGO_BIN_EXE_pto"))
+        .args(["link", "--port"])
+        .arg(&pty)
+        .args(["monitor", "--log"])
+        .arg(&log)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut err = BufReader::new(mon.stderr.take().unwrap());
+    let mut line = String::new();
+    while !line.contains("monitoring") {
+        line.clear();
+        if err.read_line(&mut line).unwrap() == 0 {
+            let _ = mon.kill();
+            panic!("the monitor ended before it started");
+        }
+    }
+    // 1 600 steps: 100 telemetry frames at every 16th step.
+    let mut tick = 0;
+    feed(&mut q, &mut tick, 1_600);
+    std::thread::sleep(Duration::from_millis(500));
+    kill(Pid::from_raw(mon.id() as i32), Signal::SIGINT).unwrap();
+    let t0 = std::time::Instant::now();
+    let status = loop {
+        if let Some(st) = mon.try_wait().unwrap() {
+            break st;
+        }
+        if t0.elapsed() > Duration::from_secs(10) {
+            let _ = mon.kill();
+            let _ = mon.wait();
+            panic!("the monitor did not stop on SIGINT");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let mut out = String::new();
+    std::io::Read::read_to_string(mon.stdout.as_mut().unwrap(), &mut out).unwrap();
+    println!("{out}");
+    assert_eq!(status.code(), Some(0), "{out}");
+    let text = std::fs::read_to_string(&log).expect("the log under its name");
+    let rows = text.lines().count() - 1;
+    assert_eq!(rows, 100, "{out}");
+    assert!(!dir.join("run.csv.part").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
