@@ -46,6 +46,25 @@ fn a_missing_port_is_named() {
 }
 
 #[test]
+fn a_file_that_is_not_a_serial_port_is_named() {
+    let f = std::env::temp_dir().join(format!("pto-not-a-port-{}", std::process::id()));
+    std::fs::write(&f, "").unwrap();
+    let o = pto()
+        .args(["link", "--port"])
+        .arg(&f)
+        .arg("status")
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(2));
+    let e = stderr(&o);
+    assert!(
+        e.contains("not a serial port (not a character device)"),
+        "{e}"
+    );
+    let _ = std::fs::remove_file(&f);
+}
+
+#[test]
 fn a_silent_port_times_out_with_what_to_check() {
     let (master, _slave, path) = pty();
     make_raw(&master);

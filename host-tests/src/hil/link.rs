@@ -48,12 +48,29 @@ pub fn open(port: &str, baud: u32) -> Result<Box<dyn Port>, LinkError> {
                 .unwrap_or_default(),
         });
     }
+    {
+        use std::os::unix::fs::FileTypeExt;
+        if std::fs::metadata(port).is_ok_and(|m| !m.file_type().is_char_device()) {
+            return Err(LinkError::Open {
+                port: port.into(),
+                reason: "not a serial port (not a character device)".into(),
+            });
+        }
+    }
     let p = serialport::new(port, baud)
         .timeout(Duration::from_millis(100))
         .open_native()
         .map_err(|e| LinkError::Open {
             port: port.into(),
-            reason: e.to_string(),
+            reason: match e.kind() {
+                serialport::ErrorKind::Io(std::io::ErrorKind::PermissionDenied) => format!(
+                    "{e}: on Linux, add the user to the `dialout` group (then log in again)"
+                ),
+                serialport::ErrorKind::Io(std::io::ErrorKind::ResourceBusy) => {
+                    format!("{e}: another program has it open")
+                }
+                _ => e.to_string(),
+            },
         })?;
     // Exclusive (TIOCEXCL): a second `pto link` on the same port fails at once.
     let mut p = p;
@@ -132,11 +149,8 @@ pub enum LinkError {
         /// The ports the system lists.
         available: Vec<String>,
     },
-    /// The serial port exists but cannot be opened (busy, permissions).
-    #[error(
-        "cannot open serial port {port}: {reason} (another program using it? on Linux, is the \
-         user in the `dialout` group?)"
-    )]
+    /// The serial port exists but cannot be opened (busy, permissions, not a serial port).
+    #[error("cannot open serial port {port}: {reason}")]
     Open {
         /// The port.
         port: String,
