@@ -174,6 +174,10 @@ enum Cmd {
         /// a folder of other files is refused).
         #[arg(long, default_value = "out/fit")]
         out: PathBuf,
+        /// Write the fitted bench and model configuration even when the fit did not converge
+        /// (their first line then says so); without it they are written only on success.
+        #[arg(long)]
+        write_anyway: bool,
         /// Machine-readable output.
         #[arg(long)]
         json: bool,
@@ -429,6 +433,7 @@ fn main() -> ExitCode {
             spacing,
             max_iter,
             out,
+            write_anyway,
             json,
         } => fit_cmd(
             &logs,
@@ -437,6 +442,7 @@ fn main() -> ExitCode {
             spacing,
             max_iter as usize,
             &out,
+            write_anyway,
             json,
         ),
         Cmd::Pil { bench, json } => pil_cmd(bench.as_ref(), json),

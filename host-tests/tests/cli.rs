@@ -229,14 +229,8 @@ fn an_interrupted_paper_run_leaves_the_previous_output_whole() {
     std::fs::remove_dir_all(&base).unwrap();
 }
 
-/// `pto fit` writes all of its files into `--out`, swapped in whole: an interrupted fit leaves
-/// the previous fitted bench, model configuration, figures and report as they were, and no
-/// staging folder.
-#[test]
-fn an_interrupted_fit_leaves_the_previous_output_whole() {
-    use nix::sys::signal::{Signal, kill};
-    use nix::unistd::Pid;
-    let base = tmp("fit-int");
+/// A synthetic log of the paper's charge from 64.5 bar at 5 Hz, in `base/logs`.
+fn charge_log(base: &std::path::Path) -> PathBuf {
     let logs = base.join("logs");
     let made = pto()
         .args([
@@ -251,7 +245,18 @@ fn an_interrupted_fit_leaves_the_previous_output_whole() {
         .output()
         .unwrap();
     assert!(made.status.success(), "{made:?}");
-    let log = logs.join("exp-charge-64.5.csv");
+    logs.join("exp-charge-64.5.csv")
+}
+
+/// `pto fit` writes all of its files into `--out`, swapped in whole: an interrupted fit leaves
+/// the previous fitted bench, model configuration, figures and report as they were, and no
+/// staging folder.
+#[test]
+fn an_interrupted_fit_leaves_the_previous_output_whole() {
+    use nix::sys::signal::{Signal, kill};
+    use nix::unistd::Pid;
+    let base = tmp("fit-int");
+    let log = charge_log(&base);
     let out_dir = base.join("fit");
     let run = |max_iter: &str| {
         let mut c = pto();
@@ -269,7 +274,8 @@ fn an_interrupted_fit_leaves_the_previous_output_whole() {
             .arg(&out_dir);
         c
     };
-    let first = run("1").output().unwrap();
+    // One iteration does not converge: --write-anyway writes the fitted files all the same.
+    let first = run("1").arg("--write-anyway").output().unwrap();
     assert!(first.status.code().is_some_and(|c| c <= 1), "{first:?}");
     let mut files: Vec<String> = std::fs::read_dir(&out_dir)
         .unwrap()
@@ -519,4 +525,50 @@ fn every_command_help_shows_examples_and_exit_codes() {
             "{cmd} --help:\n{help}"
         );
     }
+}
+
+/// A fit that did not converge exits 1 and writes no fitted bench or model configuration (the
+/// report and figures only); `--write-anyway` writes them with a first line saying so.
+#[test]
+fn an_unconverged_fit_writes_no_fitted_bench_unless_asked() {
+    let base = tmp("fit-unconverged");
+    let log = charge_log(&base);
+    let out_dir = base.join("fit");
+    let fit = |extra: &[&str]| {
+        pto()
+            .arg("fit")
+            .arg(&log)
+            .args([
+                "--params",
+                "trapped_air,cd",
+                "--spacing",
+                "1",
+                "--max-iter",
+                "1",
+                "--json",
+            ])
+            .args(extra)
+            .arg("--out")
+            .arg(&out_dir)
+            .output()
+            .unwrap()
+    };
+    let o = fit(&[]);
+    assert_eq!(o.status.code(), Some(1), "{o:?}");
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert_eq!(v["converged"], serde_json::json!(false));
+    assert!(
+        v["bench_file"].is_null() && v["model_file"].is_null(),
+        "{v}"
+    );
+    assert!(out_dir.join("fit.json").exists());
+    assert!(!out_dir.join("reference-bench.fitted.toml").exists());
+    assert!(!out_dir.join("reference-bench.model.toml").exists());
+    let o = fit(&["--write-anyway"]);
+    assert_eq!(o.status.code(), Some(1), "{o:?}");
+    for f in ["reference-bench.fitted.toml", "reference-bench.model.toml"] {
+        let text = std::fs::read_to_string(out_dir.join(f)).unwrap();
+        assert!(text.starts_with("# NOT CONVERGED"), "{f}: {text:.80}");
+    }
+    let _ = std::fs::remove_dir_all(&base);
 }

@@ -66,6 +66,8 @@ pub(crate) fn synth_logs_cmd(
     Ok(true)
 }
 
+// The command's options, one argument each as clap hands them over.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn fit_cmd(
     log_paths: &[PathBuf],
     bench_path: Option<&PathBuf>,
@@ -73,6 +75,7 @@ pub(crate) fn fit_cmd(
     spacing: f64,
     max_iter: usize,
     out: &Path,
+    write_anyway: bool,
     json: bool,
 ) -> Result<bool> {
     use pto_host::fit;
@@ -126,26 +129,39 @@ pub(crate) fn fit_cmd(
         .map_or("reference-bench".into(), |s| {
             s.to_string_lossy().into_owned()
         });
-    let fitted = Bench::from_file(o.fitted.clone(), "fitted").context("the fitted bench")?;
-    let mut text = format!(
-        "# Fitted by `pto fit` to {} log(s) from {}; parameters: {}.\n",
-        logs.len(),
-        bench_path.map_or("the reference bench".into(), |p| p.display().to_string()),
-        params.join(", ")
-    );
-    text.push_str(&toml::to_string_pretty(&o.fitted)?);
-    let bench_name = format!("{stem}.fitted.toml");
-    std::fs::write(stage.path().join(&bench_name), text.as_bytes())?;
-    // The reduced model has a constant Cd: it takes the fitted Cd at 50 bar Δp.
-    let model = pto_host::model::model_config(&fitted)?;
-    model.validate().context("fitted model configuration")?;
-    let model_name = format!("{stem}.model.toml");
-    std::fs::write(
-        stage.path().join(&model_name),
-        toml::to_string_pretty(&model)?.as_bytes(),
-    )?;
-    o.report.bench_file = Some(out.join(bench_name));
-    o.report.model_file = Some(out.join(model_name));
+    // The fitted bench and the firmware's configuration only from a fit that converged (or
+    // asked for anyway, their first line saying it did not).
+    let write = o.report.converged || write_anyway;
+    let mark = if o.report.converged {
+        String::new()
+    } else {
+        format!(
+            "# NOT CONVERGED ({}): written with --write-anyway; do not use it as a fitted bench.\n",
+            o.report.termination
+        )
+    };
+    if write {
+        let fitted = Bench::from_file(o.fitted.clone(), "fitted").context("the fitted bench")?;
+        let mut text = mark.clone();
+        text.push_str(&format!(
+            "# Fitted by `pto fit` to {} log(s) from {}; parameters: {}.\n",
+            logs.len(),
+            bench_path.map_or("the reference bench".into(), |p| p.display().to_string()),
+            params.join(", ")
+        ));
+        text.push_str(&toml::to_string_pretty(&o.fitted)?);
+        let bench_name = format!("{stem}.fitted.toml");
+        std::fs::write(stage.path().join(&bench_name), text.as_bytes())?;
+        // The reduced model has a constant Cd: it takes the fitted Cd at 50 bar Δp.
+        let model = pto_host::model::model_config(&fitted)?;
+        model.validate().context("fitted model configuration")?;
+        let model_name = format!("{stem}.model.toml");
+        let mut text = mark;
+        text.push_str(&toml::to_string_pretty(&model)?);
+        std::fs::write(stage.path().join(&model_name), text.as_bytes())?;
+        o.report.bench_file = Some(out.join(bench_name));
+        o.report.model_file = Some(out.join(model_name));
+    }
     o.report.figures = fit_figures(&logs, &o, stage.path())?
         .iter()
         .filter_map(|f| f.file_name().map(|n| out.join(n)))
@@ -192,9 +208,19 @@ pub(crate) fn fit_cmd(
         );
         if let (Some(b), Some(m)) = (&r.bench_file, &r.model_file) {
             println!(
-                "fitted bench: {}\nmodel configuration for the firmware: {}",
+                "fitted bench: {}\nmodel configuration for the firmware: {}{}",
                 b.display(),
-                m.display()
+                m.display(),
+                if r.converged {
+                    ""
+                } else {
+                    "\n(NOT CONVERGED: written with --write-anyway, marked in their first line)"
+                }
+            );
+        } else {
+            println!(
+                "not converged: no fitted bench or model configuration written (--write-anyway \
+                 writes them, marked as not converged)"
             );
         }
         for f in &r.figures {
