@@ -417,6 +417,10 @@ impl Session {
         let r = store.clear().await;
         HEARTBEATS.beat_all();
         r.map_err(|_| ConfigRefusal::Store)?;
+        // What runs is no longer stored.
+        if self.running.info.source == ConfigSource::UploadedStored {
+            self.running.info.source = ConfigSource::Uploaded;
+        }
         defmt::info!("configuration store cleared: the next boot runs the built-in one");
         Ok(FromFirmware::ConfigCleared)
     }

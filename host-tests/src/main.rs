@@ -215,7 +215,7 @@ enum Cmd {
     /// upload and read-back, live monitor and bench log. Over a serial port (the bench) or the
     /// QEMU twin's pseudo-terminal (`pto twin` prints it).
     #[command(
-        after_help = "Examples:\n  pto link --port /dev/ttyUSB0 status\n  pto link --port /dev/ttyUSB0 monitor --log run1.csv --rate 64\n  pto link --port /dev/ttyUSB0 mode fixed 12\n  pto link --port /dev/ttyUSB0 duty --on 1001 --config 1\n  pto link --port /dev/ttyUSB0 reset --p2 60 --lp 8\n  pto link --port /dev/ttyUSB0 config upload fit/my-bench.model.toml --store\n  pto link --port /dev/ttyUSB0 config show --out running.model.toml\n\nExit status:\n  0 done (monitor: no frame lost or damaged)\n  1 monitor: frames were lost or damaged (the log has gaps)\n  2 bad input, port missing or busy, no answer, protocol mismatch, or a refusal (its reason named)\n  130 interrupted"
+        after_help = "Examples:\n  pto link --port /dev/ttyUSB0 status\n  pto link --port /dev/ttyUSB0 monitor --log run1.csv --rate 64\n  pto link --port /dev/ttyUSB0 mode fixed 12\n  pto link --port /dev/ttyUSB0 duty --on 1001 --config 1\n  pto link --port /dev/ttyUSB0 reset --p2 60 --lp 8\n  pto link --port /dev/ttyUSB0 config upload fit/my-bench.model.toml --store\n  pto link --port /dev/ttyUSB0 config show --out running.model.toml\n\nExit status:\n  0 done (monitor: no frame lost or damaged)\n  1 monitor: frames were lost, damaged or not sent, the controller restarted, or none arrived\n  2 bad input, port missing or busy, no answer, protocol mismatch, or a refusal (its reason named)\n  130 interrupted (monitor: Ctrl-C ends it cleanly, its log kept, and the status is as above)"
     )]
     Link {
         /// Serial port of the controller (`/dev/ttyUSB0`, `COM3`), the QEMU twin's
@@ -320,7 +320,8 @@ enum LinkCmd {
         #[arg(long, allow_negative_numbers = true)]
         lp: f64,
     },
-    /// The model configuration: upload (from `pto fit`'s *.model.toml or a bench file), show.
+    /// The model configuration: upload (from `pto fit`'s *.model.toml or a bench file), show,
+    /// clear the stored one.
     Config {
         #[command(subcommand)]
         cmd: ConfigCmd,
@@ -331,7 +332,8 @@ enum LinkCmd {
         /// Bench log CSV to write (written as FILE.part, renamed when the monitor stops).
         #[arg(long)]
         log: Option<PathBuf>,
-        /// Telemetry rate, Hz (default: the firmware's, 64 Hz).
+        /// Telemetry rate, Hz, up to 1024 (default 64, set at every start: a rate an earlier
+        /// monitor set does not stay; the bench firmware goes no faster than 128 and says so).
         #[arg(long)]
         rate: Option<f64>,
         /// Stop after this much firmware time, s (default: at Ctrl-C).

@@ -12,6 +12,9 @@ use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
+/// The monitor's telemetry rate unless `--rate` says otherwise, Hz.
+const DEFAULT_RATE_HZ: f64 = 64.0;
+
 /// The port and how to reach it.
 pub(crate) struct Target<'a> {
     pub(crate) port: &'a str,
@@ -250,7 +253,9 @@ pub(crate) fn monitor_cmd(
     let (_, cfg) = client::read_config(&mut l)?;
     let units = Units::new(h.dt_log2, &cfg);
     let steps_per_s = 2f64.powi(i32::from(h.dt_log2));
-    if let Some(r) = rate_hz {
+    {
+        // Set at every start (64 Hz unless asked): a rate an earlier monitor set does not stay.
+        let r = rate_hz.unwrap_or(DEFAULT_RATE_HZ);
         let asked = (steps_per_s / r).round().clamp(1.0, 65_535.0) as u16;
         let every = client::set_telemetry(&mut l, asked)?;
         eprintln!(
@@ -427,6 +432,9 @@ pub(crate) fn monitor_cmd(
             None => "the link failed".into(),
         }));
     }
-    // Frames lost on the way, or never sent, are a miss: the log has gaps.
-    Ok(lost == 0 && bad == 0 && not_sent == Some(0) && restarts == 0)
+    if frames == 0 {
+        eprintln!("no telemetry frame arrived: is the controller stepping?");
+    }
+    // Frames lost on the way, or never sent, are a miss: the log has gaps; so is no frame.
+    Ok(frames > 0 && lost == 0 && bad == 0 && not_sent == Some(0) && restarts == 0)
 }
