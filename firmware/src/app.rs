@@ -359,8 +359,8 @@ struct Session {
 
 impl Session {
     /// `ConfigCommit`: checks (the declared safe state, then the configuration), stores when
-    /// asked, applies. The controller stops stepping meanwhile (its tables are built twice,
-    /// ≈ 136 M instructions each), with the watchdog's timeout raised for it.
+    /// asked, applies. The controller stops stepping meanwhile (its tables are built once,
+    /// twice when storing: ≈ 136 M instructions each), with the watchdog's timeout raised.
     async fn commit(
         &mut self,
         ctl: &mut Controller,
@@ -373,9 +373,13 @@ impl Session {
             ReconfigureError::Setup(SetupError::Model(m)) => ConfigRefusal::from(m),
             ReconfigureError::Setup(_) => ConfigRefusal::Decode,
         };
-        // Checked before anything is stored or changed (no controller is kept across the
-        // store's await: one is ≈ 11 KB).
-        board::unwatched(|| ctl.check_reconfigure(&cfg, &self.sched, &self.cc)).map_err(refusal)?;
+        // Before storing, checked without changing anything (no controller is kept across the
+        // store's await: one is ≈ 11 KB); without storing, `reconfigure` below checks it itself,
+        // and the tables are built once.
+        if persist {
+            board::unwatched(|| ctl.check_reconfigure(&cfg, &self.sched, &self.cc))
+                .map_err(refusal)?;
+        }
         let stored = if persist {
             let store = self.store.as_mut().ok_or(ConfigRefusal::Store)?;
             defmt::info!("storing the configuration (the controller stalls during an erase)");

@@ -210,9 +210,7 @@ impl Controller {
         sched: &SchedulerConfig,
         cc: &ControlConfig,
     ) -> Result<(), ReconfigureError> {
-        self.safe_to_apply().map_err(ReconfigureError::NotSafe)?;
-        self.check_step(model)?;
-        let mut next = Controller::new(model, sched, cc)?;
+        let mut next = self.successor(model, sched, cc)?;
         next.mode = self.mode;
         (next.on_duty, next.config) = (self.on_duty, self.config);
         next.status = self.status;
@@ -241,24 +239,29 @@ impl Controller {
         sched: &SchedulerConfig,
         cc: &ControlConfig,
     ) -> Result<(), ReconfigureError> {
-        self.safe_to_apply().map_err(ReconfigureError::NotSafe)?;
-        self.check_step(model)?;
-        Controller::new(model, sched, cc)?;
-        Ok(())
+        self.successor(model, sched, cc).map(|_| ())
     }
 
-    fn check_step(&self, model: &ModelConfig) -> Result<(), SetupError> {
+    /// A fresh controller for `model`, if this one may be replaced by it: the safe state, the
+    /// board's step, then [`Controller::new`]'s checks.
+    fn successor(
+        &self,
+        model: &ModelConfig,
+        sched: &SchedulerConfig,
+        cc: &ControlConfig,
+    ) -> Result<Controller, ReconfigureError> {
+        self.safe_to_apply().map_err(ReconfigureError::NotSafe)?;
         if model.dt_log2 != self.k.dt_log2 {
             // The step is the board's sampling period, fixed at boot.
             let dt = f32::from(self.k.dt_log2);
-            return Err(SetupError::Model(ConfigError {
+            return Err(ReconfigureError::Setup(SetupError::Model(ConfigError {
                 field: "dt_log2",
                 value: f32::from(model.dt_log2),
                 min: dt,
                 max: dt,
-            }));
+            })));
         }
-        Ok(())
+        Ok(Controller::new(model, sched, cc)?)
     }
 
     /// The declared safe state in which the controller may stop stepping for a while (building

@@ -222,7 +222,10 @@ fn a_monitor_stopped_by_ctrl_c_keeps_its_log() {
     // 1 600 steps: 100 telemetry frames at every 16th step.
     let mut tick = 0;
     feed(&mut q, &mut tick, 1_600);
-    std::thread::sleep(Duration::from_millis(500));
+    // Time for the monitor to read every frame the pseudo-terminal holds (Ctrl-C stops it at
+    // once: frames still unread are not taken); the other test of this file may run a twin
+    // beside it.
+    std::thread::sleep(Duration::from_millis(2_000));
     kill(Pid::from_raw(mon.id() as i32), Signal::SIGINT).unwrap();
     let t0 = std::time::Instant::now();
     let status = loop {

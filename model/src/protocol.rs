@@ -361,7 +361,7 @@ pub enum ConfigRefusal {
         max: f32,
     },
     /// Committed outside the declared safe state: applying a configuration stops the control
-    /// loop for about a second (its tables are built twice: checked, then applied), a flash
+    /// loop for about a second (its tables are built once, twice when storing: checked, then applied), a flash
     /// erase for up to two more.
     NotSafe(NotSafe),
     /// The store failed (a commit: the configuration was not applied).
