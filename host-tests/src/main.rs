@@ -146,7 +146,7 @@ enum Cmd {
     /// configuration for the firmware, a figure per log and `fit.json` into --out, swapped in
     /// whole.
     #[command(
-        after_help = "Examples:\n  pto fit logs/*.csv\n  pto fit logs/*.csv --bench my-bench.toml --params trapped_air,cd --out fits/run1 --json\n\nExit status:\n  0 the fit converged\n  1 it did not\n  2 bad input\n  130 interrupted (the previous --out folder left whole)"
+        after_help = "Examples:\n  pto fit logs/*.csv\n  pto fit logs/*.csv --bench my-bench.toml --params trapped_air,cd --out fits/run1 --json\n\nExit status:\n  0 the fit passed every check (converged, goodness, bounds, emptying, determined, precision, correlation, logs)\n  1 a check failed (named in the output)\n  2 bad input\n  130 interrupted (the previous --out folder left whole)"
     )]
     Fit {
         /// Bench log CSV files.
@@ -174,8 +174,24 @@ enum Cmd {
         /// a folder of other files is refused).
         #[arg(long, default_value = "out/fit")]
         out: PathBuf,
-        /// Write the fitted bench and model configuration even when the fit did not converge
-        /// (their first line then says so); without it they are written only on success.
+        /// P2 sensor noise σ, bar (default: estimated from the logs).
+        #[arg(long, value_parser = finite_in(0.001, 50.0, "bar"))]
+        noise_p2: Option<f64>,
+        /// Motor speed sensor noise σ, rpm (default: estimated from the logs).
+        #[arg(long, value_parser = finite_in(0.01, 500.0, "rpm"))]
+        noise_rpm: Option<f64>,
+        /// Largest reduced χ² of the residuals against the noise that passes (raise it knowingly
+        /// when the model's own error exceeds the sensors' noise), 1 to 10 000.
+        #[arg(long, default_value_t = pto_host::fit::DEFAULT_LIMITS.max_chi2, value_parser = finite_in(1.0, 10_000.0, ""))]
+        max_chi2: f64,
+        /// Precision a parameter needs, in its unit (repeatable; e.g. `--precision
+        /// trapped_air=0.01`): the fit fails its `precision` check when the parameter's 3σ
+        /// exceeds it. Defaults: trapped_air 0.005, cd 3 %, precharge 2 bar, leakage 0.01,
+        /// hp_volume 5 %, cd_slope 0.05, area-table factors 10 %.
+        #[arg(long, value_name = "NAME=VALUE", value_parser = name_value)]
+        precision: Vec<(String, f64)>,
+        /// Write the fitted bench and model configuration even when a check failed (their first
+        /// line then says which); without it they are written only when every check passed.
         #[arg(long)]
         write_anyway: bool,
         /// Machine-readable output.
@@ -382,6 +398,20 @@ fn finite_in(lo: f64, hi: f64, unit: &'static str) -> impl Fn(&str) -> Result<f6
     }
 }
 
+/// `NAME=VALUE` with a finite, positive value.
+fn name_value(v: &str) -> Result<(String, f64), String> {
+    let (n, x) = v
+        .split_once('=')
+        .ok_or_else(|| format!("{v:?}: want NAME=VALUE, e.g. trapped_air=0.01"))?;
+    let x: f64 = x
+        .trim()
+        .parse()
+        .ok()
+        .filter(|x: &f64| x.is_finite() && *x > 0.0)
+        .ok_or_else(|| format!("{v:?}: the value must be a positive number"))?;
+    Ok((n.trim().to_string(), x))
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     // Ctrl-C or SIGTERM: QEMU children ended, their sockets removed, exit 130.
@@ -435,14 +465,28 @@ fn main() -> ExitCode {
             spacing,
             max_iter,
             out,
+            noise_p2,
+            noise_rpm,
+            max_chi2,
+            precision,
             write_anyway,
             json,
         } => fit_cmd(
             &logs,
             bench.as_ref(),
-            &params,
-            spacing,
-            max_iter as usize,
+            pto_host::fit::FitOptions {
+                params,
+                spacing_s: spacing,
+                max_iter: max_iter as usize,
+                noise_p2_bar: noise_p2,
+                noise_rpm,
+                limits: pto_host::fit::Limits {
+                    max_chi2,
+                    ..pto_host::fit::DEFAULT_LIMITS
+                },
+                precision,
+                progress: None,
+            },
             &out,
             write_anyway,
             json,

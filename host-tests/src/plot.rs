@@ -161,7 +161,7 @@ where
     let mut chart = ChartBuilder::on(area)
         .caption(&p.title, ("sans-serif", 18))
         .margin(8)
-        .margin_right(22)
+        .margin_right(34)
         .x_label_area_size(38)
         .y_label_area_size(62)
         .build_cartesian_2d(x0..x1, y0..y1)?;

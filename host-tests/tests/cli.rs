@@ -231,21 +231,19 @@ fn an_interrupted_paper_run_leaves_the_previous_output_whole() {
 
 /// A synthetic log of the paper's charge from 64.5 bar at 5 Hz, in `base/logs`.
 fn charge_log(base: &std::path::Path) -> PathBuf {
+    synth_log_at_5hz(base, "exp-charge-64.5")
+}
+
+/// A synthetic log of the built-in scenario `run` at 5 Hz, in `base/logs`.
+fn synth_log_at_5hz(base: &std::path::Path, run: &str) -> PathBuf {
     let logs = base.join("logs");
     let made = pto()
-        .args([
-            "synth-logs",
-            "--runs",
-            "exp-charge-64.5",
-            "--rate",
-            "5",
-            "--out",
-        ])
+        .args(["synth-logs", "--runs", run, "--rate", "5", "--out"])
         .arg(&logs)
         .output()
         .unwrap();
     assert!(made.status.success(), "{made:?}");
-    logs.join("exp-charge-64.5.csv")
+    logs.join(format!("{run}.csv"))
 }
 
 /// `pto fit` writes all of its files into `--out`, swapped in whole: an interrupted fit leaves
@@ -527,8 +525,9 @@ fn every_command_help_shows_examples_and_exit_codes() {
     }
 }
 
-/// A fit that did not converge exits 1 and writes no fitted bench or model configuration (the
-/// report and figures only); `--write-anyway` writes them with a first line saying so.
+/// A fit that did not converge exits 1, its `converged` check failed, and writes no fitted bench
+/// or model configuration (the report and figures only); `--write-anyway` writes them with a
+/// first line saying so.
 #[test]
 fn an_unconverged_fit_writes_no_fitted_bench_unless_asked() {
     let base = tmp("fit-unconverged");
@@ -557,6 +556,15 @@ fn an_unconverged_fit_writes_no_fitted_bench_unless_asked() {
     assert_eq!(o.status.code(), Some(1), "{o:?}");
     let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
     assert_eq!(v["converged"], serde_json::json!(false));
+    assert_eq!(v["passed"], serde_json::json!(false));
+    let failed: Vec<&str> = v["checks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["passed"] == serde_json::json!(false))
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    assert!(failed.contains(&"converged"), "{failed:?}");
     assert!(
         v["bench_file"].is_null() && v["model_file"].is_null(),
         "{v}"
@@ -568,7 +576,51 @@ fn an_unconverged_fit_writes_no_fitted_bench_unless_asked() {
     assert_eq!(o.status.code(), Some(1), "{o:?}");
     for f in ["reference-bench.fitted.toml", "reference-bench.model.toml"] {
         let text = std::fs::read_to_string(out_dir.join(f)).unwrap();
-        assert!(text.starts_with("# NOT CONVERGED"), "{f}: {text:.80}");
+        assert!(
+            text.starts_with("# NOT A FITTED BENCH: the fit failed its checks (converged"),
+            "{f}: {text:.80}"
+        );
     }
+    let _ = std::fs::remove_dir_all(&base);
+}
+
+/// An aperture column given as a fraction (0.09 for 9 %) is named before the fit with a hint,
+/// fails the `logs` check (exit 1), and no fitted bench is written.
+#[test]
+fn an_aperture_given_as_a_fraction_is_refused_with_a_hint() {
+    let base = tmp("fit-fraction");
+    let path = synth_log_at_5hz(&base, "exp-9pct-101.5");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let mut lines = text.lines();
+    let header = lines.next().unwrap();
+    let col = header.split(',').position(|h| h == "aperture_pct").unwrap();
+    let mut out = format!("{header}\n");
+    for l in lines {
+        let mut f: Vec<String> = l.split(',').map(String::from).collect();
+        f[col] = format!("{}", f[col].parse::<f64>().unwrap() / 100.0);
+        out.push_str(&f.join(","));
+        out.push('\n');
+    }
+    std::fs::write(&path, out).unwrap();
+    let out_dir = base.join("fit");
+    let o = pto()
+        .arg("fit")
+        .arg(&path)
+        .args(["--params", "cd", "--spacing", "2", "--out"])
+        .arg(&out_dir)
+        .output()
+        .unwrap();
+    let (stdout, stderr) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    println!("{stderr}\n{stdout}");
+    assert_eq!(o.status.code(), Some(1));
+    assert!(
+        stderr.contains("aperture_pct") && stderr.contains("looks like a fraction"),
+        "{stderr}"
+    );
+    assert!(stdout.contains("FAIL logs"), "{stdout}");
+    assert!(!out_dir.join("reference-bench.fitted.toml").exists());
     let _ = std::fs::remove_dir_all(&base);
 }

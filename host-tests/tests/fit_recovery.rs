@@ -1,24 +1,51 @@
-//! `pto fit` recovers known parameters from synthetic bench logs (the reduced, fast case of the
-//! full recovery run of `docs/fit.md`): five of the experimental runs at 5 Hz, made by the full
-//! simulation from a bench with trapped air 4 %, Cd 0.17 and HP precharge 45 bar (reference:
-//! 6 %, 0.154, 25 bar), with the sensor model's noise and quantisation; the fit starts from the
-//! reference values.
+//! `pto fit` recovers known parameters from synthetic bench logs, or says it did not: never a
+//! silent miss. Logs are made by the full simulation from a known bench with the sensor model's
+//! noise and quantisation; the fit starts from the reference bench.
+//!
+//! `fit_recovers_trapped_air_cd_and_precharge`: one bench, three parameters (five of the
+//! experimental runs at 5 Hz). `randomised_benches_are_recovered_or_refused`: benches drawn at
+//! random (trapped air 0.02–0.10, Cd 0.12–0.20, HP precharge 15–60 bar, η_v 0.85–0.95), the
+//! four fitted together from the seven experimental runs at 10 Hz; each fit either recovers all
+//! four (trapped air ± 0.005, Cd ± 3 %, precharge ± 2 bar, η_v ± 0.01, the truth inside 3σ) or
+//! fails a named check. Two benches in `cargo test`; `PTO_FIT_BENCHES=8` runs the full set of
+//! `docs/fit.md` and prints its table.
 
 use pto_host::fit;
-use pto_host::sim::bench::{Bench, apply_override};
+use pto_host::sim::bench::{Bench, BenchFile, apply_override};
 use pto_host::sim::benchlog::BenchLog;
+use rand::{Rng, SeedableRng};
+use std::path::Path;
+
+fn bench_with(sets: &[String]) -> Bench {
+    let mut f = Bench::reference().file;
+    let shortcuts = fit::set_shortcuts();
+    for kv in sets {
+        apply_override(&mut f, kv, &shortcuts).unwrap();
+    }
+    Bench::from_file(f, "truth").unwrap()
+}
+
+/// Logs of `runs` from `truth` at `rate_hz`, written and read back as a user's would be.
+fn logs_of(truth: &Bench, runs: &[&str], rate_hz: f64, seed: u64, dir: &Path) -> Vec<BenchLog> {
+    std::fs::create_dir_all(dir).unwrap();
+    runs.iter()
+        .enumerate()
+        .map(|(i, run)| {
+            let log = fit::synth_log(truth, run, rate_hz, seed + i as u64, dir).unwrap();
+            log.write().unwrap();
+            BenchLog::read(&log.path).unwrap()
+        })
+        .collect()
+}
+
+fn tmp(name: &str) -> std::path::PathBuf {
+    std::env::temp_dir().join(format!("pto-fit-{name}-{}", std::process::id()))
+}
 
 #[test]
 fn fit_recovers_trapped_air_cd_and_precharge() {
-    let dir = std::env::temp_dir().join(format!("pto-fit-test-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let mut truth = Bench::reference().file;
-    let shortcuts = fit::set_shortcuts();
-    for kv in ["trapped_air=0.04", "cd=0.17", "precharge=45"] {
-        apply_override(&mut truth, kv, &shortcuts).unwrap();
-    }
-    let truth = Bench::from_file(truth, "truth").unwrap();
-    let mut logs = Vec::new();
+    let dir = tmp("three");
+    let truth = bench_with(&["trapped_air=0.04", "cd=0.17", "precharge=45"].map(String::from));
     let runs = [
         "exp-charge-64.5",
         "exp-charge-72",
@@ -26,17 +53,12 @@ fn fit_recovers_trapped_air_cd_and_precharge() {
         "exp-discharge-102",
         "exp-discharge-71",
     ];
-    for (i, run) in runs.iter().enumerate() {
-        let log = fit::synth_log(&truth, run, 5.0, 1 + i as u64, &dir).unwrap();
-        log.write().unwrap();
-        // Through the file, as a user's log would come.
-        logs.push(BenchLog::read(&log.path).unwrap());
-    }
-    let start = Bench::reference().file;
-    let names: Vec<String> = ["trapped_air", "cd", "precharge"]
-        .map(String::from)
-        .to_vec();
-    let o = fit::fit(&start, &names, logs, 1.0, 20, None).unwrap();
+    let logs = logs_of(&truth, &runs, 5.0, 1, &dir);
+    let opts = fit::FitOptions {
+        spacing_s: 1.0,
+        ..fit::FitOptions::new(&["trapped_air", "cd", "precharge"])
+    };
+    let o = fit::fit(&Bench::reference().file, logs, &opts).unwrap();
     let r = &o.report;
     for p in &r.params {
         println!(
@@ -44,15 +66,199 @@ fn fit_recovers_trapped_air_cd_and_precharge() {
             p.name, p.start, p.value, p.sigma
         );
     }
+    for c in &r.checks {
+        println!(
+            "{} {}: {}",
+            if c.passed { "ok  " } else { "FAIL" },
+            c.name,
+            c.detail
+        );
+    }
     println!(
-        "residual RMS {:.2} → {:.2} ({:.1}×), {} simulations, {:.1} s, {}",
-        r.residual_rms.0, r.residual_rms.1, r.improvement, r.simulations, r.wall_s, r.termination
+        "residual RMS {:.2} → {:.2} ({:.1}×), {} simulations, {:.1} s",
+        r.residual_rms.0, r.residual_rms.1, r.improvement, r.simulations, r.wall_s
     );
     let v = |n: &str| r.params.iter().find(|p| p.name == n).unwrap().value;
+    assert!(r.passed, "every check holds");
     assert!((v("trapped_air") - 0.04).abs() <= 0.005, "trapped air");
     assert!((v("cd") - 0.17).abs() <= 0.03 * 0.17, "Cd");
     assert!((v("precharge") - 45.0).abs() <= 2.0, "precharge");
     assert!(r.improvement >= 10.0, "residual drops ≥ 10×");
-    assert!(r.params.iter().all(|p| p.sigma.is_some_and(|s| s > 0.0)));
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `leakage` alone: the volumetric efficiency of a bench with η_v 0.88 (reference 0.92) from two
+/// runs that turn the motor; the total efficiency follows at the bench's mechanical efficiency,
+/// so no trial bench is invalid (the fit used to stop within a second, exit 2, at
+/// η_total > η_v). Measured: 0.8843 ± 0.0040, reduced χ² 8.6, worst on the discharge (the verdict
+/// fails `goodness` and `precision`; why a bench that differs from the truth in η_v alone
+/// leaves χ² 8.6 is not yet found).
+#[test]
+fn leakage_fits_alone() {
+    let dir = tmp("leakage");
+    let truth = bench_with(&["leakage=0.88".to_string()]);
+    let logs = logs_of(
+        &truth,
+        &["exp-9pct-101.5", "exp-discharge-71"],
+        5.0,
+        7,
+        &dir,
+    );
+    let opts = fit::FitOptions {
+        spacing_s: 1.0,
+        ..fit::FitOptions::new(&["leakage"])
+    };
+    let o = fit::fit(&Bench::reference().file, logs, &opts).unwrap();
+    let r = &o.report;
+    let p = &r.params[0];
+    println!(
+        "leakage 0.92 → {:.4} ± {:?} (true 0.88), χ² {:.2}, {:.1} s",
+        p.value, p.sigma, r.chi2_reduced, r.wall_s
+    );
+    for c in r.checks.iter().filter(|c| !c.passed) {
+        println!("FAIL {}: {}", c.name, c.detail);
+    }
+    // The fit runs to its end (no invalid trial bench) and lands within the precision; its
+    // verdict is either a pass with the truth inside 3σ or named failed checks.
+    assert!(
+        (p.value - 0.88).abs() <= 0.01,
+        "leakage recovered within 0.01"
+    );
+    if r.passed {
+        assert!((p.value - 0.88).abs() <= 3.0 * p.sigma.unwrap());
+    } else {
+        assert!(r.checks.iter().any(|c| !c.passed && !c.detail.is_empty()));
+    }
+    let f = &o.fitted.motor;
+    assert!(
+        (f.total_efficiency / f.volumetric_efficiency - 0.85 / 0.92).abs() < 1e-12,
+        "mechanical efficiency held"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// One randomised bench's outcome.
+struct Outcome {
+    truth: [f64; 4],
+    fitted: [(f64, f64); 4],
+    passed: bool,
+    failed: Vec<&'static str>,
+    recovered: bool,
+    chi2: f64,
+    wall_s: f64,
+}
+
+const NAMES: [&str; 4] = ["trapped_air", "cd", "precharge", "leakage"];
+
+fn tolerance(k: usize, truth: f64) -> f64 {
+    [0.005, 0.03 * truth, 2.0, 0.01][k]
+}
+
+fn recover(k: u64, rng: &mut impl Rng) -> Outcome {
+    let truth = [
+        rng.random_range(0.02..0.10),
+        rng.random_range(0.12..0.20),
+        rng.random_range(15.0..60.0),
+        rng.random_range(0.85..0.95),
+    ];
+    let sets: Vec<String> = NAMES
+        .iter()
+        .zip(truth)
+        .map(|(n, v)| format!("{n}={v}"))
+        .collect();
+    let dir = tmp(&format!("random-{k}"));
+    let logs = logs_of(
+        &bench_with(&sets),
+        &fit::EXPERIMENTAL_RUNS,
+        10.0,
+        100 * k,
+        &dir,
+    );
+    let start: BenchFile = Bench::reference().file;
+    let o = fit::fit(&start, logs, &fit::FitOptions::new(&NAMES)).unwrap();
+    let _ = std::fs::remove_dir_all(&dir);
+    let r = o.report;
+    let fitted: Vec<(f64, f64)> = r
+        .params
+        .iter()
+        .map(|p| (p.value, p.sigma.unwrap_or(f64::NAN)))
+        .collect();
+    let recovered = (0..4).all(|j| {
+        let (v, s) = fitted[j];
+        let err = (v - truth[j]).abs();
+        err <= tolerance(j, truth[j]) && err <= 3.0 * s
+    });
+    Outcome {
+        truth,
+        fitted: [fitted[0], fitted[1], fitted[2], fitted[3]],
+        passed: r.passed,
+        failed: r
+            .checks
+            .iter()
+            .filter(|c| !c.passed)
+            .map(|c| c.name)
+            .collect(),
+        recovered,
+        chi2: r.chi2_reduced,
+        wall_s: r.wall_s,
+    }
+}
+
+#[test]
+fn randomised_benches_are_recovered_or_refused() {
+    let n: u64 = std::env::var("PTO_FIT_BENCHES")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(2);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2026);
+    println!(
+        "| # | trapped air true → fitted ± σ | Cd | precharge (bar) | η_v | χ² | verdict | s |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    let mut silent = Vec::new();
+    let mut worst_wall: f64 = 0.0;
+    for k in 1..=n {
+        let o = recover(k, &mut rng);
+        let cell = |j: usize, d: usize| {
+            format!(
+                "{:.d$} → {:.d$} ± {:.d$}",
+                o.truth[j], o.fitted[j].0, o.fitted[j].1
+            )
+        };
+        let verdict = match (o.passed, o.recovered) {
+            (true, true) => "passed, recovered".to_string(),
+            (true, false) => "PASSED BUT MISSED".to_string(),
+            (false, _) => format!(
+                "failed: {}{}",
+                o.failed.join(", "),
+                if o.recovered {
+                    " (values were within)"
+                } else {
+                    ""
+                }
+            ),
+        };
+        println!(
+            "| {k} | {} | {} | {} | {} | {:.2} | {verdict} | {:.0} |",
+            cell(0, 4),
+            cell(1, 4),
+            cell(2, 2),
+            cell(3, 4),
+            o.chi2,
+            o.wall_s
+        );
+        worst_wall = worst_wall.max(o.wall_s);
+        if o.passed && !o.recovered {
+            silent.push(k);
+        }
+        if !o.passed {
+            assert!(!o.failed.is_empty(), "a failed fit names its check");
+        }
+    }
+    println!("slowest fit {worst_wall:.1} s");
+    assert!(silent.is_empty(), "silent misses: benches {silent:?}");
+    if n >= 8 {
+        // The full set runs alone: its wall times are the fit's own.
+        assert!(worst_wall <= 60.0, "a full fit takes ≤ 60 s on 2 cores");
+    }
 }

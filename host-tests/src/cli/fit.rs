@@ -66,24 +66,21 @@ pub(crate) fn synth_logs_cmd(
     Ok(true)
 }
 
-// The command's options, one argument each as clap hands them over.
-#[allow(clippy::too_many_arguments)]
 pub(crate) fn fit_cmd(
     log_paths: &[PathBuf],
     bench_path: Option<&PathBuf>,
-    params: &[String],
-    spacing: f64,
-    max_iter: usize,
+    mut opts: pto_host::fit::FitOptions,
     out: &Path,
     write_anyway: bool,
     json: bool,
 ) -> Result<bool> {
     use pto_host::fit;
     use pto_host::sim::benchlog::BenchLog;
-    if !(0.01..=60.0).contains(&spacing) {
-        bail!("--spacing {spacing}: outside [0.01, 60] s");
-    }
     let bench = load_bench(bench_path)?;
+    let input_text = match bench_path {
+        Some(p) => std::fs::read_to_string(p).with_context(|| p.display().to_string())?,
+        None => pto_host::sim::bench::REFERENCE_BENCH_TOML.to_string(),
+    };
     let logs: Vec<BenchLog> = log_paths
         .iter()
         .map(|p| BenchLog::read(p))
@@ -98,9 +95,24 @@ pub(crate) fn fit_cmd(
             );
         }
     }
+    // Implausible columns are said before the minute of fitting, not only in the verdict.
+    if !json {
+        for f in logs.iter().flat_map(fit::sanity) {
+            eprintln!(
+                "{}: {} `{}`: {}",
+                match f.severity {
+                    fit::Severity::Error => "error",
+                    fit::Severity::Warning => "warning",
+                },
+                f.file.display(),
+                f.column,
+                f.message
+            );
+        }
+    }
     // Residual evaluations: (parameters + 1) × logs per Jacobian.
-    let n_par = fit::params(params, &bench.file)?.len();
-    let pb = ProgressBar::new(((n_par + 1) * logs.len() * (max_iter + 2)) as u64);
+    let n_par = fit::params(&opts.params, &bench.file)?.len();
+    let pb = ProgressBar::new(((n_par + 1) * logs.len() * (opts.max_iter + 2)) as u64);
     if std::io::stderr().is_terminal() {
         pb.set_style(
             ProgressStyle::with_template("{spinner} {pos} simulations {elapsed} {msg}")
@@ -109,17 +121,11 @@ pub(crate) fn fit_cmd(
     } else {
         pb.set_draw_target(ProgressDrawTarget::hidden());
     }
-    let mut o = fit::fit(
-        &bench.file,
-        params,
-        logs.clone(),
-        spacing,
-        max_iter,
-        Some({
-            let pb = pb.clone();
-            std::sync::Arc::new(move || pb.inc(1))
-        }),
-    )?;
+    opts.progress = Some({
+        let pb = pb.clone();
+        std::sync::Arc::new(move || pb.inc(1))
+    });
+    let mut o = fit::fit(&bench.file, logs.clone(), &opts)?;
     pb.finish_and_clear();
     // Outputs, all in --out and swapped in whole: the fitted bench, the model configuration
     // for the firmware, the figures and the report.
@@ -129,27 +135,39 @@ pub(crate) fn fit_cmd(
         .map_or("reference-bench".into(), |s| {
             s.to_string_lossy().into_owned()
         });
-    // The fitted bench and the firmware's configuration only from a fit that converged (or
-    // asked for anyway, their first line saying it did not).
-    let write = o.report.converged || write_anyway;
-    let mark = if o.report.converged {
+    let failed: Vec<&str> = o
+        .report
+        .checks
+        .iter()
+        .filter(|c| !c.passed)
+        .map(|c| c.name)
+        .collect();
+    // The fitted bench and the firmware's configuration only from a fit that passed every
+    // check (or asked for anyway, their first line saying which checks failed).
+    let write = o.report.passed || write_anyway;
+    let mark = if o.report.passed {
         String::new()
     } else {
         format!(
-            "# NOT CONVERGED ({}): written with --write-anyway; do not use it as a fitted bench.\n",
-            o.report.termination
+            "# NOT A FITTED BENCH: the fit failed its checks ({}); written with --write-anyway.\n",
+            failed.join(", ")
         )
     };
     if write {
         let fitted = Bench::from_file(o.fitted.clone(), "fitted").context("the fitted bench")?;
         let mut text = mark.clone();
         text.push_str(&format!(
-            "# Fitted by `pto fit` to {} log(s) from {}; parameters: {}.\n",
+            "# Fitted by `pto fit` to {} log(s) from {}; parameters: {}; reduced χ² {:.2}.\n",
             logs.len(),
             bench_path.map_or("the reference bench".into(), |p| p.display().to_string()),
-            params.join(", ")
+            opts.params.join(", "),
+            o.report.chi2_reduced
         ));
-        text.push_str(&toml::to_string_pretty(&o.fitted)?);
+        text.push_str(&fit::fitted_bench_text(
+            &input_text,
+            &bench.file,
+            &o.fitted,
+        )?);
         let bench_name = format!("{stem}.fitted.toml");
         std::fs::write(stage.path().join(&bench_name), text.as_bytes())?;
         // The reduced model has a constant Cd: it takes the fitted Cd at 50 bar Δp.
@@ -173,61 +191,99 @@ pub(crate) fn fit_cmd(
     if json {
         println!("{report_json}");
     } else {
-        println!(
-            "{:<14} {:>10} {:>10} {:>10}  unit  field",
-            "parameter", "start", "fitted", "± 1σ"
-        );
-        for p in &r.params {
-            println!(
-                "{:<14} {:>10.4} {:>10.4} {:>10}  {:<4}  {}",
-                p.name,
-                p.start,
-                p.value,
-                p.sigma.map_or("—".into(), |s| format!("{s:.4}")),
-                p.unit,
-                p.key
-            );
-        }
-        println!(
-            "weighted residual RMS {:.3} → {:.3} ({:.1}× smaller; σ = {} bar, {} rpm)",
-            r.residual_rms.0,
-            r.residual_rms.1,
-            r.improvement,
-            fit::SIGMA_P2_BAR,
-            fit::SIGMA_RPM
-        );
-        for l in &r.logs {
-            println!(
-                "  {:<24} P2 RMS {:.2} → {:.2} bar, motor {:.1} → {:.1} rpm",
-                l.name, l.p2_rms_bar.0, l.p2_rms_bar.1, l.rpm_rms.0, l.rpm_rms.1
-            );
-        }
-        println!(
-            "{} simulations in {:.1} s; {}",
-            r.simulations, r.wall_s, r.termination
-        );
-        if let (Some(b), Some(m)) = (&r.bench_file, &r.model_file) {
-            println!(
-                "fitted bench: {}\nmodel configuration for the firmware: {}{}",
-                b.display(),
-                m.display(),
-                if r.converged {
-                    ""
-                } else {
-                    "\n(NOT CONVERGED: written with --write-anyway, marked in their first line)"
-                }
-            );
-        } else {
-            println!(
-                "not converged: no fitted bench or model configuration written (--write-anyway \
-                 writes them, marked as not converged)"
-            );
-        }
-        for f in &r.figures {
-            println!("figure: {}", f.display());
-        }
+        print_report(r, &failed);
     }
-    Ok(r.converged)
+    Ok(r.passed)
+}
+
+fn print_report(r: &pto_host::fit::FitReport, failed: &[&str]) {
+    println!(
+        "{:<14} {:>10} {:>10} {:>10}  unit  field",
+        "parameter", "start", "fitted", "± 1σ"
+    );
+    for p in &r.params {
+        println!(
+            "{:<14} {:>10.4} {:>10.4} {:>10}  {:<4}  {}",
+            p.name,
+            p.start,
+            p.value,
+            p.sigma.map_or("—".into(), |s| format!("{s:.4}")),
+            p.unit,
+            p.key
+        );
+    }
+    println!(
+        "σ: the Jacobian's × {:.2} (reduced χ² {:.2}, residual autocorrelation {:.2}); start: {}",
+        r.sigma_scale, r.chi2_reduced, r.autocorrelation, r.start
+    );
+    if r.params.len() > 1 {
+        let mut pairs: Vec<String> = Vec::new();
+        for (i, row) in r.correlations.iter().enumerate() {
+            for (j, c) in row.iter().enumerate().skip(i + 1) {
+                pairs.push(format!("{}/{} {c:+.2}", r.params[i].name, r.params[j].name));
+            }
+        }
+        println!("correlations: {}", pairs.join(", "));
+    }
+    println!(
+        "residual RMS {:.2} → {:.2} noise σ ({:.1}× smaller)",
+        r.residual_rms.0, r.residual_rms.1, r.improvement
+    );
+    let t = |x: Option<f64>| x.map_or("—".into(), |v| format!("{v:.1} s"));
+    println!(
+        "  {:<24} {:>15} {:>15} {:>6} {:>9} {:>9}",
+        "log", "P2 RMS (bar)", "speed RMS (rpm)", "χ²", "empty log", "empty sim"
+    );
+    for l in &r.logs {
+        println!(
+            "  {:<24} {:>6.2} → {:<6.2} {:>6.1} → {:<6.1} {:>6.2} {:>9} {:>9}",
+            l.name,
+            l.p2_rms_bar.0,
+            l.p2_rms_bar.1,
+            l.rpm_rms.0,
+            l.rpm_rms.1,
+            l.chi2,
+            t(l.emptying_s.logged),
+            t(l.emptying_s.simulated)
+        );
+    }
+    println!(
+        "{} simulations in {:.1} s; Levenberg–Marquardt: {}",
+        r.simulations, r.wall_s, r.termination
+    );
+    for c in &r.checks {
+        println!(
+            "{:<4} {:<12} {}",
+            if c.passed { "ok" } else { "FAIL" },
+            c.name,
+            c.detail
+        );
+    }
+    if r.passed {
+        println!("fit passed every check");
+    } else {
+        println!("FIT FAILED: {}", failed.join(", "));
+    }
+    if let (Some(b), Some(m)) = (&r.bench_file, &r.model_file) {
+        println!(
+            "fitted bench: {}\nmodel configuration for the firmware: {}{}",
+            b.display(),
+            m.display(),
+            if r.passed {
+                ""
+            } else {
+                "\n(NOT A FITTED BENCH: written with --write-anyway, marked in their first line)"
+            }
+        );
+    } else {
+        println!(
+            "no fitted bench or model configuration written (--write-anyway writes them, marked \
+             as failed)"
+        );
+    }
+    for f in &r.figures {
+        println!("figure: {}", f.display());
+    }
 }
 
 pub(crate) fn fit_figures(
@@ -262,6 +318,26 @@ pub(crate) fn fit_figures(
             x: t.clone(),
             y,
         };
+        // The moments the HP accumulator runs empty, logged and simulated, as vertical lines
+        // over the measured range.
+        let e = &o.report.logs[k].emptying_s;
+        let marks = |y: &[f64]| -> Vec<Series> {
+            let lo = y.iter().copied().fold(f64::INFINITY, f64::min);
+            let hi = y.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+            [
+                ("emptying, logged", e.logged),
+                ("emptying, fitted", e.simulated),
+            ]
+            .into_iter()
+            .filter_map(|(label, at)| {
+                at.map(|x| Series {
+                    label: format!("{label} ({x:.1} s)"),
+                    x: vec![x, x],
+                    y: vec![lo, hi],
+                })
+            })
+            .collect()
+        };
         let fig = Figure {
             name: format!("fit-{}", l.name()),
             title: format!("{}: measured vs simulated", l.name()),
@@ -270,21 +346,27 @@ pub(crate) fn fit_figures(
                     title: "HP pressure P2".into(),
                     x_label: "time (s)".into(),
                     y_label: "P2 (bar)".into(),
-                    series: vec![
+                    series: [
                         s("measured", l.p2_bar.clone()),
                         s("simulated, start", p2b),
                         s("simulated, fitted", p2a.clone()),
-                    ],
+                    ]
+                    .into_iter()
+                    .chain(marks(&l.p2_bar))
+                    .collect(),
                 },
                 Panel {
                     title: "Motor speed".into(),
                     x_label: "time (s)".into(),
                     y_label: "speed (rpm)".into(),
-                    series: vec![
+                    series: [
                         s("measured", l.rpm.clone()),
                         s("simulated, start", rb),
                         s("simulated, fitted", ra.clone()),
-                    ],
+                    ]
+                    .into_iter()
+                    .chain(marks(&l.rpm))
+                    .collect(),
                 },
                 Panel {
                     title: "Fitted − measured, % (Fig. 26 view; clipped to ±30 %)".into(),

@@ -22,20 +22,21 @@ use serde::Serialize;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-/// Residual weights: one standard deviation of the measurement, per quantity.
-pub const SIGMA_P2_BAR: f64 = 0.5;
-/// Motor speed σ, rpm.
-pub const SIGMA_RPM: f64 = 5.0;
-
+mod edit;
+mod noise;
 mod params;
 mod problem;
 mod residuals;
 mod synth;
+mod verdict;
 
+pub use edit::*;
+pub use noise::*;
 pub use params::*;
 pub use problem::*;
 pub use residuals::*;
 pub use synth::*;
+pub use verdict::*;
 
 /// Why a fit (or a synthetic log) could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -46,6 +47,9 @@ pub enum FitError {
         /// The name.
         name: String,
     },
+    /// `--precision` names a parameter that is not fitted.
+    #[error("--precision: `{0}` is not among the fitted parameters (--params)")]
+    PrecisionOf(String),
     /// `--params` is empty.
     #[error("--params: nothing to fit")]
     NoParams,
@@ -93,9 +97,24 @@ pub struct Fitted {
     pub start: f64,
     /// Fitted value.
     pub value: f64,
-    /// One standard deviation (from the Jacobian at the optimum); `None` if the logs do not
-    /// determine it.
+    /// One standard deviation: from the Jacobian at the optimum, scaled by the reduced χ² (when
+    /// above 1) and by the residuals' autocorrelation; `None` if the logs do not determine it.
     pub sigma: Option<f64>,
+    /// The range the fit keeps it in.
+    pub bounds: (f64, f64),
+    /// The precision the fitted bench needs of it (± this, in its unit): the `precision` check
+    /// wants 3σ within it.
+    pub needed: f64,
+}
+
+/// When the HP accumulator runs empty in a log (the motor below 25 % of its starting speed), s
+/// from the log's start.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Emptying {
+    /// In the log.
+    pub logged: Option<f64>,
+    /// In the fitted simulation.
+    pub simulated: Option<f64>,
 }
 
 /// Per log.
@@ -107,16 +126,77 @@ pub struct LogFit {
     pub p2_rms_bar: (f64, f64),
     /// Motor speed RMS difference before / after, rpm.
     pub rpm_rms: (f64, f64),
+    /// Mean squared residual after the fit, in units of the noise (≈ 1 when the model explains
+    /// the log to within its noise).
+    pub chi2: f64,
     /// Start P2 read from the log's first samples, and as corrected by the fit, bar.
     pub start_p2_bar: (f64, f64),
+    /// When the HP accumulator runs empty.
+    pub emptying_s: Emptying,
+}
+
+/// What the fit was given besides the bench and the logs.
+#[derive(Clone)]
+pub struct FitOptions {
+    /// Parameter names ([`PARAM_NAMES`]).
+    pub params: Vec<String>,
+    /// Seconds between residual samples.
+    pub spacing_s: f64,
+    /// Iterations per stage.
+    pub max_iter: usize,
+    /// P2 noise σ, bar (`None`: estimated from the logs).
+    pub noise_p2_bar: Option<f64>,
+    /// Motor speed noise σ, rpm (`None`: estimated from the logs).
+    pub noise_rpm: Option<f64>,
+    /// The checks' limits.
+    pub limits: Limits,
+    /// Precision needed per parameter name, in its unit (overrides [`Precision`]'s defaults).
+    pub precision: Vec<(String, f64)>,
+    /// Called once per simulation.
+    pub progress: Option<Tick>,
+}
+
+impl FitOptions {
+    /// `params` with every other setting at `pto fit`'s default (spacing 0.5 s, 20 iterations,
+    /// the noise estimated, [`DEFAULT_LIMITS`]).
+    pub fn new(params: &[&str]) -> Self {
+        FitOptions {
+            params: params.iter().map(|s| s.to_string()).collect(),
+            spacing_s: 0.5,
+            max_iter: 20,
+            noise_p2_bar: None,
+            noise_rpm: None,
+            limits: DEFAULT_LIMITS,
+            precision: Vec::new(),
+            progress: None,
+        }
+    }
 }
 
 /// The result of a fit.
 #[derive(Debug, Clone, Serialize)]
 pub struct FitReport {
+    /// Whether every check held: the only "success".
+    pub passed: bool,
+    /// The checks, in order; the failed ones say why.
+    pub checks: Vec<Check>,
     /// Parameters.
     pub params: Vec<Fitted>,
-    /// Weighted residual RMS before and after.
+    /// Correlation matrix of the parameters (in `params`' order), from the covariance.
+    pub correlations: Vec<Vec<f64>>,
+    /// Reduced χ² of the P2 and speed residuals against the noise.
+    pub chi2_reduced: f64,
+    /// Lag-1 autocorrelation of the residuals (pooled), and the factor it puts on the σ.
+    pub autocorrelation: f64,
+    /// Factor on the Jacobian's σ: √(max(1, χ²) · (1 + ρ)/(1 − ρ)).
+    pub sigma_scale: f64,
+    /// The sensors' noise the residuals are weighted with.
+    pub noise: Noise,
+    /// How the first stage started.
+    pub start: String,
+    /// Implausible columns in the logs.
+    pub findings: Vec<Finding>,
+    /// Weighted residual RMS (noise units) before and after.
     pub residual_rms: (f64, f64),
     /// Before / after.
     pub improvement: f64,
@@ -124,9 +204,9 @@ pub struct FitReport {
     pub logs: Vec<LogFit>,
     /// Simulations run.
     pub simulations: usize,
-    /// LM termination.
+    /// LM termination (last stage).
     pub termination: String,
-    /// Converged.
+    /// Levenberg–Marquardt's own termination was successful (one of the checks).
     pub converged: bool,
     /// Wall time, s.
     pub wall_s: f64,
@@ -169,18 +249,119 @@ fn log_rms(p: &Prepared, sim: &[Truth]) -> (f64, f64) {
     (rms(&dp), rms(&dr))
 }
 
-/// Fits `params` to `logs`, starting from `start`.
+/// The HP precharge the logs show: where a discharge empties the accumulator, its gas is back
+/// at its precharge volume, so the P2 just before the cliff is the precharge (plus the last
+/// second's decay, < 1 bar). The median over the logs that empty; `None` when none does.
+pub(super) fn emptying_precharge(logs: &[Prepared]) -> Option<f64> {
+    let mut v: Vec<f64> = logs
+        .iter()
+        .filter_map(|p| {
+            let tc = p.collapse?;
+            let w: Vec<f64> = p
+                .log
+                .t
+                .iter()
+                .zip(&p.log.p2_bar)
+                .filter(|(t, _)| (tc - 1.5..=tc - 0.5).contains(*t))
+                .map(|(_, y)| *y)
+                .collect();
+            (!w.is_empty()).then(|| w.iter().sum::<f64>() / w.len() as f64)
+        })
+        .collect();
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    Some(v[v.len() / 2])
+}
+
+/// Factors on Cd and on the HP volume tried by the coarse stage.
+const COARSE_FACTORS: [f64; 5] = [0.7, 0.85, 1.0, 1.15, 1.3];
+
+/// The best grid point for the first stage, and its description, and the simulations run.
+fn coarse_start(
+    cur: &BenchFile,
+    params: &[Param],
+    pj: &[usize],
+    lk: &[usize],
+    logs: &Arc<Vec<Prepared>>,
+    progress: Option<Tick>,
+) -> (Option<(BenchFile, String)>, usize) {
+    let axes: Vec<&Param> = pj
+        .iter()
+        .map(|&j| &params[j])
+        .filter(|p| p.name == "cd" || p.name == "hp_volume")
+        .collect();
+    if axes.is_empty() {
+        return (None, 0);
+    }
+    let mut points: Vec<Vec<f64>> = vec![Vec::new()];
+    for _ in &axes {
+        points = points
+            .into_iter()
+            .flat_map(|p| {
+                COARSE_FACTORS.iter().map(move |f| {
+                    let mut q = p.clone();
+                    q.push(*f);
+                    q
+                })
+            })
+            .collect();
+    }
+    let sub: Vec<Prepared> = lk.iter().map(|&k| logs[k].clone()).collect();
+    let costs: Vec<(f64, BenchFile)> = points
+        .par_iter()
+        .filter_map(|fs| {
+            let mut f = cur.clone();
+            for (p, k) in axes.iter().zip(fs) {
+                let v = ((p.get)(cur) * k).clamp(p.lo, p.hi);
+                (p.set)(&mut f, v);
+            }
+            let b = Bench::from_file(f.clone(), "coarse").ok()?;
+            let mut r = Vec::new();
+            for p in &sub {
+                let sim = simulate_log(&b, p).ok();
+                if let Some(t) = &progress {
+                    t();
+                }
+                residuals_of(p, &sim?, &mut r);
+            }
+            Some((r.iter().map(|x| x * x).sum::<f64>(), f))
+        })
+        .collect();
+    let n = points.len() * sub.len();
+    let best = costs
+        .into_iter()
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, f)| {
+            let note = axes
+                .iter()
+                .map(|p| format!("{} {:.4}", p.name, (p.get)(&f)))
+                .collect::<Vec<_>>()
+                .join(", ");
+            (f, note)
+        });
+    (best, n)
+}
+
+/// Fits `opts.params` to `logs`, starting from `start`, and judges the result.
 pub fn fit(
     start: &BenchFile,
-    names: &[String],
     logs: Vec<BenchLog>,
-    spacing_s: f64,
-    max_iter: usize,
-    progress: Option<Tick>,
+    opts: &FitOptions,
 ) -> Result<FitOutcome, FitError> {
     let t0 = std::time::Instant::now();
-    let params = params(names, start)?;
-    let logs = Arc::new(prepare(logs, spacing_s));
+    let params = params(&opts.params, start)?;
+    if let Some((n, _)) = opts
+        .precision
+        .iter()
+        .find(|(n, _)| !params.iter().any(|p| p.name == *n))
+    {
+        return Err(FitError::PrecisionOf(n.clone()));
+    }
+    let findings: Vec<Finding> = logs.iter().flat_map(sanity).collect();
+    let noise = noise_of(&logs, opts.noise_p2_bar, opts.noise_rpm);
+    let logs = Arc::new(prepare(logs, opts.spacing_s, &noise));
     let b0 = Bench::from_file(start.clone(), "start")?;
     let before: Vec<Vec<Truth>> = logs
         .par_iter()
@@ -188,7 +369,21 @@ pub fn fit(
         .collect::<Result<_, _>>()?;
     let mut r_before = Vec::new();
     for (p, s) in logs.iter().zip(&before) {
-        raw_residuals(p, s, &mut r_before);
+        pointwise_residuals(p, s, &mut r_before);
+    }
+    // A start that does not hang on the noise: the precharge read off the logged emptying (a
+    // level, not a slope), when the precharge is fitted and a log empties the accumulator. The
+    // LM from the bench's own value can stop in a valley where the simulated accumulator empties
+    // seconds early and the flattened residuals of the gap no longer pull.
+    let mut cur = start.clone();
+    let mut start_note = "the bench's values".to_string();
+    if let Some(pc) = params.iter().find(|p| p.name == "precharge")
+        && let Some(est) = emptying_precharge(&logs)
+    {
+        let est = est.clamp(pc.lo, pc.hi);
+        (pc.set)(&mut cur, est);
+        start_note =
+            format!("the bench's values, precharge {est:.2} bar read off the logged emptying");
     }
     // Stages, as the paper adjusts by hand: the accumulator and the valve from the runs with
     // the input blocked (no pumping), the trapped air from the runs with the input moving (the
@@ -206,11 +401,21 @@ pub fn fit(
         stages.push((air.clone(), moving.clone()));
     }
     stages.push(((0..params.len()).collect(), (0..logs.len()).collect()));
-    let mut cur = start.clone();
     let mut evals = 0;
+    // The coarse global stage: the parameters that move the emptying's timing (Cd, the HP
+    // volume) on a small grid around the start, each point one simulation of the first stage's
+    // logs; the first stage starts from the best point.
+    if let Some((pj, lk)) = stages.first() {
+        let (best, n) = coarse_start(&cur, &params, pj, lk, &logs, opts.progress.clone());
+        evals += n;
+        if let Some((f, note)) = best {
+            cur = f;
+            start_note = format!("{start_note}; {note} from a coarse grid");
+        }
+    }
     let mut termination = String::new();
     let mut converged = false;
-    let mut last: Option<(Problem, Vec<usize>)> = None;
+    let mut last: Option<Problem> = None;
     let n_stages = stages.len();
     for (stage, (pj, lk)) in stages.into_iter().enumerate() {
         let sub: Vec<Param> = pj.iter().map(|&j| params[j].clone()).collect();
@@ -228,11 +433,11 @@ pub fn fit(
             logs: Arc::new(sub_logs),
             offsets,
             z: DVector::from_vec(z0),
-            progress: progress.clone(),
+            progress: opts.progress.clone(),
             evals: Default::default(),
         };
         let lm = LevenbergMarquardt::<f64>::new()
-            .with_patience(max_iter.max(1))
+            .with_patience(opts.max_iter.max(1))
             .with_ftol(1e-5)
             .with_xtol(1e-5);
         let (problem, report) = lm.minimize(problem);
@@ -243,9 +448,9 @@ pub fn fit(
         for (p, &zi) in problem.params.iter().zip(&z) {
             (p.set)(&mut cur, from_z(p, zi));
         }
-        last = Some((problem, pj));
+        last = Some(problem);
     }
-    let (problem, _) = last.ok_or(FitError::NoStage)?;
+    let problem = last.ok_or(FitError::NoStage)?;
     let z: Vec<f64> = problem.z.iter().copied().collect();
     let fitted_bench = problem.bench_at(&z)?;
     let corrections = problem.offsets_of(&z);
@@ -254,16 +459,64 @@ pub fn fit(
         .zip(&corrections)
         .map(|(p, off)| simulate_log_from(&fitted_bench, p, *off))
         .collect::<Result<_, _>>()?;
-    let mut r_after = Vec::new();
-    for (p, s) in logs.iter().zip(&after) {
-        raw_residuals(p, s, &mut r_after);
-    }
-    // Uncertainty: cov(z) = s²(JᵀJ)⁻¹ with s² = SSR/(m − n), through the bounds' transform.
-    let jac = problem.jacobian().ok_or(FitError::Jacobian)?;
-    let r_opt = problem.residuals().ok_or(FitError::Residuals)?;
-    let m = r_opt.len();
+    // Goodness of fit and the residuals' autocorrelation, from the raw (not flattened) P2 and
+    // speed residuals in units of the noise.
     let n = z.len();
-    let s2 = r_opt.iter().map(|x| x * x).sum::<f64>() / (m.saturating_sub(n)).max(1) as f64;
+    let mut r_after = Vec::new();
+    let (mut lag_num, mut lag_den) = (0.0, 0.0);
+    let mut chi2_log = Vec::new();
+    for (p, s) in logs.iter().zip(&after) {
+        let from = r_after.len();
+        pointwise_residuals(p, s, &mut r_after);
+        let r = &r_after[from..];
+        // Interleaved (P2, speed): each channel's sequence at lag 1.
+        for ch in 0..2 {
+            let seq: Vec<f64> = r.iter().skip(ch).step_by(2).copied().collect();
+            lag_num += seq.windows(2).map(|w| w[0] * w[1]).sum::<f64>();
+            lag_den += seq.iter().map(|x| x * x).sum::<f64>();
+        }
+        chi2_log.push(r.iter().map(|x| x * x).sum::<f64>() / r.len().max(1) as f64);
+    }
+    let m = r_after.len();
+    let chi2_reduced =
+        r_after.iter().map(|x| x * x).sum::<f64>() / m.saturating_sub(n).max(1) as f64;
+    let rho = if lag_den > 0.0 {
+        (lag_num / lag_den).clamp(0.0, 0.98)
+    } else {
+        0.0
+    };
+    // σ: the Jacobian's (JᵀJ)⁻¹ is the covariance for residuals of unit variance and no
+    // correlation. Scaled by the reduced χ² when the fit is worse than the noise (the model's
+    // own error) and by the effective sample size of AR(1)-correlated residuals, n(1 − ρ)/(1 + ρ):
+    // model error is smooth in time, so neighbouring residuals do not count twice.
+    let sigma_scale = (chi2_reduced.max(1.0) * (1.0 + rho) / (1.0 - rho)).sqrt();
+    // The Jacobian for the covariance leaves out the samples within 1 s of a simulated
+    // emptying that comes before the logged one: on the cliff a residual's derivative is that of
+    // a step, and one such sample made a σ hundreds of times smaller than the error.
+    let cov_logs: Vec<Prepared> = problem
+        .logs
+        .iter()
+        .zip(&after)
+        .map(|(p, a)| {
+            let mut p = p.clone();
+            if let Some(ts) = simulated_collapse(&p, a) {
+                let log_t = &p.log.t;
+                p.idx.retain(|&i| log_t[i] < ts - 1.0);
+            }
+            p
+        })
+        .collect();
+    let cov_problem = Problem {
+        start: problem.start.clone(),
+        params: problem.params.clone(),
+        logs: Arc::new(cov_logs),
+        offsets: problem.offsets,
+        z: problem.z.clone(),
+        progress: opts.progress.clone(),
+        evals: Default::default(),
+    };
+    let jac = cov_problem.jacobian().ok_or(FitError::Jacobian)?;
+    evals += cov_problem.evals.load(std::sync::atomic::Ordering::Relaxed);
     let jtj = jac.transpose() * &jac;
     let svd = jtj.clone().svd(true, true);
     let smax = svd.singular_values.max();
@@ -272,41 +525,91 @@ pub fn fit(
         .map_err(FitError::Covariance)?;
     let mut fitted = start.clone();
     let mut out = Vec::new();
+    let np = params.len();
+    let mut determined = vec![false; np];
     for (j, p) in params.iter().enumerate() {
         let value = from_z(p, z[j]);
         (p.set)(&mut fitted, value);
-        let determined = jtj[(j, j)] > smax * 1e-10;
-        let var = s2 * pinv[(j, j)];
+        let var = pinv[(j, j)];
+        determined[j] = jtj[(j, j)] > smax * 1e-10 && var.is_finite() && var > 0.0;
         out.push(Fitted {
             name: p.name.clone(),
             key: p.key.clone(),
             unit: p.unit.clone(),
             start: (p.get)(start),
             value,
-            sigma: (determined && var.is_finite() && var >= 0.0)
-                .then(|| var.sqrt() * dx_dz(p, z[j])),
+            sigma: determined[j].then(|| sigma_scale * var.sqrt() * dx_dz(p, z[j])),
+            bounds: (p.lo, p.hi),
+            needed: opts
+                .precision
+                .iter()
+                .find(|(n, _)| *n == p.name)
+                .map_or_else(|| p.needed.at(value), |(_, x)| *x),
         });
     }
-    // Area-table factors report the table itself.
-    let per_log = logs
+    let correlations: Vec<Vec<f64>> = (0..np)
+        .map(|i| {
+            (0..np)
+                .map(|j| {
+                    if i == j {
+                        1.0
+                    } else if determined[i] && determined[j] {
+                        pinv[(i, j)] / (pinv[(i, i)] * pinv[(j, j)]).sqrt()
+                    } else {
+                        0.0
+                    }
+                })
+                .collect()
+        })
+        .collect();
+    let per_log: Vec<LogFit> = logs
         .iter()
         .zip(before.iter().zip(&after))
-        .zip(&corrections)
-        .map(|((p, (b, a)), c)| {
+        .zip(corrections.iter().zip(&chi2_log))
+        .map(|((p, (b, a)), (c, chi2))| {
             let (pb, rb) = log_rms(p, b);
             let (pa, ra) = log_rms(p, a);
             LogFit {
                 name: p.log.name(),
                 p2_rms_bar: (pb, pa),
                 rpm_rms: (rb, ra),
+                chi2: *chi2,
                 start_p2_bar: (p.p2_start_bar, p.p2_start_bar + c),
+                emptying_s: Emptying {
+                    logged: p.collapse.map(|t| t - p.log.t[0]),
+                    simulated: simulated_collapse(p, a).map(|t| t - p.log.t[0]),
+                },
             }
         })
         .collect();
+    let bounds: Vec<(f64, f64)> = params.iter().map(|p| (p.lo, p.hi)).collect();
+    let checks = verdict(
+        &Evidence {
+            termination: &termination,
+            converged,
+            chi2_reduced,
+            noise: &noise,
+            params: &out,
+            bounds: &bounds,
+            correlations: &correlations,
+            logs: &per_log,
+            findings: &findings,
+        },
+        &opts.limits,
+    );
     let (rb, ra) = (rms(&r_before), rms(&r_after));
     Ok(FitOutcome {
         report: FitReport {
+            passed: checks.iter().all(|c| c.passed),
+            checks,
             params: out,
+            correlations,
+            chi2_reduced,
+            autocorrelation: rho,
+            sigma_scale,
+            noise,
+            start: start_note,
+            findings,
             residual_rms: (rb, ra),
             improvement: rb / ra.max(1e-12),
             logs: per_log,

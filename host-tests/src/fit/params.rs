@@ -20,6 +20,30 @@ pub struct Param {
     pub get: Arc<dyn Fn(&BenchFile) -> f64 + Send + Sync>,
     /// Sets it.
     pub set: Setter,
+    /// The precision a fitted bench needs of it: its 3σ must be within this.
+    pub needed: Precision,
+}
+
+/// How precisely a parameter must be known for the fitted bench to be worth using (the
+/// `precision` check: 3σ within it). The defaults are what moves the bench's behaviour by
+/// about its sensors' noise: trapped air ± 0.005, Cd ± 3 %, precharge ± 2 bar, η_v ± 0.01.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Precision {
+    /// In the parameter's unit.
+    Absolute(f64),
+    /// A fraction of its value.
+    Relative(f64),
+}
+
+impl Precision {
+    /// The half-width at `value`, in the parameter's unit.
+    pub fn at(self, value: f64) -> f64 {
+        match self {
+            Precision::Absolute(x) => x,
+            Precision::Relative(f) => f * value.abs(),
+        }
+    }
 }
 
 impl std::fmt::Debug for Param {
@@ -44,7 +68,7 @@ pub const PARAM_NAMES: &[&str] = &[
 ];
 
 /// A scalar parameter: (short name, bench field, unit, lower bound, upper bound, getter,
-/// setter).
+/// setter, precision needed).
 type Scalar = (
     &'static str,
     &'static str,
@@ -53,6 +77,7 @@ type Scalar = (
     f64,
     fn(&BenchFile) -> f64,
     fn(&mut BenchFile, f64),
+    Precision,
 );
 
 /// The scalar parameters (every name of [`PARAM_NAMES`] but `area_table`).
@@ -65,6 +90,7 @@ const SCALARS: [Scalar; 6] = [
         0.3,
         |f| f.oil.trapped_air_fraction,
         |f, x| f.oil.trapped_air_fraction = x,
+        Precision::Absolute(0.005),
     ),
     (
         "cd",
@@ -74,6 +100,7 @@ const SCALARS: [Scalar; 6] = [
         1.0,
         |f| f.control_valve.discharge_coefficient,
         |f, x| f.control_valve.discharge_coefficient = x,
+        Precision::Relative(0.03),
     ),
     (
         "precharge",
@@ -83,6 +110,7 @@ const SCALARS: [Scalar; 6] = [
         120.0,
         |f| f.hp_accumulator.precharge_bar,
         |f, x| f.hp_accumulator.precharge_bar = x,
+        Precision::Absolute(2.0),
     ),
     (
         "hp_volume",
@@ -92,6 +120,7 @@ const SCALARS: [Scalar; 6] = [
         200.0,
         |f| f.hp_accumulator.volume_l,
         |f, x| f.hp_accumulator.volume_l = x,
+        Precision::Relative(0.05),
     ),
     (
         "cd_slope",
@@ -101,7 +130,11 @@ const SCALARS: [Scalar; 6] = [
         0.5,
         |f| f.control_valve.cd_slope_per_100bar,
         |f, x| f.control_valve.cd_slope_per_100bar = x,
+        Precision::Absolute(0.05),
     ),
+    // The motor's leakage as its volumetric efficiency; the total efficiency follows at the
+    // bench's mechanical efficiency (η_total / η_v, unchanged), so no trial can make the
+    // mechanical efficiency exceed 1 (a bench file the checks refuse).
     (
         "leakage",
         "motor.volumetric_efficiency",
@@ -109,13 +142,18 @@ const SCALARS: [Scalar; 6] = [
         0.5,
         1.0,
         |f| f.motor.volumetric_efficiency,
-        |f, x| f.motor.volumetric_efficiency = x,
+        |f, x| {
+            let eta_mech = f.motor.total_efficiency / f.motor.volumetric_efficiency;
+            f.motor.volumetric_efficiency = x;
+            f.motor.total_efficiency = x * eta_mech;
+        },
+        Precision::Absolute(0.01),
     ),
 ];
 
 /// The scalar parameter called `name`.
 fn scalar_param(name: &str) -> Option<Param> {
-    let &(name, key, unit, lo, hi, get, set) = SCALARS.iter().find(|s| s.0 == name)?;
+    let &(name, key, unit, lo, hi, get, set, needed) = SCALARS.iter().find(|s| s.0 == name)?;
     Some(Param {
         name: name.into(),
         key: key.into(),
@@ -124,6 +162,7 @@ fn scalar_param(name: &str) -> Option<Param> {
         hi,
         get: Arc::new(get),
         set: Arc::new(set),
+        needed,
     })
 }
 
@@ -131,7 +170,12 @@ fn scalar_param(name: &str) -> Option<Param> {
 pub fn params(names: &[String], start: &BenchFile) -> Result<Vec<Param>, FitError> {
     let mut v = Vec::new();
     for n in names {
-        if let Some(p) = scalar_param(n) {
+        if let Some(mut p) = scalar_param(n) {
+            if p.name == "leakage" {
+                // The total efficiency (η_v · η_mech) stays ≥ the bench file's 0.3.
+                let eta_mech = start.motor.total_efficiency / start.motor.volumetric_efficiency;
+                p.lo = p.lo.max(0.3 / eta_mech.max(1e-9));
+            }
             v.push(p);
             continue;
         }
@@ -151,6 +195,7 @@ pub fn params(names: &[String], start: &BenchFile) -> Result<Vec<Param>, FitErro
                         unit: "×".into(),
                         lo: 0.0,
                         hi: 5.0,
+                        needed: Precision::Relative(0.1),
                         get: {
                             let base = a.clone();
                             Arc::new(move |f: &BenchFile| {

@@ -20,10 +20,14 @@ pub struct Prepared {
     pub p2_start_bar: f64,
     /// Start LP, bar.
     pub lp_start_bar: f64,
+    /// Noise σ of P2, bar: its residuals' weight.
+    pub sigma_p2_bar: f64,
+    /// Noise σ of the motor speed, rpm.
+    pub sigma_rpm: f64,
 }
 
-/// Prepares logs: residual samples every `spacing_s` seconds.
-pub fn prepare(logs: Vec<BenchLog>, spacing_s: f64) -> Vec<Prepared> {
+/// Prepares logs: residual samples every `spacing_s` seconds, weighted by the sensors' noise.
+pub fn prepare(logs: Vec<BenchLog>, spacing_s: f64, noise: &Noise) -> Vec<Prepared> {
     logs.into_iter()
         .map(|log| {
             let t0 = log.t[0];
@@ -35,9 +39,7 @@ pub fn prepare(logs: Vec<BenchLog>, spacing_s: f64) -> Vec<Prepared> {
             // apart from the accumulator volume).
             let moving = input_moves(&log);
             let rpm0 = start_value(&log.t, &log.rpm, moving);
-            let collapse = (rpm0 > 50.0)
-                .then(|| crossing(&log.t, &log.rpm, COLLAPSE_FRACTION * rpm0))
-                .flatten();
+            let collapse = collapse_time(&log.t, &log.rpm, rpm0);
             let end = collapse.map_or(log.t.len(), |tc| {
                 log.t
                     .iter()
@@ -69,6 +71,8 @@ pub fn prepare(logs: Vec<BenchLog>, spacing_s: f64) -> Vec<Prepared> {
                 lp_start_bar,
                 rpm0,
                 collapse,
+                sigma_p2_bar: noise.p2_bar,
+                sigma_rpm: noise.rpm,
             }
         })
         .collect()
@@ -168,18 +172,48 @@ pub(super) fn residuals_of(p: &Prepared, sim: &[Truth], out: &mut Vec<f64>) {
 }
 
 pub(super) fn raw_residuals(p: &Prepared, sim: &[Truth], out: &mut Vec<f64>) {
-    for &i in &p.idx {
-        out.push((sim[i].p2_bar - p.log.p2_bar[i]) / SIGMA_P2_BAR);
-        out.push((sim[i].motor_rpm - p.log.rpm[i]) / SIGMA_RPM);
-    }
+    pointwise_residuals(p, sim, out);
     if let Some(tc) = p.collapse {
         // A simulation that does not collapse within the log counts as collapsing at its end.
-        let rpm: Vec<f64> = sim.iter().map(|x| x.motor_rpm).collect();
-        let ts = crossing(&p.log.t, &rpm, COLLAPSE_FRACTION * p.rpm0)
-            .unwrap_or(p.log.t[p.log.t.len() - 1]);
+        let ts = simulated_collapse(p, sim).unwrap_or(p.log.t[p.log.t.len() - 1]);
         out.push((ts - tc) / SIGMA_COLLAPSE_S);
     }
 }
+
+/// The P2 and motor-speed residuals at the log's residual samples, in units of the noise,
+/// interleaved (P2, speed, P2, …).
+pub(super) fn pointwise_residuals(p: &Prepared, sim: &[Truth], out: &mut Vec<f64>) {
+    for &i in &p.idx {
+        out.push((sim[i].p2_bar - p.log.p2_bar[i]) / p.sigma_p2_bar);
+        out.push((sim[i].motor_rpm - p.log.rpm[i]) / p.sigma_rpm);
+    }
+}
+
+/// When the simulated motor falls below [`COLLAPSE_FRACTION`] of the log's starting speed (the
+/// simulated HP accumulator empty), s; `None` for a log that starts too slow to tell (< 50 rpm)
+/// or a simulation that does not collapse.
+pub fn simulated_collapse(p: &Prepared, sim: &[Truth]) -> Option<f64> {
+    let rpm: Vec<f64> = sim.iter().map(|x| x.motor_rpm).collect();
+    collapse_time(&p.log.t, &rpm, p.rpm0)
+}
+
+/// The HP accumulator's emptying in a motor-speed trace: the speed falls below
+/// [`COLLAPSE_FRACTION`] of `rpm0` having been above half of it [`CLIFF_S`] earlier — a cliff,
+/// not the slow decay of a discharge at low pressure that crosses the same level over minutes.
+/// `None` for a trace that starts too slow to tell (< 50 rpm) or has no such cliff.
+pub fn collapse_time(t: &[f64], rpm: &[f64], rpm0: f64) -> Option<f64> {
+    if rpm0 <= 50.0 {
+        return None;
+    }
+    let tc = crossing(t, rpm, COLLAPSE_FRACTION * rpm0)?;
+    let before = t.iter().rposition(|x| *x <= tc - CLIFF_S)?;
+    (rpm[before] >= 0.5 * rpm0).then_some(tc)
+}
+
+/// How fast the speed must fall from half its start to [`COLLAPSE_FRACTION`] of it for an
+/// emptying, s. (An emptying takes well under a second; a discharge that merely slows takes
+/// tens of seconds.)
+pub const CLIFF_S: f64 = 3.0;
 
 /// The collapse is where the motor speed falls below this fraction of its starting speed.
 pub const COLLAPSE_FRACTION: f64 = 0.25;
