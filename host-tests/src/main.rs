@@ -170,6 +170,10 @@ enum Cmd {
         /// 10 000.
         #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=10_000))]
         max_iter: u32,
+        /// Simulations the fit may run, 10 to 10 000 000 (its time limit, reproducible: ≈ 60 s
+        /// on 2 cores for the seven experimental runs); past it the fit stops and fails.
+        #[arg(long, default_value_t = pto_host::fit::DEFAULT_MAX_SIMULATIONS as u64, value_parser = clap::value_parser!(u64).range(10..=10_000_000))]
+        max_simulations: u64,
         /// Output folder: fitted bench, model configuration, figures, fit.json (replaced whole;
         /// a folder of other files is refused).
         #[arg(long, default_value = "out/fit")]
@@ -180,6 +184,9 @@ enum Cmd {
         /// Motor speed sensor noise σ, rpm (default: estimated from the logs).
         #[arg(long, value_parser = finite_in(0.01, 500.0, "rpm"))]
         noise_rpm: Option<f64>,
+        /// LP sensor noise σ, bar (default: estimated from the logs).
+        #[arg(long, value_parser = finite_in(0.001, 50.0, "bar"))]
+        noise_lp: Option<f64>,
         /// Largest reduced χ² of the residuals against the noise that passes (raise it knowingly
         /// when the model's own error exceeds the sensors' noise), 1 to 10 000.
         #[arg(long, default_value_t = pto_host::fit::DEFAULT_LIMITS.max_chi2, value_parser = finite_in(1.0, 10_000.0, ""))]
@@ -464,9 +471,11 @@ fn main() -> ExitCode {
             params,
             spacing,
             max_iter,
+            max_simulations,
             out,
             noise_p2,
             noise_rpm,
+            noise_lp,
             max_chi2,
             precision,
             write_anyway,
@@ -478,8 +487,10 @@ fn main() -> ExitCode {
                 params,
                 spacing_s: spacing,
                 max_iter: max_iter as usize,
+                max_simulations: max_simulations as usize,
                 noise_p2_bar: noise_p2,
                 noise_rpm,
+                noise_lp_bar: noise_lp,
                 limits: pto_host::fit::Limits {
                     max_chi2,
                     ..pto_host::fit::DEFAULT_LIMITS

@@ -110,12 +110,12 @@ pub(crate) fn fit_cmd(
             );
         }
     }
-    // Residual evaluations: (parameters + 1) × logs per Jacobian.
-    let n_par = fit::params(&opts.params, &bench.file)?.len();
-    let pb = ProgressBar::new(((n_par + 1) * logs.len() * (opts.max_iter + 2)) as u64);
+    fit::params(&opts.params, &bench.file)?;
+    // Simulations run, against the budget that stops the fit.
+    let pb = ProgressBar::new(opts.max_simulations as u64);
     if std::io::stderr().is_terminal() {
         pb.set_style(
-            ProgressStyle::with_template("{spinner} {pos} simulations {elapsed} {msg}")
+            ProgressStyle::with_template("{spinner} {pos}/{len} simulations {elapsed} {msg}")
                 .unwrap_or_else(|_| ProgressStyle::default_spinner()),
         );
     } else {

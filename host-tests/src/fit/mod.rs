@@ -131,23 +131,34 @@ pub struct LogFit {
     pub chi2: f64,
     /// Start P2 read from the log's first samples, and as corrected by the fit, bar.
     pub start_p2_bar: (f64, f64),
+    /// Start LP, likewise, bar.
+    pub start_lp_bar: (f64, f64),
     /// When the HP accumulator runs empty.
     pub emptying_s: Emptying,
 }
+
+/// The default simulation budget of a fit: ≈ 60 s on 2 cores for the seven experimental runs
+/// (a passing four-parameter fit of them takes 900–1 800).
+pub const DEFAULT_MAX_SIMULATIONS: usize = 2500;
 
 /// What the fit was given besides the bench and the logs.
 #[derive(Clone)]
 pub struct FitOptions {
     /// Parameter names ([`PARAM_NAMES`]).
     pub params: Vec<String>,
-    /// Seconds between residual samples.
+    /// Seconds between residual samples (0: every sample).
     pub spacing_s: f64,
     /// Iterations per stage.
     pub max_iter: usize,
+    /// Simulations the fit may run (its time limit, reproducible): past it, the fit stops and
+    /// fails its `converged` check.
+    pub max_simulations: usize,
     /// P2 noise σ, bar (`None`: estimated from the logs).
     pub noise_p2_bar: Option<f64>,
     /// Motor speed noise σ, rpm (`None`: estimated from the logs).
     pub noise_rpm: Option<f64>,
+    /// LP noise σ, bar (`None`: estimated from the logs).
+    pub noise_lp_bar: Option<f64>,
     /// The checks' limits.
     pub limits: Limits,
     /// Precision needed per parameter name, in its unit (overrides [`Precision`]'s defaults).
@@ -157,15 +168,17 @@ pub struct FitOptions {
 }
 
 impl FitOptions {
-    /// `params` with every other setting at `pto fit`'s default (spacing 0.5 s, 20 iterations,
-    /// the noise estimated, [`DEFAULT_LIMITS`]).
+    /// `params` with every other setting at `pto fit`'s default (a sample every 0.5 s, 20 iterations,
+    /// [`DEFAULT_MAX_SIMULATIONS`], the noise estimated, [`DEFAULT_LIMITS`]).
     pub fn new(params: &[&str]) -> Self {
         FitOptions {
             params: params.iter().map(|s| s.to_string()).collect(),
             spacing_s: 0.5,
             max_iter: 20,
+            max_simulations: DEFAULT_MAX_SIMULATIONS,
             noise_p2_bar: None,
             noise_rpm: None,
+            noise_lp_bar: None,
             limits: DEFAULT_LIMITS,
             precision: Vec::new(),
             progress: None,
@@ -184,7 +197,7 @@ pub struct FitReport {
     pub params: Vec<Fitted>,
     /// Correlation matrix of the parameters (in `params`' order), from the covariance.
     pub correlations: Vec<Vec<f64>>,
-    /// Reduced χ² of the P2 and speed residuals against the noise.
+    /// Reduced χ² of the P2, speed and LP residuals against the noise.
     pub chi2_reduced: f64,
     /// Lag-1 autocorrelation of the residuals (pooled), and the factor it puts on the σ.
     pub autocorrelation: f64,
@@ -277,6 +290,9 @@ pub(super) fn emptying_precharge(logs: &[Prepared]) -> Option<f64> {
 
 /// Factors on Cd and on the HP volume tried by the coarse stage.
 const COARSE_FACTORS: [f64; 5] = [0.7, 0.85, 1.0, 1.15, 1.3];
+/// Precharges tried by the coarse stage when no log's emptying gives it, as fractions of the
+/// lowest start P2 of the stage's logs.
+const COARSE_PRECHARGE: [f64; 5] = [0.2, 0.35, 0.5, 0.65, 0.8];
 
 /// The best grid point for the first stage, and its description, and the simulations run.
 fn coarse_start(
@@ -285,37 +301,51 @@ fn coarse_start(
     pj: &[usize],
     lk: &[usize],
     logs: &Arc<Vec<Prepared>>,
+    precharge_known: bool,
     progress: Option<Tick>,
 ) -> (Option<(BenchFile, String)>, usize) {
-    let axes: Vec<&Param> = pj
+    let sub: Vec<Prepared> = lk.iter().map(|&k| logs[k].clone()).collect();
+    // Each axis's values: Cd and the HP volume as factors on the start; the precharge, when no
+    // log's emptying gave it, as fractions of the lowest start P2 of these logs (it lies below).
+    let p2_min = sub
+        .iter()
+        .map(|p| p.p2_start_bar)
+        .fold(f64::INFINITY, f64::min);
+    let axes: Vec<(&Param, Vec<f64>)> = pj
         .iter()
         .map(|&j| &params[j])
-        .filter(|p| p.name == "cd" || p.name == "hp_volume")
+        .filter_map(|p| match p.name.as_str() {
+            "cd" | "hp_volume" => {
+                Some((p, COARSE_FACTORS.iter().map(|k| (p.get)(cur) * k).collect()))
+            }
+            "precharge" if !precharge_known && p2_min.is_finite() => {
+                Some((p, COARSE_PRECHARGE.iter().map(|k| k * p2_min).collect()))
+            }
+            _ => None,
+        })
         .collect();
     if axes.is_empty() {
         return (None, 0);
     }
     let mut points: Vec<Vec<f64>> = vec![Vec::new()];
-    for _ in &axes {
+    for (_, values) in &axes {
         points = points
             .into_iter()
             .flat_map(|p| {
-                COARSE_FACTORS.iter().map(move |f| {
+                values.iter().map(move |v| {
                     let mut q = p.clone();
-                    q.push(*f);
+                    q.push(*v);
                     q
                 })
             })
             .collect();
     }
-    let sub: Vec<Prepared> = lk.iter().map(|&k| logs[k].clone()).collect();
     let costs: Vec<(f64, BenchFile)> = points
         .par_iter()
-        .filter_map(|fs| {
+        .filter_map(|vs| {
             let mut f = cur.clone();
-            for (p, k) in axes.iter().zip(fs) {
-                let v = ((p.get)(cur) * k).clamp(p.lo, p.hi);
-                (p.set)(&mut f, v);
+            for ((p, _), v) in axes.iter().zip(vs) {
+                (p.set)(&mut f, v.clamp(p.lo, p.hi));
             }
             let b = Bench::from_file(f.clone(), "coarse").ok()?;
             let mut r = Vec::new();
@@ -336,7 +366,7 @@ fn coarse_start(
         .map(|(_, f)| {
             let note = axes
                 .iter()
-                .map(|p| format!("{} {:.4}", p.name, (p.get)(&f)))
+                .map(|(p, _)| format!("{} {:.4}", p.name, (p.get)(&f)))
                 .collect::<Vec<_>>()
                 .join(", ");
             (f, note)
@@ -360,7 +390,7 @@ pub fn fit(
         return Err(FitError::PrecisionOf(n.clone()));
     }
     let findings: Vec<Finding> = logs.iter().flat_map(sanity).collect();
-    let noise = noise_of(&logs, opts.noise_p2_bar, opts.noise_rpm);
+    let noise = noise_of(&logs, opts.noise_p2_bar, opts.noise_rpm, opts.noise_lp_bar);
     let logs = Arc::new(prepare(logs, opts.spacing_s, &noise));
     let b0 = Bench::from_file(start.clone(), "start")?;
     let before: Vec<Vec<Truth>> = logs
@@ -377,11 +407,13 @@ pub fn fit(
     // seconds early and the flattened residuals of the gap no longer pull.
     let mut cur = start.clone();
     let mut start_note = "the bench's values".to_string();
+    let mut precharge_known = false;
     if let Some(pc) = params.iter().find(|p| p.name == "precharge")
         && let Some(est) = emptying_precharge(&logs)
     {
         let est = est.clamp(pc.lo, pc.hi);
         (pc.set)(&mut cur, est);
+        precharge_known = true;
         start_note =
             format!("the bench's values, precharge {est:.2} bar read off the logged emptying");
     }
@@ -402,11 +434,22 @@ pub fn fit(
     }
     stages.push(((0..params.len()).collect(), (0..logs.len()).collect()));
     let mut evals = 0;
+    let budget = Arc::new(std::sync::atomic::AtomicIsize::new(
+        opts.max_simulations.min(isize::MAX as usize) as isize,
+    ));
     // The coarse global stage: the parameters that move the emptying's timing (Cd, the HP
     // volume) on a small grid around the start, each point one simulation of the first stage's
     // logs; the first stage starts from the best point.
     if let Some((pj, lk)) = stages.first() {
-        let (best, n) = coarse_start(&cur, &params, pj, lk, &logs, opts.progress.clone());
+        let (best, n) = coarse_start(
+            &cur,
+            &params,
+            pj,
+            lk,
+            &logs,
+            precharge_known,
+            opts.progress.clone(),
+        );
         evals += n;
         if let Some((f, note)) = best {
             cur = f;
@@ -425,7 +468,7 @@ pub fn fit(
         // would otherwise shift the moment the accumulator runs empty by up to a second).
         let offsets = stage + 1 == n_stages;
         if offsets {
-            z0.extend(std::iter::repeat_n(0.0, sub_logs.len()));
+            z0.extend(std::iter::repeat_n(0.0, 2 * sub_logs.len()));
         }
         let problem = Problem {
             start: cur.clone(),
@@ -435,6 +478,7 @@ pub fn fit(
             z: DVector::from_vec(z0),
             progress: opts.progress.clone(),
             evals: Default::default(),
+            budget: Some(budget.clone()),
         };
         let lm = LevenbergMarquardt::<f64>::new()
             .with_patience(opts.max_iter.max(1))
@@ -442,6 +486,20 @@ pub fn fit(
             .with_xtol(1e-5);
         let (problem, report) = lm.minimize(problem);
         evals += problem.evals.load(std::sync::atomic::Ordering::Relaxed);
+        if budget.load(std::sync::atomic::Ordering::Relaxed) < 0 {
+            termination = format!(
+                "stopped: the budget of {} simulations ran out (--max-simulations)",
+                opts.max_simulations
+            );
+            converged = false;
+            // The stages after it would not run either.
+            let z: Vec<f64> = problem.z.iter().copied().collect();
+            for (p, &zi) in problem.params.iter().zip(&z) {
+                (p.set)(&mut cur, from_z(p, zi));
+            }
+            last = Some(problem);
+            break;
+        }
         termination = format!("{:?}", report.termination);
         converged = report.termination.was_successful();
         let z: Vec<f64> = problem.z.iter().copied().collect();
@@ -469,9 +527,9 @@ pub fn fit(
         let from = r_after.len();
         pointwise_residuals(p, s, &mut r_after);
         let r = &r_after[from..];
-        // Interleaved (P2, speed): each channel's sequence at lag 1.
-        for ch in 0..2 {
-            let seq: Vec<f64> = r.iter().skip(ch).step_by(2).copied().collect();
+        // Interleaved (P2, speed, LP): each channel's sequence at lag 1.
+        for ch in 0..CHANNELS {
+            let seq: Vec<f64> = r.iter().skip(ch).step_by(CHANNELS).copied().collect();
             lag_num += seq.windows(2).map(|w| w[0] * w[1]).sum::<f64>();
             lag_den += seq.iter().map(|x| x * x).sum::<f64>();
         }
@@ -514,6 +572,7 @@ pub fn fit(
         z: problem.z.clone(),
         progress: opts.progress.clone(),
         evals: Default::default(),
+        budget: None,
     };
     let jac = cov_problem.jacobian().ok_or(FitError::Jacobian)?;
     evals += cov_problem.evals.load(std::sync::atomic::Ordering::Relaxed);
@@ -574,7 +633,8 @@ pub fn fit(
                 p2_rms_bar: (pb, pa),
                 rpm_rms: (rb, ra),
                 chi2: *chi2,
-                start_p2_bar: (p.p2_start_bar, p.p2_start_bar + c),
+                start_p2_bar: (p.p2_start_bar, p.p2_start_bar + c[0]),
+                start_lp_bar: (p.lp_start_bar, p.lp_start_bar + c[1]),
                 emptying_s: Emptying {
                     logged: p.collapse.map(|t| t - p.log.t[0]),
                     simulated: simulated_collapse(p, a).map(|t| t - p.log.t[0]),

@@ -10,10 +10,14 @@ pub struct Noise {
     pub p2_bar: f64,
     /// Motor speed, rpm.
     pub rpm: f64,
+    /// LP pressure, bar.
+    pub lp_bar: f64,
     /// Estimated from the logs (`false`: given on the command line).
     pub p2_estimated: bool,
     /// Estimated from the logs (`false`: given on the command line).
     pub rpm_estimated: bool,
+    /// Estimated from the logs (`false`: given on the command line).
+    pub lp_estimated: bool,
 }
 
 /// The smallest noise a channel is given, in its unit: a channel cleaner than this (a simulated
@@ -31,12 +35,34 @@ pub const NOISE_FLOOR_RPM: f64 = 0.1;
 /// the RMS of the rest corrected by the trimmed normal's factor: for |d| ≤ 1.96 σ_d,
 /// E[d²] = 0.759 σ_d². Hand-written: a dozen lines of statistics no crate of the field offers.
 /// Quantisation: the estimate is not taken below q/√12 (q the channel's smallest step).
-pub fn estimate_noise<'a>(channels: impl Iterator<Item = &'a [f64]>, floor: f64) -> f64 {
+///
+/// Windows within 5 samples of a value at or below `clipped_at` are left out when enough others
+/// remain
+/// (≥ 30): a standing motor's speed is its noise clipped at 0, half of it zeros, which would
+/// make the noise look smaller than where the motor turns.
+pub fn estimate_noise<'a>(
+    channels: impl Iterator<Item = &'a [f64]>,
+    floor: f64,
+    clipped_at: f64,
+) -> f64 {
     let mut d2: Vec<f64> = Vec::new();
+    let mut d2_clipped: Vec<f64> = Vec::new();
     let mut q = f64::INFINITY;
     for y in channels {
-        for w in y.windows(3) {
-            d2.push((w[2] - 2.0 * w[1] + w[0]).powi(2));
+        // Near a clipped value: within 5 samples of one (a standing motor's positive noise
+        // samples come in short runs between zeros).
+        let clipped: Vec<usize> = (0..y.len()).filter(|&k| y[k] <= clipped_at).collect();
+        let near = |k: usize| {
+            let i = clipped.partition_point(|&c| c + 5 < k);
+            clipped.get(i).is_some_and(|&c| c <= k + 5)
+        };
+        for (k, w) in y.windows(3).enumerate() {
+            let d = (w[2] - 2.0 * w[1] + w[0]).powi(2);
+            if near(k + 1) {
+                d2_clipped.push(d);
+            } else {
+                d2.push(d);
+            }
         }
         for w in y.windows(2) {
             let s = (w[1] - w[0]).abs();
@@ -44,6 +70,9 @@ pub fn estimate_noise<'a>(channels: impl Iterator<Item = &'a [f64]>, floor: f64)
                 q = q.min(s);
             }
         }
+    }
+    if d2.len() < 30 {
+        d2.append(&mut d2_clipped);
     }
     if d2.is_empty() {
         return floor;
@@ -58,15 +87,33 @@ pub fn estimate_noise<'a>(channels: impl Iterator<Item = &'a [f64]>, floor: f64)
 }
 
 /// Noise of the logs: estimated per sensor unless given.
-pub fn noise_of(logs: &[BenchLog], p2_bar: Option<f64>, rpm: Option<f64>) -> Noise {
+pub fn noise_of(
+    logs: &[BenchLog],
+    p2_bar: Option<f64>,
+    rpm: Option<f64>,
+    lp_bar: Option<f64>,
+) -> Noise {
     Noise {
         p2_bar: p2_bar.unwrap_or_else(|| {
-            estimate_noise(logs.iter().map(|l| &l.p2_bar[..]), NOISE_FLOOR_P2_BAR)
+            estimate_noise(
+                logs.iter().map(|l| &l.p2_bar[..]),
+                NOISE_FLOOR_P2_BAR,
+                f64::NEG_INFINITY,
+            )
         }),
-        rpm: rpm
-            .unwrap_or_else(|| estimate_noise(logs.iter().map(|l| &l.rpm[..]), NOISE_FLOOR_RPM)),
+        rpm: rpm.unwrap_or_else(|| {
+            estimate_noise(logs.iter().map(|l| &l.rpm[..]), NOISE_FLOOR_RPM, 0.0)
+        }),
+        lp_bar: lp_bar.unwrap_or_else(|| {
+            estimate_noise(
+                logs.iter().map(|l| &l.lp_bar[..]),
+                NOISE_FLOOR_P2_BAR,
+                f64::NEG_INFINITY,
+            )
+        }),
         p2_estimated: p2_bar.is_none(),
         rpm_estimated: rpm.is_none(),
+        lp_estimated: lp_bar.is_none(),
     }
 }
 
@@ -195,7 +242,7 @@ mod tests {
                     100.0 * (-t / 200.0).exp() + steps + cliff + sigma * n()
                 })
                 .collect();
-            let est = estimate_noise(std::iter::once(&y[..]), 0.0);
+            let est = estimate_noise(std::iter::once(&y[..]), 0.0, f64::NEG_INFINITY);
             println!(
                 "σ {sigma}: estimated {est:.4} ({:+.1} %)",
                 100.0 * (est / sigma - 1.0)
@@ -204,13 +251,29 @@ mod tests {
         }
     }
 
+    /// A speed that stands (its noise clipped at 0) in one log and turns in another: the noise
+    /// is that of the turning motor.
+    #[test]
+    fn a_standing_motor_does_not_shrink_the_speed_noise() {
+        let mut n = rng(3);
+        let standing: Vec<f64> = (0..3000).map(|_| (2.0 * n()).max(0.0)).collect();
+        let turning: Vec<f64> = (0..1000)
+            .map(|k| 300.0 - 0.1 * k as f64 + 2.0 * n())
+            .collect();
+        let both = [&standing[..], &turning[..]];
+        let est = estimate_noise(both.iter().copied(), 0.0, 0.0);
+        let all = estimate_noise(both.iter().copied(), 0.0, f64::NEG_INFINITY);
+        println!("σ 2 rpm: estimated {est:.3} (with the standing samples {all:.3})");
+        assert!((est / 2.0 - 1.0).abs() < 0.05, "{est}");
+    }
+
     /// A noiseless quantised channel is given q/√12, not zero.
     #[test]
     fn a_quantised_clean_channel_gets_its_quantisation_noise() {
         let y: Vec<f64> = (0..1000)
             .map(|k| (k as f64 / 37.0).floor() * 0.25)
             .collect();
-        let est = estimate_noise(std::iter::once(&y[..]), 0.0);
+        let est = estimate_noise(std::iter::once(&y[..]), 0.0, f64::NEG_INFINITY);
         assert!((est - 0.25 / 12f64.sqrt()).abs() < 1e-12, "{est}");
     }
 

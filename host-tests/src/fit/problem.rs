@@ -6,17 +6,22 @@ use super::*;
 /// A progress callback: called once per simulation the fit runs (from any thread).
 pub type Tick = Arc<dyn Fn() + Send + Sync>;
 
+/// Each log's start-P2 and start-LP corrections, bar.
+type Offsets = Vec<[f64; 2]>;
+
 /// The fit problem.
 pub(super) struct Problem {
     pub(super) start: BenchFile,
     pub(super) params: Vec<Param>,
     pub(super) logs: Arc<Vec<Prepared>>,
-    /// z = the parameters' bounded coordinates, then (if `offsets`) one start-P2 correction per
-    /// log, bar.
+    /// z = the parameters' bounded coordinates, then (if `offsets`) the start-P2 and start-LP
+    /// corrections of each log, bar.
     pub(super) offsets: bool,
     pub(super) z: DVector<f64>,
     pub(super) progress: Option<Tick>,
     pub(super) evals: std::sync::atomic::AtomicUsize,
+    /// Simulations the fit may still run (shared by its stages); `None`: no limit.
+    pub(super) budget: Option<Arc<std::sync::atomic::AtomicIsize>>,
 }
 
 impl Problem {
@@ -28,20 +33,30 @@ impl Problem {
         Bench::from_file(f, "fit")
     }
 
-    pub(super) fn offsets_of(&self, z: &[f64]) -> Vec<f64> {
+    pub(super) fn offsets_of(&self, z: &[f64]) -> Vec<[f64; 2]> {
         if self.offsets {
-            z[self.params.len()..].to_vec()
+            z[self.params.len()..]
+                .chunks(2)
+                .map(|c| [c[0], c.get(1).copied().unwrap_or(0.0)])
+                .collect()
         } else {
-            vec![0.0; self.logs.len()]
+            vec![[0.0; 2]; self.logs.len()]
         }
     }
 
-    /// Runs (bench, log, start-P2 offset) simulations in parallel.
+    /// Runs (bench, log, start offsets) simulations in parallel.
     fn run_jobs(
         &self,
         benches: &[Option<Bench>],
-        jobs: &[(usize, usize, f64)],
+        jobs: &[(usize, usize, [f64; 2])],
     ) -> Vec<Option<Vec<Truth>>> {
+        // Past the budget every simulation "fails": Levenberg–Marquardt stops on the spot.
+        if let Some(b) = &self.budget
+            && b.fetch_sub(jobs.len() as isize, std::sync::atomic::Ordering::Relaxed)
+                < jobs.len() as isize
+        {
+            return vec![None; jobs.len()];
+        }
         let sims = jobs
             .par_iter()
             .map(|&(b, l, off)| {
@@ -60,21 +75,21 @@ impl Problem {
     }
 
     /// The residual vector from one simulation per log (plus the start-offset priors).
-    fn assemble(&self, sims: &[&Vec<Truth>], offsets: &[f64]) -> Vec<f64> {
+    fn assemble(&self, sims: &[&Vec<Truth>], offsets: &[[f64; 2]]) -> Vec<f64> {
         let mut out = Vec::new();
         for (l, sim) in sims.iter().enumerate() {
             residuals_of(&self.logs[l], sim, &mut out);
         }
         if self.offsets {
-            out.extend(offsets.iter().map(|o| o / SIGMA_START_BAR));
+            out.extend(offsets.iter().flatten().map(|o| o / SIGMA_START_BAR));
         }
         out
     }
 
-    fn base(&self, z: &[f64]) -> Option<(Vec<Vec<Truth>>, Vec<f64>)> {
+    fn base(&self, z: &[f64]) -> Option<(Vec<Vec<Truth>>, Offsets)> {
         let offsets = self.offsets_of(z);
         let benches = [self.bench_at(z).ok()];
-        let jobs: Vec<(usize, usize, f64)> =
+        let jobs: Vec<(usize, usize, [f64; 2])> =
             (0..self.logs.len()).map(|l| (0, l, offsets[l])).collect();
         let sims: Option<Vec<Vec<Truth>>> = self.run_jobs(&benches, &jobs).into_iter().collect();
         Some((sims?, offsets))
@@ -105,8 +120,8 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem {
     }
 
     fn jacobian(&self) -> Option<DMatrix<f64>> {
-        // Forward differences. A parameter's column re-simulates every log; a log's start-P2
-        // correction re-simulates that log only.
+        // Forward differences. A parameter's column re-simulates every log; a log's start-P2 or
+        // start-LP correction re-simulates that log only.
         let z: Vec<f64> = self.z.iter().copied().collect();
         let ng = self.params.len();
         let nl = self.logs.len();
@@ -118,7 +133,7 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem {
             zj[j] += h[j];
             benches.push(self.bench_at(&zj).ok());
         }
-        let mut jobs: Vec<(usize, usize, f64)> = Vec::new();
+        let mut jobs: Vec<(usize, usize, [f64; 2])> = Vec::new();
         for b in 0..=ng {
             for (l, off) in offsets.iter().enumerate() {
                 jobs.push((b, l, *off));
@@ -126,7 +141,11 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem {
         }
         if self.offsets {
             for (l, off) in offsets.iter().enumerate() {
-                jobs.push((0, l, off + h[ng + l]));
+                for k in 0..2 {
+                    let mut o = *off;
+                    o[k] += h[ng + 2 * l + k];
+                    jobs.push((0, l, o));
+                }
             }
         }
         let sims: Vec<Vec<Truth>> = self
@@ -147,11 +166,13 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem {
         }
         if self.offsets {
             for l in 0..nl {
-                let mut col = base.clone();
-                col[l] = &sims[(ng + 1) * nl + l];
-                let mut off = offsets.clone();
-                off[l] += h[ng + l];
-                fill(ng + l, self.assemble(&col, &off));
+                for k in 0..2 {
+                    let mut col = base.clone();
+                    col[l] = &sims[(ng + 1) * nl + 2 * l + k];
+                    let mut off = offsets.clone();
+                    off[l][k] += h[ng + 2 * l + k];
+                    fill(ng + 2 * l + k, self.assemble(&col, &off));
+                }
             }
         }
         Some(jac)

@@ -18,7 +18,7 @@ pub struct Check {
 /// Defaults of the checks' limits.
 #[derive(Debug, Clone, Copy, Serialize)]
 pub struct Limits {
-    /// Largest reduced χ² of the P2 and speed residuals against the logs' noise.
+    /// Largest reduced χ² of the P2, speed and LP residuals against the logs' noise.
     pub max_chi2: f64,
     /// Largest difference between the logged and the simulated emptying of the HP accumulator:
     /// this many seconds plus [`Limits::emptying_fraction`] of the logged time.
@@ -85,7 +85,8 @@ pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
         "goodness",
         e.chi2_reduced <= lim.max_chi2,
         format!(
-            "reduced χ² {:.2} {} {} against the noise σ {:.3} bar ({}), {:.2} rpm ({}){worst}",
+            "reduced χ² {:.2} {} {} against the noise σ P2 {:.3} bar ({}), speed {:.2} rpm ({}), \
+             LP {:.3} bar ({}){worst}",
             e.chi2_reduced,
             if e.chi2_reduced <= lim.max_chi2 {
                 "≤"
@@ -97,6 +98,8 @@ pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
             est(e.noise.p2_estimated),
             e.noise.rpm,
             est(e.noise.rpm_estimated),
+            e.noise.lp_bar,
+            est(e.noise.lp_estimated),
         ),
     ));
     let at_bound: Vec<String> = e
