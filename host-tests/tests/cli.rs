@@ -624,3 +624,32 @@ fn an_aperture_given_as_a_fraction_is_refused_with_a_hint() {
     assert!(!out_dir.join("reference-bench.fitted.toml").exists());
     let _ = std::fs::remove_dir_all(&base);
 }
+
+/// A fit whose simulation budget runs out in its first stage (blocked and moving logs: three
+/// stages) stops, fails `converged` and exits 1 — it used to index past its partial stage and
+/// panic.
+#[test]
+fn a_fit_out_of_budget_in_an_early_stage_fails_cleanly() {
+    let base = tmp("fit-budget");
+    let charge = charge_log(&base.join("a"));
+    let discharge = synth_log_at_5hz(&base.join("b"), "exp-discharge-71");
+    let o = pto()
+        .arg("fit")
+        .arg(&charge)
+        .arg(&discharge)
+        .args([
+            "--spacing",
+            "2",
+            "--max-simulations",
+            "10",
+            "--json",
+            "--out",
+        ])
+        .arg(base.join("fit"))
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(1), "{o:?}");
+    let v: serde_json::Value = serde_json::from_slice(&o.stdout).unwrap();
+    assert!(v["termination"].as_str().unwrap().contains("budget"), "{v}");
+    let _ = std::fs::remove_dir_all(&base);
+}

@@ -492,12 +492,21 @@ pub fn fit(
                 opts.max_simulations
             );
             converged = false;
-            // The stages after it would not run either.
-            let z: Vec<f64> = problem.z.iter().copied().collect();
-            for (p, &zi) in problem.params.iter().zip(&z) {
-                (p.set)(&mut cur, from_z(p, zi));
-            }
-            last = Some(problem);
+            // Reported at this stage's start (a point that was evaluated; LM leaves its refused
+            // trial in `problem`), over every parameter and log, so the report below has the
+            // full problem's shape whichever stage ran out.
+            let mut z: Vec<f64> = params.iter().map(|p| to_z(p, (p.get)(&cur))).collect();
+            z.extend(std::iter::repeat_n(0.0, 2 * logs.len()));
+            last = Some(Problem {
+                start: cur.clone(),
+                params: params.clone(),
+                logs: logs.clone(),
+                offsets: true,
+                z: DVector::from_vec(z),
+                progress: opts.progress.clone(),
+                evals: Default::default(),
+                budget: None,
+            });
             break;
         }
         termination = format!("{:?}", report.termination);
