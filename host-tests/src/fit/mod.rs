@@ -573,16 +573,7 @@ pub fn fit(
             p
         })
         .collect();
-    let cov_problem = Problem {
-        start: problem.start.clone(),
-        params: problem.params.clone(),
-        logs: Arc::new(cov_logs),
-        offsets: problem.offsets,
-        z: problem.z.clone(),
-        progress: opts.progress.clone(),
-        evals: Default::default(),
-        budget: None,
-    };
+    let cov_problem = problem.over(cov_logs);
     let jac = cov_problem.jacobian().ok_or(FitError::Jacobian)?;
     evals += cov_problem.evals.load(std::sync::atomic::Ordering::Relaxed);
     let jtj = jac.transpose() * &jac;

@@ -25,6 +25,20 @@ pub(super) struct Problem {
 }
 
 impl Problem {
+    /// The same parameters at the same point over other logs, outside any budget.
+    pub(super) fn over(&self, logs: Vec<Prepared>) -> Problem {
+        Problem {
+            start: self.start.clone(),
+            params: self.params.clone(),
+            logs: Arc::new(logs),
+            offsets: self.offsets,
+            z: self.z.clone(),
+            progress: self.progress.clone(),
+            evals: Default::default(),
+            budget: None,
+        }
+    }
+
     pub(super) fn bench_at(&self, z: &[f64]) -> Result<Bench, BenchError> {
         let mut f = self.start.clone();
         for (p, &zi) in self.params.iter().zip(z) {

@@ -62,6 +62,18 @@ fn check(name: &'static str, passed: bool, detail: String) -> Check {
     }
 }
 
+/// A check that holds when nothing was `found`: `ok()` describes the pass, `failed(found)`
+/// the failure.
+fn none_found(
+    name: &'static str,
+    found: Vec<String>,
+    ok: impl FnOnce() -> String,
+    failed: impl FnOnce(&[String]) -> String,
+) -> Check {
+    let passed = found.is_empty();
+    check(name, passed, if passed { ok() } else { failed(&found) })
+}
+
 pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
     let mut out = vec![check(
         "converged",
@@ -122,15 +134,16 @@ pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
             ))
         })
         .collect();
-    out.push(check(
+    out.push(none_found(
         "bounds",
-        at_bound.is_empty(),
-        if at_bound.is_empty() {
+        at_bound,
+        || {
             format!(
                 "every parameter more than {} % of its range from its bounds",
                 100.0 * lim.bound_fraction
             )
-        } else {
+        },
+        |at_bound| {
             format!(
                 "{}: the logs push it out of the range the fit allows (a wrong unit in a \
                  log, a parameter missing from --params, or a bench far from the start)",
@@ -171,17 +184,18 @@ pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
             }
         }
     }
-    out.push(check(
+    out.push(none_found(
         "emptying",
-        empty_bad.is_empty(),
-        if empty_bad.is_empty() {
+        empty_bad,
+        || {
             format!(
                 "the HP accumulator runs empty within {} s + {} % of the logged moment in \
                  {empty_n} log(s)",
                 lim.emptying_s,
                 100.0 * lim.emptying_fraction
             )
-        } else {
+        },
+        |empty_bad| {
             format!(
                 "the simulated HP accumulator runs empty at another moment than the logged one: \
                  {}",
@@ -189,18 +203,17 @@ pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
             )
         },
     ));
-    let undetermined: Vec<&str> = e
+    let undetermined: Vec<String> = e
         .params
         .iter()
         .filter(|p| p.sigma.is_none())
-        .map(|p| p.name.as_str())
+        .map(|p| p.name.clone())
         .collect();
-    out.push(check(
+    out.push(none_found(
         "determined",
-        undetermined.is_empty(),
-        if undetermined.is_empty() {
-            "every parameter has a finite σ".into()
-        } else {
+        undetermined,
+        || "every parameter has a finite σ".into(),
+        |undetermined| {
             format!(
                 "the logs do not determine {}: add logs that exercise it, or leave it out of \
                  --params",
@@ -221,10 +234,10 @@ pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
             })
         })
         .collect();
-    out.push(check(
+    out.push(none_found(
         "precision",
-        coarse.is_empty(),
-        if coarse.is_empty() {
+        coarse,
+        || {
             format!(
                 "every parameter's 3σ within the precision needed ({})",
                 e.params
@@ -233,7 +246,8 @@ pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
                     .collect::<Vec<_>>()
                     .join(", ")
             )
-        } else {
+        },
+        |coarse| {
             format!(
                 "the logs do not pin down {}: add logs that exercise it, fit fewer parameters, \
                  or state the precision you need with --precision NAME=VALUE",
@@ -254,15 +268,16 @@ pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
             }
         }
     }
-    out.push(check(
+    out.push(none_found(
         "correlation",
-        corr.is_empty(),
-        if corr.is_empty() {
+        corr,
+        || {
             format!(
                 "largest |correlation| {worst_c:.3} ≤ {}",
                 lim.max_correlation
             )
-        } else {
+        },
+        |corr| {
             format!(
                 "the logs cannot tell apart {} (|correlation| > {}): fit one of each pair, or \
                  add logs that separate them",
@@ -277,14 +292,11 @@ pub(super) fn verdict(e: &Evidence, lim: &Limits) -> Vec<Check> {
         .filter(|f| f.severity == Severity::Error)
         .map(|f| format!("{} `{}`: {}", f.file.display(), f.column, f.message))
         .collect();
-    out.push(check(
+    out.push(none_found(
         "logs",
-        errors.is_empty(),
-        if errors.is_empty() {
-            "every log plausible".into()
-        } else {
-            errors.join("; ")
-        },
+        errors,
+        || "every log plausible".into(),
+        |errors| errors.join("; "),
     ));
     out
 }
