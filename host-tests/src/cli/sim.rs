@@ -306,23 +306,32 @@ pub(crate) fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
     s
 }
 
-pub(crate) fn bench_cmd(bench_path: Option<&PathBuf>, repeats: usize, json: bool) -> Result<bool> {
+pub(crate) fn bench_cmd(
+    bench_path: Option<&PathBuf>,
+    repeats: usize,
+    batch: Option<usize>,
+    json: bool,
+) -> Result<bool> {
     if repeats == 0 {
         bail!("--repeats must be at least 1");
     }
+    if batch == Some(0) {
+        bail!("--batch must be at least 1 run");
+    }
     let bench = load_bench(bench_path)?;
-    let rep = perf::measure(&bench, repeats)?;
+    let rep = perf::measure(&bench, repeats, batch)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&rep)?);
     } else {
         println!(
-            "{:<16} {:>10} {:>10} {:>10} {:>9} {:>9} {:>14}",
-            "scenario", "simulated", "wall (s)", "RTF", "steps", "f evals", "P2 err (bar)"
+            "{:<16} {:<10} {:>10} {:>10} {:>10} {:>9} {:>9} {:>14}",
+            "scenario", "path", "simulated", "wall (s)", "RTF", "steps", "f evals", "P2 err (bar)"
         );
         for r in &rep.rows {
             println!(
-                "{:<16} {:>9.0}s {:>10.3} {:>10.0} {:>9} {:>9} {:>14}",
+                "{:<16} {:<10} {:>9.0}s {:>10.3} {:>10.0} {:>9} {:>9} {:>14}",
                 r.scenario,
+                r.path,
                 r.simulated_s,
                 r.wall_s,
                 r.real_time_factor,

@@ -153,6 +153,7 @@ pub fn input_moves(log: &BenchLog) -> bool {
 pub const FIT_SOLVER: SolverOptions = SolverOptions {
     rtol: 1e-7,
     atol_scale: 1e-2,
+    reuse_kinematics: true,
 };
 
 /// Simulated (P2 bar, motor rpm) at every log sample.

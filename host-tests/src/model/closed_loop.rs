@@ -161,6 +161,7 @@ pub fn test3_like_loop<C: ValveController + 'static, E: From<LoopError>>(
             solver: SolverOptions {
                 rtol: 1e-6,
                 atol_scale: 0.1,
+                ..SolverOptions::default()
             },
             progress: None,
         },

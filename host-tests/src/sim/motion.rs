@@ -123,8 +123,74 @@ pub enum Motion {
         /// Slopes, rad/s.
         slope: Vec<f64>,
     },
-    /// Σ a_i sin(ω_i t + φ_i).
-    Sum(Vec<(f64, f64, f64)>),
+    /// Σ a_i sin(ω_i t + φ_i) over evenly spaced ω_i (a JONSWAP sea).
+    Sum(Comb),
+}
+
+/// A sum of sinusoids over evenly spaced frequencies, Σ a_i sin(ω_i t + φ_i) with
+/// ω_i = ω_0 + i·Δω.
+///
+/// Hand-written evaluation: the irregular sea's cost was its 64–128 `sin_cos` per instant (55 %
+/// of a run). [`Comb::at`] turns e^{iω_0 t} by e^{iΔω t} from one component to the next, with an
+/// exact `sin_cos` every [`Comb::EXACT_EVERY`] components so the rounding of the turns cannot
+/// build up (≤ 1e-13 rad over 1000 s: `comb_matches_the_direct_sum`); [`Comb::at_direct`] is
+/// the per-component evaluation, the solver's reference path.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Comb {
+    /// (a_i rad, ω_i rad/s, φ_i rad).
+    comps: Vec<(f64, f64, f64)>,
+    /// (a_i·cos φ_i, a_i·sin φ_i).
+    phasors: Vec<(f64, f64)>,
+    /// Δω, rad/s.
+    dw: f64,
+}
+
+impl Comb {
+    /// Components between two exact evaluations of the carrier.
+    pub const EXACT_EVERY: usize = 16;
+
+    /// The sum of `comps` (a_i, ω_i, φ_i), whose ω_i must be evenly spaced by `dw`.
+    fn new(comps: Vec<(f64, f64, f64)>, dw: f64) -> Self {
+        let phasors = comps
+            .iter()
+            .map(|&(a, _, ph)| {
+                let (s, c) = ph.sin_cos();
+                (a * c, a * s)
+            })
+            .collect();
+        Comb { comps, phasors, dw }
+    }
+
+    /// Angle (rad) and speed (rad/s) at `t`.
+    pub fn at(&self, t: f64) -> (f64, f64) {
+        let (sd, cd) = (self.dw * t).sin_cos();
+        let (mut theta, mut speed) = (0.0, 0.0);
+        let (mut s, mut c) = (0.0, 0.0);
+        for (i, (&(_, w, _), &(ac, as_))) in self.comps.iter().zip(&self.phasors).enumerate() {
+            if i % Self::EXACT_EVERY == 0 {
+                (s, c) = (w * t).sin_cos();
+            } else {
+                (s, c) = (s * cd + c * sd, c * cd - s * sd);
+            }
+            // a·sin(ωt + φ) = a·cos φ·sin ωt + a·sin φ·cos ωt, and its derivative.
+            theta += ac * s + as_ * c;
+            speed += w * (ac * c - as_ * s);
+        }
+        (theta, speed)
+    }
+
+    /// The same by one `sin_cos` per component.
+    pub fn at_direct(&self, t: f64) -> (f64, f64) {
+        self.comps.iter().fold((0.0, 0.0), |(a, v), &(amp, w, ph)| {
+            let (s, co) = (w * t + ph).sin_cos();
+            (a + amp * s, v + amp * w * co)
+        })
+    }
+
+    /// Σ |a_i|, rad.
+    fn amplitude_bound(&self) -> f64 {
+        self.comps.iter().map(|x| x.0.abs()).sum()
+    }
 }
 
 impl Motion {
@@ -285,7 +351,7 @@ impl Motion {
         for c in &mut comps {
             c.0 *= k;
         }
-        Motion::Sum(comps)
+        Motion::Sum(Comb::new(comps, 2.0 * std::f64::consts::PI * df))
     }
 
     /// Shaft angle (rad) and speed (rad/s) at time `t`.
@@ -324,10 +390,15 @@ impl Motion {
                     / h;
                 (y, dy)
             }
-            Motion::Sum(c) => c.iter().fold((0.0, 0.0), |(a, v), &(amp, w, ph)| {
-                let (s, co) = (w * t + ph).sin_cos();
-                (a + amp * s, v + amp * w * co)
-            }),
+            Motion::Sum(c) => c.at(t),
+        }
+    }
+
+    /// [`Motion::at`] on the reference path: an irregular sea by one `sin_cos` per component.
+    pub fn at_reference(&self, t: f64) -> (f64, f64) {
+        match self {
+            Motion::Sum(c) => c.at_direct(t),
+            _ => self.at(t),
         }
     }
 
@@ -345,7 +416,7 @@ impl Motion {
             Motion::Sine { amplitude, .. } => amplitude.abs(),
             Motion::Blocked(a) => a.abs(),
             Motion::Trace { theta, .. } => theta.iter().fold(0.0, |m, a| m.max(a.abs())),
-            Motion::Sum(c) => c.iter().map(|x| x.0.abs()).sum(),
+            Motion::Sum(c) => c.amplitude_bound(),
         }
     }
 }
@@ -353,6 +424,29 @@ impl Motion {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn comb_matches_the_direct_sum() {
+        // The built-in sea's 64 components and the family's 128, over 1000 s.
+        for (n, tp) in [(64, 10.0), (128, 6.0), (4096, 14.0)] {
+            let Motion::Sum(c) = Motion::jonswap(0.4, tp, 3.3, n, 7) else {
+                panic!("a sum");
+            };
+            let (mut worst_a, mut worst_v) = (0.0f64, 0.0f64);
+            for k in 0..20_000 {
+                let t = k as f64 * 0.05 + 0.0123;
+                let (a, v) = c.at(t);
+                let (ad, vd) = c.at_direct(t);
+                worst_a = worst_a.max((a - ad).abs());
+                worst_v = worst_v.max((v - vd).abs());
+            }
+            println!("{n} components: |Δθ| ≤ {worst_a:.1e} rad, |Δθ̇| ≤ {worst_v:.1e} rad/s");
+            assert!(
+                worst_a <= 1e-13 && worst_v <= 1e-13,
+                "{worst_a:e} {worst_v:e}"
+            );
+        }
+    }
 
     #[test]
     fn sine_peak_speed_is_2_5_rpm() {

@@ -9,7 +9,7 @@
 
 use crate::sim::bench::{BAR, Bench, Load};
 use crate::sim::motion::Motion;
-use crate::sim::physics::{self, AccumulatorLaw, Fluid, Lever, check_flow};
+use crate::sim::physics::{self, Fluid, GasAccumulator, Lever, check_flow};
 use std::cell::Cell;
 
 /// Number of cylinders on the bench.
@@ -104,10 +104,30 @@ pub struct Eval {
     pub spring_energy_j: f64,
 }
 
+/// The shaft and every cylinder's eye (extension m, its rate m/s, arm m) at one instant: functions
+/// of time alone, so the evaluations of one step (Newton iterations, Jacobian columns) share them.
+#[derive(Debug, Clone, Copy)]
+struct Kinematics {
+    t: f64,
+    theta: f64,
+    theta_dot: f64,
+    eye: [(f64, f64, f64); N_CYL],
+}
+
 /// The plant: bench, cylinders on duty, geometry, input motion and the commanded aperture.
 #[derive(Debug)]
 pub struct Plant {
     bench: Bench,
+    hp_acc: GasAccumulator,
+    lp_acc: GasAccumulator,
+    /// Every cylinder's lever, in bench order.
+    levers: Vec<Lever>,
+    /// The last instant's kinematics, when `reuse_kinematics` is on.
+    kinematics: Cell<Option<Kinematics>>,
+    /// Reuse the kinematics of the last evaluated instant and evaluate an irregular sea by its
+    /// carrier (off: the reference path, which evaluates the motion and the levers at every call
+    /// and a sea one component at a time).
+    reuse_kinematics: Cell<bool>,
     active: Vec<Active>,
     active_index: Vec<usize>,
     idle: Vec<(usize, Idle)>,
@@ -172,8 +192,18 @@ impl Plant {
         };
         let i_hm = take(bench.hp_line_resistance_pa_s_per_m3 > 0.0);
         let i_lm = take(bench.lp_line_resistance_pa_s_per_m3 > 0.0);
+        let levers = bench
+            .cylinders
+            .iter()
+            .map(|c| Lever::new(geom, c.stroke_m, c.side))
+            .collect();
         Plant {
             bench: bench.clone(),
+            hp_acc: GasAccumulator::new(&bench.hp_acc),
+            lp_acc: GasAccumulator::new(&bench.lp_acc),
+            levers,
+            kinematics: Cell::new(None),
+            reuse_kinematics: Cell::new(true),
             active,
             active_index,
             idle,
@@ -199,6 +229,39 @@ impl Plant {
                 0.0
             },
         }
+    }
+
+    /// Whether evaluations at the same instant share the motion and lever values (on by
+    /// default; off reproduces the reference path that `pto bench` compares against).
+    pub fn set_reuse_kinematics(&self, on: bool) {
+        self.reuse_kinematics.set(on);
+        self.kinematics.set(None);
+    }
+
+    fn kinematics(&self, t: f64) -> Kinematics {
+        if self.reuse_kinematics.get()
+            && let Some(k) = self.kinematics.get()
+            && k.t == t
+        {
+            return k;
+        }
+        let (theta, theta_dot) = if self.reuse_kinematics.get() {
+            self.motion.at(t)
+        } else {
+            self.motion.at_reference(t)
+        };
+        let mut eye = [(0.0, 0.0, 0.0); N_CYL];
+        for (e, lever) in eye.iter_mut().zip(&self.levers) {
+            *e = lever.eye(theta, theta_dot);
+        }
+        let k = Kinematics {
+            t,
+            theta,
+            theta_dot,
+            eye,
+        };
+        self.kinematics.set(Some(k));
+        k
     }
 
     /// Number of states.
@@ -307,7 +370,8 @@ impl Plant {
         let b = &self.bench;
         let oil = &b.oil;
         let fl = &self.fluid;
-        let (theta, theta_dot) = self.motion.at(t);
+        let kin = self.kinematics(t);
+        let (theta, theta_dot) = (kin.theta, kin.theta_dot);
         let p2 = y[self.i_p2] * BAR;
         let lp = y[self.i_lp] * BAR;
         let pm = y[self.i_pm] * BAR;
@@ -316,20 +380,15 @@ impl Plant {
             Some(i) => y[i].clamp(0.0, 100.0),
             None => self.command_pct.get(),
         };
-        let (v_hp, e_hp) = fl.state(p2);
-        let (v_lp, e_lp) = fl.state(lp);
-        let (v_pm, e_pm) = fl.state(pm);
-        let (g_hp, g_lp, g_pm) = if want_quad {
-            (fl.exergy(p2), fl.exergy(lp), fl.exergy(pm))
-        } else {
-            (0.0, 0.0, 0.0)
-        };
+        let (v_hp, e_hp, g_hp) = fl.state_exergy(p2, want_quad);
+        let (v_lp, e_lp, g_lp) = fl.state_exergy(lp, want_quad);
+        let (v_pm, e_pm, g_pm) = fl.state_exergy(pm, want_quad);
         // Manifold nodes: their own state behind a line resistance, else the accumulator node.
         let node = |idx: Option<usize>, p: f64, v: f64, e: f64, g: f64| match idx {
             Some(i) => {
                 let pi = y[i] * BAR;
-                let (vi, ei) = fl.state(pi);
-                (pi, vi, ei, if want_quad { fl.exergy(pi) } else { 0.0 })
+                let (vi, ei, gi) = fl.state_exergy(pi, want_quad);
+                (pi, vi, ei, gi)
             }
             None => (p, v, e, g),
         };
@@ -361,7 +420,7 @@ impl Plant {
             let p_cap = y[c.at] * BAR;
             let p_rod = y[c.at + 1] * BAR;
             let x = y[c.at + 2] * 1e-3;
-            let (x_eye, v_eye, arm) = c.lever.eye(theta, theta_dot);
+            let (x_eye, v_eye, arm) = kin.eye[ci];
             // Rod fixation: free play of width 2·half closed by a stiff, damped stop.
             let gap = x_eye - x;
             let pen = if gap > half {
@@ -398,8 +457,8 @@ impl Plant {
             } else {
                 0.0
             };
-            let (v_cap, e_cap) = fl.state(p_cap);
-            let (v_rod, e_rod) = fl.state(p_rod);
+            let (v_cap, e_cap, g_cap) = fl.state_exergy(p_cap, want_quad);
+            let (v_rod, e_rod, g_rod) = fl.state_exergy(p_rod, want_quad);
             let vol_cap = b.chamber_dead_volume_m3 + c.area_cap * x;
             let vol_rod = b.chamber_dead_volume_m3 + c.area_ann * (c.stroke - x);
             let suc_cap = mref(check_flow(oil, &b.check, p_lm - p_cap), v_lm, v_cap);
@@ -426,7 +485,6 @@ impl Plant {
                 e.quad[7] += c_seal * x_dot * x_dot
                     + if contact { d * v_rel * v_rel } else { 0.0 }
                     + if end { d * x_dot * x_dot } else { 0.0 };
-                let (g_cap, g_rod) = (fl.exergy(p_cap), fl.exergy(p_rod));
                 e.quad[8] += suc_cap * (g_lm - g_cap)
                     + del_cap * (g_cap - g_hm)
                     + suc_rod * (g_lm - g_rod)
@@ -439,7 +497,7 @@ impl Plant {
         let mut idle_volume = 0.0;
         let mut idle_vdot = 0.0;
         for (ci, c) in &self.idle {
-            let (x_eye, v_eye, arm) = c.lever.eye(theta, theta_dot);
+            let (x_eye, v_eye, arm) = kin.eye[*ci];
             let area_rod = c.area_cap - c.area_ann;
             let f_contact = -p_lm * area_rod;
             idle_volume += c.volume_at(b.chamber_dead_volume_m3, x_eye);
@@ -474,9 +532,11 @@ impl Plant {
             None => m_from_lp,
         };
         if let Some(dy) = dy {
-            let [oil_hp, oil_lp] = self.accumulator_node_oil(p2, lp, idle_volume);
-            let c_hp = b.hp_acc.capacitance(p2) + oil_hp / e_hp;
-            let c_lp = b.lp_acc.capacitance(lp) + oil_lp / e_lp;
+            let (acc_hp, cap_hp) = self.hp_acc.fluid(p2);
+            let (acc_lp, cap_lp) = self.lp_acc.fluid(lp);
+            let [oil_hp, oil_lp] = self.accumulator_node_oil(acc_hp, acc_lp, idle_volume);
+            let c_hp = cap_hp + oil_hp / e_hp;
+            let c_lp = cap_lp + oil_lp / e_lp;
             let c_pm = b.motor_line_volume_m3 / e_pm;
             dy[self.i_p2] = v_hp * (m_hline - m_valve - m_relief) / c_hp / BAR;
             let idle_at_lp = if self.i_lm.is_some() { 0.0 } else { idle_vdot };
@@ -525,9 +585,10 @@ impl Plant {
         }
     }
 
-    /// Oil volume of the HP and LP accumulator nodes (line share + accumulator fluid, plus the
-    /// idle chambers when they are not behind an LP line resistance), m³.
-    fn accumulator_node_oil(&self, p2: f64, lp: f64, idle_volume: f64) -> [f64; 2] {
+    /// Oil volume of the HP and LP accumulator nodes (line share + the accumulators' oil
+    /// `acc_hp`, `acc_lp`, plus the idle chambers when they are not behind an LP line
+    /// resistance), m³.
+    fn accumulator_node_oil(&self, acc_hp: f64, acc_lp: f64, idle_volume: f64) -> [f64; 2] {
         let b = &self.bench;
         let idle = if self.i_lm.is_some() {
             0.0
@@ -535,8 +596,8 @@ impl Plant {
             idle_volume
         };
         [
-            b.hp_line_volume_m3 - self.vol_hm + b.hp_acc.fluid_volume(p2),
-            b.lp_line_volume_m3 - self.vol_lm + b.lp_acc.fluid_volume(lp) + idle,
+            b.hp_line_volume_m3 - self.vol_hm + acc_hp,
+            b.lp_line_volume_m3 - self.vol_lm + acc_lp + idle,
         ]
     }
 
@@ -554,7 +615,11 @@ impl Plant {
             .iter()
             .map(|(_, c)| c.volume_at(b.chamber_dead_volume_m3, c.lever.eye(theta, 0.0).0))
             .sum();
-        let [oil_hp, oil_lp] = self.accumulator_node_oil(p2, lp, idle);
+        let [oil_hp, oil_lp] = self.accumulator_node_oil(
+            self.hp_acc.fluid_volume(p2),
+            self.lp_acc.fluid_volume(lp),
+            idle,
+        );
         // (side, oil volume, pressure)
         let mut nodes = vec![
             (0, oil_hp, p2),
@@ -568,7 +633,7 @@ impl Plant {
             nodes.push((2, self.vol_lm + idle, y[i] * BAR));
         }
         let mut content = [0.0; 4];
-        let mut energy = b.hp_acc.stored_energy(p2) + b.lp_acc.stored_energy(lp);
+        let mut energy = self.hp_acc.stored_energy(p2) + self.lp_acc.stored_energy(lp);
         for (side, vol, p) in nodes {
             content[side] += vol / fl.volume_ratio(p);
             energy += fl.stored_energy(vol, p);

@@ -107,6 +107,10 @@ pub struct SolverOptions {
     pub rtol: f64,
     /// Absolute tolerance scale (1 = 1e-3 bar on pressures, 1e-4 mm on rods).
     pub atol_scale: f64,
+    /// Evaluations at one instant (a step's Newton iterations, the finite-difference Jacobian's
+    /// columns) share the motion and lever values. Off: the reference path `pto bench` compares
+    /// against, which evaluates them at every call (same results to the last bit).
+    pub reuse_kinematics: bool,
 }
 
 /// The default: rtol 1e-8, atol 1e-5 bar / 1e-6 mm. Chosen so the oil and energy balances of
@@ -117,6 +121,7 @@ impl Default for SolverOptions {
         SolverOptions {
             rtol: 1e-8,
             atol_scale: 1e-2,
+            reuse_kinematics: true,
         }
     }
 }
@@ -127,6 +132,15 @@ impl SolverOptions {
         SolverOptions {
             rtol: 1e-11,
             atol_scale: 1e-5,
+            reuse_kinematics: true,
+        }
+    }
+
+    /// These settings on the reference path (see [`SolverOptions::reuse_kinematics`]).
+    pub fn reference_path(self) -> Self {
+        SolverOptions {
+            reuse_kinematics: false,
+            ..self
         }
     }
 }
@@ -521,6 +535,7 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
         )));
     }
     let start = Instant::now();
+    plant.set_reuse_kinematics(run.solver.reuse_kinematics);
     let n = plant.len();
     // Initial state: motor in steady state for the initial command.
     let probe = plant.initial_state(
