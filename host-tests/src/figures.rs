@@ -1,8 +1,9 @@
 //! The paper's Figures 10–19 (and the experimental runs) rebuilt from the built-in scenarios.
 
 use crate::paper::Results;
-use crate::plot::{Figure, Panel, Series};
+use crate::plot::{BarChart, Figure, Panel, Series};
 use crate::sim::bench::BAR;
+use crate::sim::power::Power;
 use crate::sim::scenario::{BLOCKED_APERTURES, SETS, TEST3_APERTURES};
 use crate::sim::solver::Trace;
 
@@ -329,5 +330,86 @@ pub fn single(name: &str, t: &Trace, on_duty: &[(usize, String)]) -> Figure {
             },
         ],
         cols: 2,
+    }
+}
+
+/// Running mean of `y` over `t` (trapezoidal), from the first sample.
+fn running_mean(t: &[f64], y: &[f64]) -> Vec<f64> {
+    let mut out = Vec::with_capacity(y.len());
+    let mut area = 0.0;
+    for k in 0..y.len() {
+        if k > 0 {
+            area += 0.5 * (y[k] + y[k - 1]) * (t[k] - t[k - 1]);
+        }
+        let span = t[k] - t[0];
+        out.push(if span > 0.0 { area / span } else { y[k] });
+    }
+    out
+}
+
+/// `<name>-power`: the input, valve-hydraulic and generator power of a run, instantaneous and
+/// as running means.
+pub fn power_traces(name: &str, t: &Trace) -> Figure {
+    let cols: [(&str, &Vec<f64>); 3] = [
+        ("shaft input", &t.input_power_w),
+        ("hydraulic at the valve (P2·Q)", &t.valve_power_w),
+        ("generator", &t.generator_power_w),
+    ];
+    let panel = |title: &str, mean: bool| Panel {
+        title: title.into(),
+        x_label: "time (s)".into(),
+        y_label: "power (W)".into(),
+        series: cols
+            .iter()
+            .map(|(label, y)| Series {
+                label: (*label).into(),
+                x: t.t_s.clone(),
+                y: if mean {
+                    running_mean(&t.t_s, y)
+                } else {
+                    (*y).clone()
+                },
+            })
+            .collect(),
+    };
+    Figure {
+        name: format!("{name}-power"),
+        title: format!("{name}: power along the path from the shaft to the generator"),
+        panels: vec![
+            panel("instantaneous", false),
+            panel("mean since the start", true),
+        ],
+        cols: 2,
+    }
+}
+
+/// `<name>-losses`: where the mean input power of a run goes, W and % of the input.
+pub fn loss_breakdown(name: &str, p: &Power) -> BarChart {
+    let mut bars = vec![("shaft input".to_string(), p.input_w)];
+    bars.extend(p.losses.by_cause().iter().map(|(l, w)| (l.to_string(), *w)));
+    bars.push(("into storage".into(), p.stored_w.total_w()));
+    bars.push(("generator".into(), p.generator_w));
+    let value_text = bars
+        .iter()
+        .map(|(_, w)| {
+            if p.input_w > 0.0 {
+                format!("{w:.1} W ({:.1} %)", 100.0 * w / p.input_w)
+            } else {
+                format!("{w:.1} W")
+            }
+        })
+        .collect();
+    let eff = p
+        .efficiency
+        .map_or("-".into(), |e| format!("{:.1} %", 100.0 * e));
+    BarChart {
+        name: format!("{name}-losses"),
+        title: format!(
+            "{name}: mean power over {:.0} s; efficiency (generator / input) {eff}",
+            p.duration_s
+        ),
+        x_label: "mean power (W)".into(),
+        bars,
+        value_text,
     }
 }

@@ -1,4 +1,4 @@
-//! Figures: a grid of panels of line series, written as PNG and SVG.
+//! Figures: a grid of panels of line series, or a bar chart, written as PNG and SVG.
 
 use plotters::coord::Shift;
 use plotters::prelude::*;
@@ -227,40 +227,167 @@ impl Figure {
 
     /// Writes `<dir>/<name>.png` and `.svg`; returns the PNG path.
     pub fn write(&self, dir: &Path) -> Result<PathBuf, PlotError> {
-        register_font();
-        let size = self.size();
-        // Render to temporary names and rename, so a failed run leaves no half-written figure.
-        let png = dir.join(format!("{}.png", self.name));
-        let svg = dir.join(format!("{}.svg", self.name));
-        let png_tmp = dir.join(format!(".{}.tmp.png", self.name));
-        let svg_tmp = dir.join(format!(".{}.tmp.svg", self.name));
-        draw(
-            BitMapBackend::new(&png_tmp, size).into_drawing_area(),
-            self,
-            PNG_LINE_PX,
-        )
-        .map_err(|source| PlotError::Draw {
-            path: png.clone(),
-            source,
-        })?;
-        draw(
-            SVGBackend::new(&svg_tmp, size).into_drawing_area(),
-            self,
-            SVG_LINE_PX,
-        )
-        .map_err(|source| PlotError::Draw {
-            path: svg.clone(),
-            source,
-        })?;
-        std::fs::rename(&png_tmp, &png).map_err(|source| PlotError::Rename {
-            path: png.clone(),
-            source,
-        })?;
-        std::fs::rename(&svg_tmp, &svg).map_err(|source| PlotError::Rename {
-            path: svg.clone(),
-            source,
-        })?;
-        Ok(png)
+        write_both(self, dir)
+    }
+}
+
+/// What [`write_both`] renders: a size and a drawing on any backend.
+trait Render {
+    fn name(&self) -> &str;
+    fn size(&self) -> (u32, u32);
+    fn render<DB: DrawingBackend>(
+        &self,
+        root: DrawingArea<DB, Shift>,
+        width: u32,
+    ) -> Result<(), DrawError>
+    where
+        DB::ErrorType: 'static;
+}
+
+impl Render for Figure {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn size(&self) -> (u32, u32) {
+        Figure::size(self)
+    }
+    fn render<DB: DrawingBackend>(
+        &self,
+        root: DrawingArea<DB, Shift>,
+        width: u32,
+    ) -> Result<(), DrawError>
+    where
+        DB::ErrorType: 'static,
+    {
+        draw(root, self, width)
+    }
+}
+
+/// Writes `<dir>/<name>.png` and `.svg`, rendered to temporary names and renamed, so a failed
+/// run leaves no half-written figure; returns the PNG path.
+fn write_both<R: Render>(fig: &R, dir: &Path) -> Result<PathBuf, PlotError> {
+    register_font();
+    let size = fig.size();
+    let name = fig.name();
+    let png = dir.join(format!("{name}.png"));
+    let svg = dir.join(format!("{name}.svg"));
+    let png_tmp = dir.join(format!(".{name}.tmp.png"));
+    let svg_tmp = dir.join(format!(".{name}.tmp.svg"));
+    fig.render(
+        BitMapBackend::new(&png_tmp, size).into_drawing_area(),
+        PNG_LINE_PX,
+    )
+    .map_err(|source| PlotError::Draw {
+        path: png.clone(),
+        source,
+    })?;
+    fig.render(
+        SVGBackend::new(&svg_tmp, size).into_drawing_area(),
+        SVG_LINE_PX,
+    )
+    .map_err(|source| PlotError::Draw {
+        path: svg.clone(),
+        source,
+    })?;
+    std::fs::rename(&png_tmp, &png).map_err(|source| PlotError::Rename {
+        path: png.clone(),
+        source,
+    })?;
+    std::fs::rename(&svg_tmp, &svg).map_err(|source| PlotError::Rename {
+        path: svg.clone(),
+        source,
+    })?;
+    Ok(png)
+}
+
+/// Horizontal bars with their values written beside them (a loss breakdown).
+#[derive(Debug, Clone)]
+pub struct BarChart {
+    /// File stem.
+    pub name: String,
+    /// Title on top.
+    pub title: String,
+    /// Axis label with unit.
+    pub x_label: String,
+    /// (label, value), drawn top to bottom.
+    pub bars: Vec<(String, f64)>,
+    /// How a value is written beside its bar (`"{:.1} W"`-like, applied by the caller).
+    pub value_text: Vec<String>,
+}
+
+impl BarChart {
+    /// Writes `<dir>/<name>.png` and `.svg`; returns the PNG path.
+    pub fn write(&self, dir: &Path) -> Result<PathBuf, PlotError> {
+        write_both(self, dir)
+    }
+}
+
+impl Render for BarChart {
+    fn name(&self) -> &str {
+        &self.name
+    }
+    fn size(&self) -> (u32, u32) {
+        (900, 120 + 42 * self.bars.len().max(1) as u32)
+    }
+    fn render<DB: DrawingBackend>(
+        &self,
+        root: DrawingArea<DB, Shift>,
+        _width: u32,
+    ) -> Result<(), DrawError>
+    where
+        DB::ErrorType: 'static,
+    {
+        root.fill(&WHITE)?;
+        let root = root.titled(&self.title, ("sans-serif", 20))?;
+        let n = self.bars.len().max(1);
+        let (lo, hi) = self
+            .bars
+            .iter()
+            .fold((0.0f64, 0.0f64), |(a, b), (_, v)| (a.min(*v), b.max(*v)));
+        // Room on the right for the value texts.
+        let span = (hi - lo).max(1e-9);
+        let (x0, x1) = (lo - 0.02 * span, hi + 0.28 * span);
+        let labels: Vec<String> = self.bars.iter().map(|b| b.0.clone()).collect();
+        let mut chart = ChartBuilder::on(&root)
+            .margin(10)
+            .margin_right(24)
+            .x_label_area_size(40)
+            .y_label_area_size(230)
+            .build_cartesian_2d(x0..x1, -0.5..(n as f64 - 0.5))?;
+        chart
+            .configure_mesh()
+            .disable_y_mesh()
+            .x_desc(&self.x_label)
+            .y_labels(n)
+            .y_label_formatter(&|y: &f64| {
+                let i = y.round();
+                // Bars run top to bottom: row i from the top sits at n − 1 − i.
+                let k = n as f64 - 1.0 - i;
+                if (y - i).abs() < 1e-6 && k >= 0.0 && (k as usize) < labels.len() {
+                    labels[k as usize].clone()
+                } else {
+                    String::new()
+                }
+            })
+            .label_style(("sans-serif", 14))
+            .light_line_style(RGBColor(235, 235, 235))
+            .draw()?;
+        for (i, (_, v)) in self.bars.iter().enumerate() {
+            let y = (n - 1 - i) as f64;
+            let color = Palette99::pick(i).to_rgba();
+            chart.draw_series(std::iter::once(Rectangle::new(
+                [(0.0, y - 0.34), (*v, y + 0.34)],
+                color.filled(),
+            )))?;
+            if let Some(text) = self.value_text.get(i) {
+                chart.draw_series(std::iter::once(Text::new(
+                    text.clone(),
+                    (v.max(0.0) + 0.01 * span, y + 0.15),
+                    ("sans-serif", 14),
+                )))?;
+            }
+        }
+        Ok(root.present()?)
     }
 }
 

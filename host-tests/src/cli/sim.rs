@@ -7,6 +7,7 @@ use pto_host::paper::{self, Fact, Results, tol};
 use pto_host::perf;
 use pto_host::runner::{self, Outcome};
 use pto_host::sim::bench::BAR;
+use pto_host::sim::power::Power;
 use pto_host::sim::scenario;
 use pto_host::sim::solver::{SimResult, SolverOptions};
 use serde::Serialize;
@@ -49,11 +50,14 @@ pub(crate) struct RunSummary {
     peak_torque_nm: f64,
     balance_worst_rel: f64,
     balance_target_rel: f64,
+    power: Power,
     csv: String,
     figure: String,
+    power_figure: String,
+    loss_figure: String,
 }
 
-pub(crate) fn summarize(name: &str, r: &SimResult, csv: &Path, fig: &Path) -> RunSummary {
+pub(crate) fn summarize(name: &str, r: &SimResult, csv: &Path, figs: [&Path; 3]) -> RunSummary {
     let t = &r.trace;
     let mean = |x: &[f64]| x.iter().sum::<f64>() / x.len().max(1) as f64;
     RunSummary {
@@ -72,8 +76,11 @@ pub(crate) fn summarize(name: &str, r: &SimResult, csv: &Path, fig: &Path) -> Ru
         peak_torque_nm: t.torque_nm.iter().fold(0.0f64, |m, v| m.max(v.abs())),
         balance_worst_rel: r.balance.worst(),
         balance_target_rel: tol::BALANCE_REL,
+        power: r.power,
         csv: csv.display().to_string(),
-        figure: fig.display().to_string(),
+        figure: figs[0].display().to_string(),
+        power_figure: figs[1].display().to_string(),
+        loss_figure: figs[2].display().to_string(),
     }
 }
 
@@ -110,7 +117,9 @@ pub(crate) fn simulate(
         .map(|(i, _)| (i, bench.cylinders[i].name.clone()))
         .collect();
     let fig = figures::single(&s.name, &r.trace, &duty).write(out)?;
-    let sum = summarize(&s.name, &r, &csv, &fig);
+    let power_fig = figures::power_traces(&s.name, &r.trace).write(out)?;
+    let loss_fig = figures::loss_breakdown(&s.name, &r.power).write(out)?;
+    let sum = summarize(&s.name, &r, &csv, [&fig, &power_fig, &loss_fig]);
     let pass = sum.balance_worst_rel <= tol::BALANCE_REL;
     if json {
         println!("{}", serde_json::to_string_pretty(&sum)?);
@@ -131,15 +140,58 @@ pub(crate) fn simulate(
             sum.mean_motor_speed_rpm,
             sum.peak_torque_nm
         );
+        print!("{}", power_lines(&sum.power));
         println!(
             "  oil/energy balance worst relative error {:.1e} (target {:.0e}): {}",
             sum.balance_worst_rel,
             tol::BALANCE_REL,
             if pass { "met" } else { "MISSED" }
         );
-        println!("  wrote {}, {} and its .svg", sum.csv, sum.figure);
+        println!(
+            "  wrote {}, {}, {}, {} (and their .svg)",
+            sum.csv, sum.figure, sum.power_figure, sum.loss_figure
+        );
     }
     Ok(pass)
+}
+
+fn percent(x: Option<f64>) -> String {
+    x.map_or("-".into(), |e| format!("{:.1} %", 100.0 * e))
+}
+
+/// The power lines of a run's summary: the path from the shaft to the generator, the losses by
+/// cause and the storage.
+pub(crate) fn power_lines(p: &Power) -> String {
+    let mut causes: Vec<(&str, f64)> = p.losses.by_cause().to_vec();
+    causes.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let losses: Vec<String> = causes.iter().map(|(l, w)| format!("{l} {w:.1}")).collect();
+    let st = &p.stored_w;
+    format!(
+        "  power (mean): shaft input {:.1} W -> pumped {:.1} W -> motor shaft {:.1} W -> generator {:.1} W; \
+         efficiency {} ({} counting what the run stored)\n  \
+         losses (W): {}; into storage {:.1} W (accumulators {:.1}, oil {:.1}, inertia {:.2}); \
+         closes to {:.1e}\n",
+        p.input_w,
+        p.pumped_w,
+        p.motor_shaft_w,
+        p.generator_w,
+        percent(p.efficiency),
+        percent(p.efficiency_with_storage),
+        losses.join(", "),
+        st.total_w(),
+        st.accumulators_w,
+        st.oil_w,
+        st.inertia_w,
+        p.closure_rel
+    )
+}
+
+/// One run's mean powers in the paper report.
+#[derive(Serialize)]
+pub(crate) struct RunPower {
+    scenario: String,
+    group: String,
+    power: Power,
 }
 
 #[derive(Serialize)]
@@ -151,6 +203,7 @@ pub(crate) struct PaperReport<'a> {
     facts: &'a [Fact],
     pass: bool,
     figures: Vec<String>,
+    power: Vec<RunPower>,
 }
 
 pub(crate) fn paper_cmd(
@@ -191,12 +244,32 @@ pub(crate) fn paper_cmd(
     let mut fig_paths = Vec::new();
     if plots {
         let r = Results::new(&outcomes);
+        let mut written = Vec::new();
         for f in figures::all(&r) {
-            let p = f.write(&dir)?;
+            written.push(f.write(&dir)?);
+        }
+        // Where the power goes: Test III at 10 % and the irregular sea.
+        for name in ["test3-ap10", "irregular-sea"] {
+            if let Some(res) = r.get(name) {
+                written.push(figures::power_traces(name, &res.trace).write(&dir)?);
+                written.push(figures::loss_breakdown(name, &res.power).write(&dir)?);
+            }
+        }
+        for p in written {
             let name = p.file_name().map(PathBuf::from).unwrap_or_default();
             fig_paths.push(out.join(name).display().to_string());
         }
     }
+    let power: Vec<RunPower> = outcomes
+        .iter()
+        .filter_map(|o| {
+            o.result.as_ref().ok().map(|res| RunPower {
+                scenario: o.scenario.name.clone(),
+                group: o.scenario.group.clone(),
+                power: res.power,
+            })
+        })
+        .collect();
     let failed_runs: Vec<String> = outcomes
         .iter()
         .filter_map(|o| o.result.as_ref().err().map(|e| pto_host::error_chain(e)))
@@ -209,6 +282,7 @@ pub(crate) fn paper_cmd(
         facts: &facts,
         pass,
         figures: fig_paths,
+        power,
     };
     let md = markdown_report(&report, &outcomes);
     write_atomic(&dir.join("report.md"), md.as_bytes())?;
@@ -221,6 +295,7 @@ pub(crate) fn paper_cmd(
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         print!("{}", facts_table(&facts));
+        print!("{}", power_by_group(&report.power));
         println!(
             "\n{} runs in {:.1} s on {}; {} of 10 facts hold. Report: {}, figures: {} in {}",
             report.runs,
@@ -233,6 +308,45 @@ pub(crate) fn paper_cmd(
         );
     }
     Ok(pass)
+}
+
+/// Per group of runs: the ranges of mean input, generator power and efficiency.
+pub(crate) fn power_by_group(runs: &[RunPower]) -> String {
+    let mut groups: Vec<&str> = Vec::new();
+    for r in runs {
+        if !groups.contains(&r.group.as_str()) {
+            groups.push(&r.group);
+        }
+    }
+    let mut s = String::from("\npower by group of runs (means over each run):\n");
+    s.push_str(&format!(
+        "{:<14} {:>4} {:>17} {:>17} {:>17}\n",
+        "group", "runs", "shaft input (W)", "generator (W)", "efficiency (%)"
+    ));
+    let range = |v: &[f64], k: f64| {
+        let lo = v.iter().copied().fold(f64::INFINITY, f64::min) * k;
+        let hi = v.iter().copied().fold(f64::NEG_INFINITY, f64::max) * k;
+        format!("{lo:.1}–{hi:.1}")
+    };
+    for g in groups {
+        let rs: Vec<&RunPower> = runs.iter().filter(|r| r.group == g).collect();
+        let input: Vec<f64> = rs.iter().map(|r| r.power.input_w).collect();
+        let gen_w: Vec<f64> = rs.iter().map(|r| r.power.generator_w).collect();
+        let eff: Vec<f64> = rs.iter().filter_map(|r| r.power.efficiency).collect();
+        s.push_str(&format!(
+            "{:<14} {:>4} {:>17} {:>17} {:>17}\n",
+            g,
+            rs.len(),
+            range(&input, 1.0),
+            range(&gen_w, 1.0),
+            if eff.is_empty() {
+                "-".into()
+            } else {
+                range(&eff, 100.0)
+            }
+        ));
+    }
+    s
 }
 
 pub(crate) fn facts_table(facts: &[Fact]) -> String {
@@ -271,23 +385,26 @@ pub(crate) fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
             if f.pass { "pass" } else { "**FAIL**" }
         ));
     }
-    s.push_str("\n## Runs\n\n| scenario | wall (s) | steps | P2 start → end (bar) | worst balance error |\n|---|---|---|---|---|\n");
+    s.push_str("\n## Runs\n\n| scenario | wall (s) | steps | P2 start → end (bar) | shaft input (W) | generator (W) | efficiency | worst balance error |\n|---|---|---|---|---|---|---|---|\n");
     for o in outcomes {
         match &o.result {
             Ok(res) => {
                 let t = &res.trace;
                 s.push_str(&format!(
-                    "| {} | {:.3} | {} | {:.1} → {:.1} | {:.1e} |\n",
+                    "| {} | {:.3} | {} | {:.1} → {:.1} | {:.1} | {:.1} | {} | {:.1e} |\n",
                     o.scenario.name,
                     res.stats.wall_s,
                     res.stats.steps,
                     t.p2_pa[0] / BAR,
                     t.p2_pa[t.len() - 1] / BAR,
+                    res.power.input_w,
+                    res.power.generator_w,
+                    percent(res.power.efficiency),
                     res.balance.worst()
                 ));
             }
             Err(e) => s.push_str(&format!(
-                "| {} | failed: {} | | | |\n",
+                "| {} | failed: {} | | | | | | |\n",
                 o.scenario.name,
                 pto_host::error_chain(e)
             )),

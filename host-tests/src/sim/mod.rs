@@ -34,6 +34,7 @@ pub mod benchlog;
 pub mod motion;
 pub mod physics;
 pub mod plant;
+pub mod power;
 pub mod scenario;
 pub mod solver;
 pub mod trace;

@@ -29,12 +29,84 @@ pub const QUAD_NAMES: [&str; N_QUAD] = [
     "check_valve_loss_kj",
     "control_valve_loss_kj",
     "relief_loss_kj",
-    "motor_loss_kj",
+    "motor_friction_loss_kj",
     "load_work_kj",
     "line_loss_kj",
+    "motor_leakage_loss_kj",
+    "motor_shaft_work_kj",
+    "pumped_kj",
 ];
 /// Length of the integrated balance vector.
-pub const N_QUAD: usize = 14;
+pub const N_QUAD: usize = 17;
+
+/// Indices of the energy terms in [`QUAD_NAMES`]: into the circuit, dissipated by cause, to the
+/// generator, and two that split the path without entering the balance (the active cylinders'
+/// net hydraulic exergy out of LP into HP, and the motor's shaft work).
+pub mod quad {
+    /// Mechanical work into the cylinders' eyes (the shaft's input).
+    pub const INPUT: usize = 6;
+    /// Seal friction and the free-play and end-stop dampers.
+    pub const MECHANICAL: usize = 7;
+    /// The cylinders' check valves and the make-up check valve.
+    pub const CHECK_VALVES: usize = 8;
+    /// Throttling in the control valve.
+    pub const CONTROL_VALVE: usize = 9;
+    /// The relief valve.
+    pub const RELIEF: usize = 10;
+    /// The motor's mechanical efficiency (friction).
+    pub const MOTOR_FRICTION: usize = 11;
+    /// Work into the load (the generator).
+    pub const GENERATOR: usize = 12;
+    /// The HP and LP line resistances.
+    pub const LINES: usize = 13;
+    /// The motor's internal leakage.
+    pub const MOTOR_LEAKAGE: usize = 14;
+    /// Motor shaft work (displacement × Δp × η_mech × ω).
+    pub const MOTOR_SHAFT: usize = 15;
+    /// Net exergy the active cylinders deliver into HP minus what they draw from LP.
+    pub const PUMPED: usize = 16;
+    /// The terms that leave the circuit: the balance is input = Σ these + Δ stored.
+    pub const OUT: [usize; 8] = [
+        MECHANICAL,
+        CHECK_VALVES,
+        CONTROL_VALVE,
+        RELIEF,
+        MOTOR_FRICTION,
+        MOTOR_LEAKAGE,
+        LINES,
+        GENERATOR,
+    ];
+}
+
+/// Energy stored in the circuit at an instant (or its change over a run), J.
+#[derive(Debug, Clone, Copy, Default, PartialEq, serde::Serialize)]
+pub struct Stored {
+    /// The gas of both accumulators (∫ p dV_oil).
+    pub gas_j: f64,
+    /// The oil's compression in every node and chamber.
+    pub oil_j: f64,
+    /// The motor's rotating inertia.
+    pub inertia_j: f64,
+    /// The hard stops' springs.
+    pub stops_j: f64,
+}
+
+impl Stored {
+    /// All of it, J.
+    pub fn total(&self) -> f64 {
+        self.gas_j + self.oil_j + self.inertia_j + self.stops_j
+    }
+
+    /// `self − before`, term by term.
+    pub fn since(&self, before: &Stored) -> Stored {
+        Stored {
+            gas_j: self.gas_j - before.gas_j,
+            oil_j: self.oil_j - before.oil_j,
+            inertia_j: self.inertia_j - before.inertia_j,
+            stops_j: self.stops_j - before.stops_j,
+        }
+    }
+}
 
 /// One cylinder on duty.
 #[derive(Debug, Clone)]
@@ -98,6 +170,10 @@ pub struct Eval {
     pub omega_rad_s: f64,
     /// Spool aperture, %.
     pub aperture_pct: f64,
+    /// Motor shaft torque, N·m.
+    pub motor_torque_nm: f64,
+    /// Load (generator) torque, N·m.
+    pub load_torque_nm: f64,
     /// Integrand of the balance quadratures (see [`QUAD_NAMES`]), SI units per second.
     pub quad: [f64; N_QUAD],
     /// Stored mechanical spring energy in the hard stops, J.
@@ -489,6 +565,7 @@ impl Plant {
                     + del_cap * (g_cap - g_hm)
                     + suc_rod * (g_lm - g_rod)
                     + del_rod * (g_rod - g_hm);
+                e.quad[quad::PUMPED] += (del_cap + del_rod) * g_hm - (suc_cap + suc_rod) * g_lm;
                 e.spring_energy_j += 0.5 * k * (pen * pen + pen_end * pen_end);
             }
         }
@@ -559,6 +636,8 @@ impl Plant {
         e.q_relief_m3_s = q_relief;
         e.q_makeup_m3_s = q_makeup;
         e.q_motor_m3_s = q_motor;
+        e.motor_torque_nm = t_motor;
+        e.load_torque_nm = t_load;
         e.quad[0] = m_into_hp;
         e.quad[1] = m_valve;
         e.quad[2] = m_relief;
@@ -569,7 +648,14 @@ impl Plant {
             e.quad[8] += m_makeup * (g_lp - g_pm);
             e.quad[9] = m_valve * (g_hp - g_pm);
             e.quad[10] = m_relief * (g_hp - g_lp);
-            e.quad[11] = m_motor * (g_pm - g_lp) - t_motor * omega;
+            // The motor's exergy drop split between its leakage and its displacement flow (both
+            // at the density `mref` took for the whole flow); the displacement share not turned
+            // into shaft work is friction.
+            let density = if q_motor >= 0.0 { v_pm } else { v_lp };
+            let m_leak = b.motor_leak_m3_per_s_pa * dp_motor / density;
+            e.quad[quad::MOTOR_LEAKAGE] = m_leak * (g_pm - g_lp);
+            e.quad[quad::MOTOR_FRICTION] = (m_motor - m_leak) * (g_pm - g_lp) - t_motor * omega;
+            e.quad[quad::MOTOR_SHAFT] = t_motor * omega;
             e.quad[12] = t_load * omega;
             e.quad[13] = m_hline * (g_hm - g_hp) + m_lline * (g_lp - g_lm);
         }
@@ -601,11 +687,12 @@ impl Plant {
         ]
     }
 
-    /// Oil content (m³ of reference volume) and stored energy (J) at time `t` and state `y`:
+    /// Oil content (m³ of reference volume) and stored energy at time `t` and state `y`:
     /// `[HP side, motor inlet, LP side (with idle chambers), active chambers]`, a side being
-    /// its accumulator node plus its manifold node when the line has a resistance. Energy
-    /// includes the gas of both accumulators, the motor inertia and the hard-stop springs.
-    pub fn storage(&self, t: f64, y: &[f64]) -> ([f64; 4], f64) {
+    /// its accumulator node plus its manifold node when the line has a resistance. Energy: the
+    /// gas of both accumulators, the oil's compression, the motor inertia and the hard-stop
+    /// springs.
+    pub fn storage(&self, t: f64, y: &[f64]) -> ([f64; 4], Stored) {
         let b = &self.bench;
         let fl = &self.fluid;
         let (p2, lp, pm) = (y[self.i_p2] * BAR, y[self.i_lp] * BAR, y[self.i_pm] * BAR);
@@ -633,10 +720,13 @@ impl Plant {
             nodes.push((2, self.vol_lm + idle, y[i] * BAR));
         }
         let mut content = [0.0; 4];
-        let mut energy = self.hp_acc.stored_energy(p2) + self.lp_acc.stored_energy(lp);
+        let mut energy = Stored {
+            gas_j: self.hp_acc.stored_energy(p2) + self.lp_acc.stored_energy(lp),
+            ..Stored::default()
+        };
         for (side, vol, p) in nodes {
             content[side] += vol / fl.volume_ratio(p);
-            energy += fl.stored_energy(vol, p);
+            energy.oil_j += fl.stored_energy(vol, p);
         }
         for c in &self.active {
             let x = y[c.at + 2] * 1e-3;
@@ -648,11 +738,11 @@ impl Plant {
                 ),
             ] {
                 content[3] += vol / fl.volume_ratio(pc);
-                energy += fl.stored_energy(vol, pc);
+                energy.oil_j += fl.stored_energy(vol, pc);
             }
         }
-        energy += 0.5 * b.motor_inertia_kg_m2 * y[self.i_w].powi(2);
-        energy += self.evaluate(t, y, None, true).spring_energy_j;
+        energy.inertia_j = 0.5 * b.motor_inertia_kg_m2 * y[self.i_w].powi(2);
+        energy.stops_j = self.evaluate(t, y, None, true).spring_energy_j;
         (content, energy)
     }
 

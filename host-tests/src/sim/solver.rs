@@ -4,7 +4,8 @@
 //! sampling, balances) whose parts share its state; the trace and balance types sit with it.
 
 use crate::sim::bench::{BAR, Bench};
-use crate::sim::plant::{Eval, N_CYL, N_QUAD, Plant, QUAD_NAMES};
+use crate::sim::plant::{Eval, N_CYL, N_QUAD, Plant, QUAD_NAMES, Stored, quad};
+use crate::sim::power::Power;
 use diffsol::{
     NalgebraLU, NalgebraMat, NalgebraVec, OdeBuilder, OdeSolverMethod, OdeSolverStopReason, Vector,
 };
@@ -193,6 +194,13 @@ pub struct Trace {
     pub torque_nm: Vec<f64>,
     /// Per cylinder, N·m.
     pub torque_cyl_nm: [Vec<f64>; N_CYL],
+    /// Mechanical input power at the shaft, W.
+    pub input_power_w: Vec<f64>,
+    /// Hydraulic power into the control valve, P2 · valve flow, W (what the controller's
+    /// estimator reports).
+    pub valve_power_w: Vec<f64>,
+    /// Power into the load (the generator), W.
+    pub generator_power_w: Vec<f64>,
 }
 
 impl Trace {
@@ -217,6 +225,10 @@ impl Trace {
         self.p_motor_pa.push(e.p_motor_pa);
         self.aperture_pct.push(e.aperture_pct);
         self.torque_nm.push(e.torque_nm.iter().sum());
+        self.input_power_w.push(e.quad[quad::INPUT]);
+        self.valve_power_w.push(e.p2_pa * e.q_valve_m3_s);
+        self.generator_power_w
+            .push(e.load_torque_nm * e.omega_rad_s);
     }
 
     /// Number of samples.
@@ -264,6 +276,9 @@ impl Trace {
             "motor_speed_rpm",
             "valve_aperture_pct",
             "restraining_torque_nm",
+            "input_power_w",
+            "valve_power_w",
+            "generator_power_w",
         ]
         .iter()
         .map(|s| s.to_string())
@@ -295,6 +310,9 @@ impl Trace {
                 self.omega_rad_s[k] * rpm,
                 self.aperture_pct[k],
                 self.torque_nm[k],
+                self.input_power_w[k],
+                self.valve_power_w[k],
+                self.generator_power_w[k],
             ];
             for i in 0..N_CYL {
                 row.extend([
@@ -323,6 +341,15 @@ pub struct Balance {
     pub energy_rel_error: f64,
     /// Energy into storage (oil, accumulator gas, motor inertia, hard stops), kJ.
     pub stored_kj: f64,
+    /// That change by where it is stored, J.
+    pub stored: Stored,
+}
+
+impl Balance {
+    /// An integrated term by its index in [`QUAD_NAMES`] (L or kJ).
+    pub fn integral(&self, i: usize) -> f64 {
+        self.integrals[i].1
+    }
 }
 
 impl Balance {
@@ -357,6 +384,8 @@ pub struct SimResult {
     pub stats: Stats,
     /// Time at which a threshold schedule opened the valve, s.
     pub valve_opened_at: Option<f64>,
+    /// Mean powers, losses by cause and efficiency, from the energy balance's terms.
+    pub power: Power,
 }
 
 /// Why a run failed.
@@ -720,6 +749,7 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let g = solver.state().g.clone_as_vec();
     let y_end = yv.clone();
     let balance = balances(plant, (0.0, &y0), (t_end, &y_end), &g);
+    let power = Power::of(&balance, t_end);
     let stats = Stats {
         steps,
         rhs_evals: cache.borrow().evals,
@@ -730,6 +760,7 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
         balance,
         stats,
         valve_opened_at,
+        power,
     })
 }
 
@@ -764,9 +795,10 @@ fn balances(plant: &Plant, (t0, y0): (f64, &[f64]), (t1, y1): (f64, &[f64]), g: 
     let total = m1.iter().sum::<f64>() - m0.iter().sum::<f64>();
     let scale = if moved > 0.0 { moved } else { m0.iter().sum() };
     volume_rel_error[4] = total.abs() / scale;
-    let stored = e1 - e0;
-    let losses = w(7) + w(8) + w(9) + w(10) + w(11) + w(12) + w(13);
-    let input = w(6);
+    let stored_by = e1.since(&e0);
+    let stored = stored_by.total();
+    let losses: f64 = quad::OUT.iter().map(|&i| w(i)).sum();
+    let input = w(quad::INPUT);
     let resid = input - losses - stored;
     let scale = input.abs() + losses.abs() + stored.abs();
     Balance {
@@ -782,5 +814,6 @@ fn balances(plant: &Plant, (t0, y0): (f64, &[f64]), (t1, y1): (f64, &[f64]), g: 
             0.0
         },
         stored_kj: stored * 1e-3,
+        stored: stored_by,
     }
 }
