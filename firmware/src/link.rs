@@ -110,6 +110,7 @@ mod tests {
         e2.q_pump_mean.0 = big;
         e2.q_valve.0 = big;
         e2.q_relief.0 = big;
+        e2.hydraulic_power.0 = big;
         e2.torque.0 = big;
         e2.motor_rpm.0 = big;
         e2.autonomy.0 = big;

@@ -11,6 +11,7 @@
 //! | [`Rpm`] | rev/min | 0 … 10 000 | 1.5e-5 rpm |
 //! | [`Aperture`] | % of the valve stroke | 0 … 100 | 1.5e-5 % |
 //! | [`Seconds`] | s | 0 … 32 767 | 1.5e-5 s |
+//! | [`HydraulicPower`] | W | 0 … 32 767 (a 400 bar, 11.8 L/min valve flow: saturates above) | 1.5e-5 W |
 //!
 //! Q16.16 holds every signal of the bench with headroom (the largest, restraining torque, peaks at
 //! ≈ 6 kN·m with all four cylinders at 130 bar). Products that could exceed it (Δp², K⁴β²) are
@@ -116,6 +117,13 @@ quantity!(
     /// Time, s.
     Seconds, "s"
 );
+quantity!(
+    /// Hydraulic power, W.
+    HydraulicPower, "W"
+);
+
+/// 1 bar · 1 L/min in W: 1e5 Pa · 1e-3/60 m³/s = 5/3 W (Q16.16: 109 227/65 536, 3.1e-6 high).
+pub const W_PER_BAR_LPM: Fx = Fx::from_bits(109_227);
 
 /// Multiplication by dt = 2^−k, k = `dt_log2` in 1..=31 (the configuration allows 6..=12): a
 /// rounding arithmetic shift (a truncating one would bias every integrated quantity by −½ LSB

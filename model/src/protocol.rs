@@ -64,7 +64,7 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 /// Protocol version (in `Hello`).
-pub const PROTOCOL_VERSION: u16 = 3;
+pub const PROTOCOL_VERSION: u16 = 4;
 
 /// Hash of the postcard schemas of [`ToFirmware`] and [`FromFirmware`] (each hashed with its
 /// path by `postcard-schema`, FNV-1a 64, the two combined): it changes with any field, variant

@@ -340,7 +340,7 @@ pub(crate) fn monitor_cmd(
             let e = &tel.estimate;
             let line = format!(
                 "t {:>8.2} s  P2 {:>6.2} ± {:.2} bar (HP {})  LP {:>5.2}  motor {:>6.1} rpm  \
-                 torque {:>7.0} N·m  valve {:>5.1} %{}  faults {:#06x}  frames {} ok, {} lost, {} bad",
+                 torque {:>7.0} N·m  valve {:>5.1} %{} {:>6.0} W  faults {:#06x}  frames {} ok, {} lost, {} bad",
                 s.t_s,
                 e.p2.to_f32(),
                 e.p2_sigma().to_f32(),
@@ -350,6 +350,7 @@ pub(crate) fn monitor_cmd(
                 e.torque.to_f32(),
                 tel.applied.to_f32(),
                 if tel.dump { " DUMP" } else { "" },
+                e.hydraulic_power.to_f32(),
                 e.faults,
                 c.ok - before.ok,
                 c.lost - before.lost,

@@ -33,7 +33,7 @@ pub(crate) fn validate_cmd(
         return Ok(rep.pass);
     }
     println!(
-        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8} {:>7}",
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8} {:>7}",
         "scenario",
         "P2 RMS",
         "P2 max",
@@ -44,16 +44,29 @@ pub(crate) fn validate_cmd(
         "torque",
         "T 4 s",
         "motor",
+        "power",
         "fx P2",
         "fx T",
         ""
     );
     println!(
-        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8}",
-        "(unit)", "bar", "bar", "bar", "%", "%", "ms", "of peak", "of peak", "of RMS", "bar", "N·m"
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8}",
+        "(unit)",
+        "bar",
+        "bar",
+        "bar",
+        "%",
+        "%",
+        "ms",
+        "of peak",
+        "of peak",
+        "of RMS",
+        "of mean",
+        "bar",
+        "N·m"
     );
     println!(
-        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>8}",
+        "{:<20} {:>7} {:>6} {:>7} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7} {:>8}",
         "(target)",
         format!("≤{}", target::P2_RMS_BAR),
         "-",
@@ -64,6 +77,7 @@ pub(crate) fn validate_cmd(
         format!("≤{}%", target::TORQUE_RMS_OF_PEAK * 100.0),
         "-",
         format!("≤{}%", target::MOTOR_RMS_REL * 100.0),
+        "-",
         format!("≤{}*", target::FIXED_VS_F64_BAR),
         format!("≤{}*", target::FIXED_VS_F64_NM)
     );
@@ -71,7 +85,7 @@ pub(crate) fn validate_cmd(
     for r in &rep.rows {
         let misses = &r.missed;
         println!(
-            "{:<20} {:>7.3} {:>6.2} {:>7.3} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7.4} {:>8.3}  {}",
+            "{:<20} {:>7.3} {:>6.2} {:>7.3} {:>11} {:>11} {:>6} {:>7} {:>7} {:>7} {:>7} {:>7.4} {:>8.3}  {}",
             r.scenario,
             r.p2_rms_bar,
             r.p2_max_bar,
@@ -91,6 +105,7 @@ pub(crate) fn validate_cmd(
             pct(r.torque_rms_of_peak),
             pct(r.torque_worst_4s_of_peak),
             pct(r.motor_rms_rel),
+            pct(r.valve_power_rms_of_mean),
             r.fixed_vs_f64_bar,
             r.fixed_vs_f64_nm,
             if misses.is_empty() {
@@ -102,7 +117,8 @@ pub(crate) fn validate_cmd(
     }
     println!(
         "σ coverage: with the transducer / without it (%). T 4 s: the largest RMS torque error \
-         over 4 s (not a target). * no-HP ≤ {} bar in runs whose \
+         over 4 s (not a target). Power: the estimate's P2 · valve flow against the plant's, RMS \
+         error of the mean (not a target). * no-HP ≤ {} bar in runs whose \
          estimate stays above the precharge + {} bar (else σ coverage and the empty flag, ms \
          after the bench's accumulator ran empty, judge it); fixed vs f64 ≤ {} bar and ≤ {} N·m \
          where P2 stays out of the cells at the precharge, else ≤ {} bar (torque not judged)",

@@ -262,7 +262,7 @@ impl Units {
 /// The bench log's columns (`pto fit` reads the first eight; the estimates follow).
 pub const LOG_HEADER: &str = "time_s,shaft_angle_deg,p2_bar,lp_bar,motor_rpm,aperture_pct,\
 on_duty,config,tick,p2_est_bar,p2_sigma_bar,lp_est_bar,torque_est_nm,q_pump_est_lpm,\
-q_valve_est_lpm,motor_est_rpm,aperture_cmd_pct,dump,faults";
+q_valve_est_lpm,motor_est_rpm,aperture_cmd_pct,dump,faults,hydraulic_power_est_w";
 
 /// A bench log being recorded: rows go to `FILE.part`, which becomes `FILE` when it is
 /// finished (an interrupted run leaves no half log under the final name).
@@ -312,7 +312,7 @@ impl LogWriter {
             .collect();
         writeln!(
             self.out,
-            "{:.6},{:.4},{:.3},{:.3},{:.2},{:.3},{},{},{},{:.4},{:.4},{:.4},{:.2},{:.4},{:.4},{:.2},{:.3},{},{:#06x}",
+            "{:.6},{:.4},{:.3},{:.3},{:.2},{:.3},{},{},{},{:.4},{:.4},{:.4},{:.2},{:.4},{:.4},{:.2},{:.3},{},{:#06x},{:.2}",
             s.t_s,
             s.shaft_angle_deg,
             p2,
@@ -331,7 +331,8 @@ impl LogWriter {
             e.motor_rpm.to_f32(),
             t.command.aperture.to_f32(),
             u8::from(t.dump),
-            e.faults
+            e.faults,
+            e.hydraulic_power.to_f32()
         )
         .map_err(|source| ClientError::Log {
             path: self.part.clone(),

@@ -40,12 +40,14 @@ pub enum GoldenError {
         key: &'static str,
     },
     /// A line has the wrong number of columns.
-    #[error("golden file line {line}: {columns} columns, want 22")]
+    #[error("golden file line {line}: {columns} columns, want {want}")]
     Columns {
         /// 1-based line.
         line: usize,
         /// Columns found.
         columns: usize,
+        /// Columns of the header.
+        want: usize,
     },
     /// A cell is not an integer.
     #[error("line {line}")]
@@ -61,7 +63,7 @@ pub enum GoldenError {
 pub const FILE: &str = "data/golden-vectors.csv";
 /// Setpoint of the scheduler in the vectors, bar.
 pub const SETPOINT_BAR: f32 = 100.0;
-const HEADER: &str = "step,encoder,hp,lp,motor,aperture_cmd,on_duty,config,p2,p2_var,lp_est,q_pump,q_valve,q_relief,torque,motor_rpm,autonomy,aperture,faults,hp_empty,cmd_aperture,safety";
+const HEADER: &str = "step,encoder,hp,lp,motor,aperture_cmd,on_duty,config,p2,p2_var,lp_est,q_pump,q_valve,q_relief,hydraulic_power,torque,motor_rpm,autonomy,aperture,faults,hp_empty,cmd_aperture,safety";
 
 /// Which steps of a replay get a fault injected.
 pub type Faults = fn(usize, Option<i32>, f64) -> (Option<i32>, Option<f64>);
@@ -196,7 +198,7 @@ pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) 
     for (i, (inp, (e, c))) in inputs.iter().zip(out).enumerate() {
         let _ = writeln!(
             s,
-            "{i},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{i},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             opt(inp.encoder),
             opt(inp.hp.map(|p| p.to_bits())),
             opt(inp.lp.map(|p| p.to_bits())),
@@ -210,6 +212,7 @@ pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) 
             e.q_pump.to_bits(),
             e.q_valve.to_bits(),
             e.q_relief.to_bits(),
+            e.hydraulic_power.to_bits(),
             e.torque.to_bits(),
             e.motor_rpm.to_bits(),
             e.autonomy.to_bits(),
@@ -243,10 +246,12 @@ pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), GoldenError> {
     let mut inputs = Vec::new();
     for (n, l) in lines.enumerate() {
         let c: Vec<&str> = l.split(',').collect();
-        if c.len() != 22 {
+        let want = HEADER.split(',').count();
+        if c.len() != want {
             return Err(GoldenError::Columns {
                 line: n + 3,
                 columns: c.len(),
+                want,
             });
         }
         let num = |s: &str| -> Result<i32, GoldenError> {

@@ -30,12 +30,23 @@ impl Truth {
     }
 }
 
-/// Plant values at time `t` of a trace (linear interpolation).
-pub fn truth_at(tr: &Trace, t: f64) -> Truth {
+/// The sample pair around `t` and the fraction of the way from the first to the second.
+fn bracket(tr: &Trace, t: f64) -> (usize, f64) {
     let n = tr.len();
     let k = tr.t_s.partition_point(|&x| x <= t).clamp(1, n - 1);
     let (t0, t1) = (tr.t_s[k - 1], tr.t_s[k]);
-    let u = ((t - t0) / (t1 - t0)).clamp(0.0, 1.0);
+    (k, ((t - t0) / (t1 - t0)).clamp(0.0, 1.0))
+}
+
+/// Column `v` of a trace at time `t` (linear interpolation).
+pub fn value_at(tr: &Trace, v: &[f64], t: f64) -> f64 {
+    let (k, u) = bracket(tr, t);
+    v[k - 1] + u * (v[k] - v[k - 1])
+}
+
+/// Plant values at time `t` of a trace (linear interpolation).
+pub fn truth_at(tr: &Trace, t: f64) -> Truth {
+    let (k, u) = bracket(tr, t);
     let l = |v: &[f64]| v[k - 1] + u * (v[k] - v[k - 1]);
     Truth {
         p2_bar: l(&tr.p2_pa) / BAR,

@@ -25,8 +25,9 @@ use crate::coeffs::{
     TRACKER_STARTUP, TRACKER_STARTUP_MAX, tracker_startup_gains,
 };
 use crate::fx::{
-    Angle, AngularSpeed, Aperture, Flow, Fx, ONE, Pressure, PressureVariance, QMul, Rpm, Seconds,
-    Torque, ZERO, clamp, mul_bounded, mul_dt, mul_frac, mul_q24, recip, shr64, sqrt0,
+    Angle, AngularSpeed, Aperture, Flow, Fx, HydraulicPower, ONE, Pressure, PressureVariance, QMul,
+    Rpm, Seconds, Torque, W_PER_BAR_LPM, ZERO, clamp, mul_bounded, mul_dt, mul_frac, mul_q24,
+    recip, shr64, sqrt0,
 };
 use crate::table::Table1;
 
@@ -105,6 +106,9 @@ pub struct Estimate {
     pub q_valve: Flow,
     /// Relief flow.
     pub q_relief: Flow,
+    /// Hydraulic power into the control valve, P2 · valve flow (what drives the motor and the
+    /// valve's throttling; 0 … 32 767 W, saturating).
+    pub hydraulic_power: HydraulicPower,
     /// Restraining torque at the shaft.
     pub torque: Torque,
     /// Per cylinder.
@@ -293,6 +297,17 @@ use observer::*;
 pub use tracker::TrackerState;
 use tracker::*;
 
+/// P2 · valve flow in W, floored at 0 (no power flows back through the valve into HP: its flow
+/// is 0 unless P2 is above the motor inlet) and saturating at the Q16.16 range: two saturating
+/// multiplications.
+fn hydraulic_power(p2_bar: Fx, q_valve_lpm: Fx) -> HydraulicPower {
+    let w = p2_bar
+        .max(ZERO)
+        .saturating_mul(W_PER_BAR_LPM)
+        .saturating_mul(q_valve_lpm.max(ZERO));
+    HydraulicPower(w)
+}
+
 /// Advances the estimator by one step. Cannot fail; every reading may be missing or wrong.
 pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let dtl = k.dt_log2;
@@ -397,6 +412,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         q_pump_mean: Flow(s.q_mean),
         q_valve: Flow(br.q_valve),
         q_relief: Flow(br.q_relief),
+        hydraulic_power: hydraulic_power(s.node.p2, br.q_valve),
         torque: Torque(torque),
         torque_cyl,
         motor_rpm: Rpm(br.motor_rpm),

@@ -563,3 +563,28 @@ proptest! {
         prop_assert!(pp >= P_MIN && pp <= P_MAX);
     }
 }
+
+#[test]
+fn hydraulic_power_is_p2_times_valve_flow_in_watts() {
+    // 1 bar · 1 L/min = 5/3 W; each Q16.16 product rounds by ≤ 1 LSB and the constant is 3.1e-6
+    // high.
+    let mut worst = 0.0f64;
+    for p2 in [0.0f32, 8.0, 60.0, 100.0, 129.5, 130.0, 400.0] {
+        for q in [0.0f32, 0.01, 1.53, 2.61, 7.9, 11.0] {
+            let (p2, q) = (Fx::from_num(p2), Fx::from_num(q));
+            let w = hydraulic_power(p2, q).0.to_num::<f64>();
+            // Against the product of the Q16.16 inputs (their own rounding is the caller's).
+            let want = (p2.to_num::<f64>() * q.to_num::<f64>() * 5.0 / 3.0).min(32_767.999);
+            // In LSB beyond the constant's 3.1e-6.
+            let lsb = 2f64.powi(-16);
+            worst = worst.max(((w - want).abs() - 3.1e-6 * want).max(0.0) / lsb);
+        }
+    }
+    println!("hydraulic power: worst error {worst:.2} LSB beyond the constant's 3.1e-6");
+    assert!(worst <= 2.0, "{worst}");
+    // Saturation and the floor.
+    let max = hydraulic_power(Fx::from_num(400), Fx::from_num(1000));
+    assert_eq!(max.0, Fx::MAX);
+    assert_eq!(hydraulic_power(Fx::from_num(-0.5), Fx::from_num(2)).0, ZERO);
+    assert_eq!(hydraulic_power(Fx::from_num(100), Fx::from_num(-1)).0, ZERO);
+}

@@ -8,7 +8,7 @@ use crate::model::sensors::{SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::scenario::{RunError, Scenario};
 use crate::sim::solver::SolverOptions;
-use crate::sim::trace::{Truth, truth_at};
+use crate::sim::trace::{Truth, truth_at, value_at};
 use pto_model::estimator::{self, Estimate, Inputs, State};
 use pto_model::fx::Pressure;
 use pto_model::table::Table1;
@@ -79,6 +79,9 @@ pub struct Row {
     pub torque_worst_4s_at_s: Option<f64>,
     /// Motor speed RMS error / RMS speed (None when the motor does not turn).
     pub motor_rms_rel: Option<f64>,
+    /// Hydraulic power into the valve (the estimate's P2 · valve flow against the plant's): RMS
+    /// error / mean power (information, not a target; None when the mean is below 1 W).
+    pub valve_power_rms_of_mean: Option<f64>,
     /// Max |P2 fixed − P2 f64|, bar, over both runs (with the HP transducer, and without it for
     /// the first 60 s).
     pub fixed_vs_f64_bar: f64,
@@ -162,6 +165,7 @@ fn validate_scenario(
     );
     let mut rf = Reference::new(mcfg, k, t0.p2_bar, t0.lp_bar, 1.0);
     let (mut se_p2, mut se_tq, mut se_w, mut ss_w, mut peak_tq) = (0.0, 0.0, 0.0, 0.0, 0.0f64);
+    let (mut se_pw, mut sum_pw) = (0.0, 0.0);
     let (mut d_p2, mut d_tq, mut se_d_tq) = (0.0f64, 0.0f64, 0.0f64);
     let mut count = 0.0f64;
     let mut max_p2 = 0.0f64;
@@ -204,6 +208,9 @@ fn validate_scenario(
             worst_window.add(t, (tq - truth.torque_nm).powi(2));
             se_w += (w - truth.motor_rpm).powi(2);
             ss_w += truth.motor_rpm.powi(2);
+            let pw = value_at(tr, &tr.valve_power_w, t);
+            se_pw += (f64::from(e.hydraulic_power.to_f32()) - pw).powi(2);
+            sum_pw += pw;
             peak_tq = peak_tq.max(truth.torque_nm.abs());
             count += 1.0;
             cover.add(p2 - truth.p2_bar, &e);
@@ -251,6 +258,8 @@ fn validate_scenario(
     let moving = !matches!(s.motion, crate::sim::motion::MotionSpec::Blocked { .. });
     let worst = worst_window.worst().filter(|_| moving);
     let motor_rms_rel = (ss_w / count.max(1.0) > 1.0).then(|| (se_w / ss_w).sqrt());
+    let mean_pw = sum_pw / count.max(1.0);
+    let valve_power_rms_of_mean = (mean_pw > 1.0).then(|| rms(se_pw) / mean_pw);
     let row = Row {
         scenario: s.name.clone(),
         p2_rms_bar: rms(se_p2),
@@ -260,6 +269,7 @@ fn validate_scenario(
         torque_worst_4s_of_peak: worst.map(|(ms, _)| ms.sqrt() / peak_tq.max(1.0)),
         torque_worst_4s_at_s: worst.map(|(_, t)| t),
         motor_rms_rel,
+        valve_power_rms_of_mean,
         fixed_vs_f64_bar: d_p2.max(d_p2_mo),
         fixed_vs_f64_nm: (se_d_tq / n.max(1) as f64).sqrt(),
         fixed_vs_f64_nm_max: d_tq,
