@@ -77,6 +77,27 @@ fn simulate_writes_csv_with_units_and_a_json_summary() {
     }
     assert_eq!(csv.lines().count(), 1 + 6001);
     assert!(dir.join("torque-cfg1-c14.png").exists() && dir.join("torque-cfg1-c14.svg").exists());
+    // Power: the path from the shaft to the generator closes with the energy balance, and its
+    // figures are written.
+    let p = &v["power"];
+    let f = |k: &str| p[k].as_f64().unwrap_or(f64::NAN);
+    println!(
+        "input {:.1} W, pumped {:.1} W, generator {:.1} W, efficiency {}, closure {:e}",
+        f("input_w"),
+        f("pumped_w"),
+        f("generator_w"),
+        p["efficiency"],
+        f("closure_rel")
+    );
+    assert!(f("closure_rel") <= 1e-4);
+    assert!(f("input_w") > f("pumped_w") && f("pumped_w") > 0.0);
+    for name in ["torque-cfg1-c14-power", "torque-cfg1-c14-losses"] {
+        assert!(dir.join(format!("{name}.png")).exists(), "{name}");
+        assert!(dir.join(format!("{name}.svg")).exists(), "{name}");
+    }
+    for col in ["input_power_w", "valve_power_w", "generator_power_w"] {
+        assert!(header.split(',').any(|h| h == col), "missing {col}");
+    }
 }
 
 #[test]
