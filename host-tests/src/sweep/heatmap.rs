@@ -5,7 +5,7 @@ use super::point_of;
 use super::run::Status;
 use super::store::Identity;
 use super::table::{Cells, Table};
-use crate::plot::{DrawError, Drawing, PlotError, write_png_svg};
+use crate::plot::{DrawError, PlotError, Render, write_both};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
@@ -168,11 +168,11 @@ impl HeatMap {
 
     /// Writes `<dir>/<name>.png` and `.svg`; returns the PNG path.
     pub fn write(&self, dir: &Path) -> Result<PathBuf, PlotError> {
-        write_png_svg(self, dir)
+        write_both(self, dir)
     }
 }
 
-impl Drawing for HeatMap {
+impl Render for HeatMap {
     fn name(&self) -> &str {
         &self.name
     }
@@ -186,10 +186,10 @@ impl Drawing for HeatMap {
         )
     }
 
-    fn draw<DB: DrawingBackend>(
+    fn render<DB: DrawingBackend>(
         &self,
         root: DrawingArea<DB, Shift>,
-        _line_px: u32,
+        _width: u32,
     ) -> Result<(), DrawError>
     where
         DB::ErrorType: 'static,

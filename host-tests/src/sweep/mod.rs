@@ -31,7 +31,7 @@
 //! `scenario.cylinders`, `scenario.config`) or `controller.` (`mode`: `scenario` — the
 //! scenario's own valve schedule, the default — or a scheduler mode `fixed`, `hold-pressure`,
 //! `hold-speed`, `max-autonomy` with its `setpoint` in %, bar or rpm, driving the valve through
-//! the fixed-point controller; `seed`: its sensor noise).
+//! the fixed-point controller; `seed`: its sensor noise; `dt_log2`: its step, 2^−dt_log2 s).
 
 pub mod heatmap;
 pub mod run;
@@ -52,7 +52,7 @@ pub const MAX_RUNS: usize = 10_000_000;
 /// The most problems a refused matrix lists (then how many more).
 const MAX_PROBLEMS: usize = 20;
 /// Bumped when a run's figures change meaning: rows of an older format are run again.
-pub const ROW_FORMAT: u32 = 1;
+pub const ROW_FORMAT: u32 = 2;
 
 /// Why a matrix was refused: every problem, each named with the matrix file.
 #[derive(Debug, Clone, PartialEq)]
@@ -165,6 +165,10 @@ pub struct ControllerSpec {
     /// Seed of the controller's sensor noise.
     #[serde(default = "default_seed")]
     pub seed: u64,
+    /// The controller's step, 2^−dt_log2 s (6..=12; default the bench's model configuration,
+    /// 10: 1024 Hz, as the firmware; 8 runs about three times faster).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dt_log2: Option<u8>,
 }
 
 fn scenario_mode() -> String {
@@ -183,6 +187,7 @@ impl Default for ControllerSpec {
             mode: scenario_mode(),
             setpoint: None,
             seed: default_seed(),
+            dt_log2: None,
         }
     }
 }
@@ -223,11 +228,12 @@ pub struct RunSpec {
 
 impl RunSpec {
     /// The run's identity: a hash of everything that decides its result (the bench file, the
-    /// scenario, the controller, the solver tolerance and [`ROW_FORMAT`]), however the matrix
-    /// wrote it. A rerun skips a run whose key has a row.
+    /// scenario, the controller, the solver tolerance, [`ROW_FORMAT`] and `pto`'s version),
+    /// however the matrix wrote it. A rerun skips a run whose key has a row.
     pub fn key(&self) -> RunKey {
         let text = format!(
-            "{ROW_FORMAT}\n{}\n{}\n{}\n{}\n{:e} {:e}",
+            "{ROW_FORMAT} {}\n{}\n{}\n{}\n{}\n{:e} {:e}",
+            env!("CARGO_PKG_VERSION"),
             toml::to_string(&self.bench.file).unwrap_or_default(),
             toml::to_string(&self.scenario).unwrap_or_default(),
             self.scenario_dir.display(),

@@ -16,8 +16,9 @@ const RPM: f64 = 30.0 / std::f64::consts::PI;
 /// ([`Status::Balance`]).
 pub const BALANCE_REL: f64 = crate::paper::tol::BALANCE_REL;
 
-/// A finished run's figures. Means are over the run's output samples (a uniform grid); power
-/// figures are the mean over the whole run.
+/// A finished run's figures. Pressure and speed statistics are over the run's output samples
+/// (a uniform grid); powers are means over the whole run from the energy balance's own terms
+/// (`sim::power::Power`, the run's `power`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Figures {
     /// Simulated time, s.
@@ -43,15 +44,22 @@ pub struct Figures {
     /// Standard deviation of the motor speed, rpm.
     pub motor_speed_std_rpm: f64,
     /// Mean mechanical power into the cylinders at the shaft, W.
-    pub input_power_w: Option<f64>,
-    /// Mean hydraulic power pumped into HP, W.
-    pub pumped_power_w: Option<f64>,
+    pub input_power_w: f64,
+    /// Mean hydraulic power pumped into HP (exergy delivered into HP minus that drawn from
+    /// LP), W.
+    pub pumped_power_w: f64,
     /// Mean power at the motor's shaft, W.
-    pub motor_shaft_power_w: Option<f64>,
+    pub motor_shaft_power_w: f64,
     /// Mean power into the generator load, W.
-    pub generator_power_w: Option<f64>,
-    /// Generator power over input power, %.
+    pub generator_power_w: f64,
+    /// Generator power over input power, % (none when the input is not positive).
     pub efficiency_pct: Option<f64>,
+    /// Mean dissipation, all causes, W.
+    pub losses_w: f64,
+    /// Mean dissipation in the relief valve, W.
+    pub relief_loss_w: f64,
+    /// Mean rate of change of the stored energy (accumulators, oil, inertia, stops), W.
+    pub stored_w: f64,
     /// Worst relative error of the run's oil and energy balances.
     pub balance_worst_rel: f64,
 }
@@ -122,7 +130,10 @@ fn prepare(spec: &RunSpec) -> Result<Prepared, String> {
 fn controller(spec: &RunSpec, prep: &Prepared, mode: Mode) -> Result<ModelController, String> {
     let err =
         |e: &(dyn std::error::Error + 'static)| format!("controller: {}", crate::error_chain(e));
-    let mcfg = model_config(&spec.bench).map_err(|e| err(&e))?;
+    let mut mcfg = model_config(&spec.bench).map_err(|e| err(&e))?;
+    if let Some(d) = spec.controller.dt_log2 {
+        mcfg.dt_log2 = d;
+    }
     let (sched, _) = controller_config(&spec.bench);
     let c = ModelController::new(
         &mcfg,
@@ -208,7 +219,7 @@ pub fn figures(spec: &RunSpec, res: &SimResult) -> Result<Figures, String> {
         .filter(|(_, p)| **p >= relief)
         .map(|(w, _)| w[1] - w[0])
         .fold(0.0, |a, b| a + b);
-    let power = power(res);
+    let power = &res.power;
     let f = Figures {
         simulated_s: t.t_s[t.len() - 1],
         steps: res.stats.steps as u64,
@@ -226,6 +237,9 @@ pub fn figures(spec: &RunSpec, res: &SimResult) -> Result<Figures, String> {
         motor_shaft_power_w: power.motor_shaft_w,
         generator_power_w: power.generator_w,
         efficiency_pct: power.efficiency.map(|e| e * 100.0),
+        losses_w: power.losses.total_w(),
+        relief_loss_w: power.losses.relief_w,
+        stored_w: power.stored_w.total_w(),
         balance_worst_rel: res.balance.worst(),
     };
     let all = [
@@ -238,19 +252,15 @@ pub fn figures(spec: &RunSpec, res: &SimResult) -> Result<Figures, String> {
         f.motor_speed_max_rpm,
         f.motor_speed_std_rpm,
         f.balance_worst_rel,
-    ];
-    let optional = [
         f.input_power_w,
         f.pumped_power_w,
         f.motor_shaft_power_w,
         f.generator_power_w,
-        f.efficiency_pct,
+        f.losses_w,
+        f.relief_loss_w,
+        f.stored_w,
     ];
-    if all
-        .iter()
-        .chain(optional.iter().flatten())
-        .all(|x| x.is_finite())
-    {
+    if all.iter().chain(&f.efficiency_pct).all(|x| x.is_finite()) {
         Ok(f)
     } else {
         Err(format!("a figure of the run is not finite: {f:?}"))
@@ -268,40 +278,4 @@ fn stats(x: &[f64]) -> (f64, f64, f64, f64) {
             (lo.min(*v), hi.max(*v))
         });
     (lo, mean, hi, var.sqrt())
-}
-
-/// A run's mean powers, W, and efficiency (fraction), where the simulation gives them.
-struct PowerFigures {
-    input_w: Option<f64>,
-    pumped_w: Option<f64>,
-    motor_shaft_w: Option<f64>,
-    generator_w: Option<f64>,
-    efficiency: Option<f64>,
-}
-
-/// The run's powers from the solver's energy integrals over the run (`input_work_kj`,
-/// `load_work_kj`): the input at the shaft and the generator load; the others are not
-/// integrated by this simulation.
-fn power(res: &SimResult) -> PowerFigures {
-    let duration = res.trace.t_s.last().copied().unwrap_or(0.0);
-    let mean_w = |name: &str| {
-        res.balance
-            .integrals
-            .iter()
-            .find(|(n, _)| n == name)
-            .filter(|_| duration > 0.0)
-            .map(|(_, kj)| kj * 1e3 / duration)
-    };
-    let input_w = mean_w("input_work_kj");
-    let generator_w = mean_w("load_work_kj");
-    PowerFigures {
-        input_w,
-        pumped_w: None,
-        motor_shaft_w: None,
-        generator_w,
-        efficiency: match (generator_w, input_w) {
-            (Some(g), Some(i)) if i > 0.0 => Some(g / i),
-            _ => None,
-        },
-    }
 }

@@ -99,12 +99,15 @@ pub enum TableError {
 /// The figures' columns: name (with unit) and value.
 type FigureColumn = (&'static str, fn(&Figures) -> Option<f64>);
 
-const FIGURES: [FigureColumn; 16] = [
-    ("input_power_w", |f| f.input_power_w),
-    ("pumped_power_w", |f| f.pumped_power_w),
-    ("motor_shaft_power_w", |f| f.motor_shaft_power_w),
-    ("generator_power_w", |f| f.generator_power_w),
+const FIGURES: [FigureColumn; 19] = [
+    ("input_power_w", |f| Some(f.input_power_w)),
+    ("pumped_power_w", |f| Some(f.pumped_power_w)),
+    ("motor_shaft_power_w", |f| Some(f.motor_shaft_power_w)),
+    ("generator_power_w", |f| Some(f.generator_power_w)),
     ("efficiency_pct", |f| f.efficiency_pct),
+    ("losses_w", |f| Some(f.losses_w)),
+    ("relief_loss_w", |f| Some(f.relief_loss_w)),
+    ("stored_w", |f| Some(f.stored_w)),
     ("p2_min_bar", |f| Some(f.p2_min_bar)),
     ("p2_mean_bar", |f| Some(f.p2_mean_bar)),
     ("p2_max_bar", |f| Some(f.p2_max_bar)),
