@@ -111,13 +111,18 @@ pub(crate) fn sweep_cmd(o: SweepOptions) -> Result<bool> {
     if !o.json {
         eprintln!("checking the {} runs of {}…", m.len(), m.source);
     }
-    let keys = m.plan()?;
+    let keys = m.keys()?;
     let mut identity = Identity::new(&m, keys, o.shard);
     identity.heatmap = heatmap;
     let indices = identity.indices();
     if o.dry_run {
+        m.check(&(0..m.len()).collect::<Vec<_>>())?;
         return dry_run(&m, &identity, o.out, o.json);
     }
+    // Every run this sweep is to make prepares before any runs (and before --out is touched);
+    // a shard checks its own runs (`--dry-run` checks them all, before a job array).
+    let before = store::read_rows(&o.out.join(store::ROWS), false)?;
+    m.check(&store::pending(&identity, &before, o.retry_failed))?;
     let (store, mut rows) = Store::open(o.out, &identity)?;
     let todo = store::pending(&identity, &rows, o.retry_failed);
     let skipped = indices.len() - todo.len();

@@ -1,8 +1,8 @@
 //! `pto sweep`: a design matrix whose axes are any bench, scenario or controller field, run on
 //! all cores into one row per run (CSV and Parquet), resumable and shardable.
 //!
-//! - this module: the matrix file, its expansion into runs, their validation (every run
-//!   prepares before any runs), their identities, shards;
+//! - this module: the matrix file, its expansion into runs, their validation (every run is
+//!   built, and every run to be made prepares, before any runs), their identities, shards;
 //! - [`run`]: one run and its row of figures;
 //! - [`store`]: the output folder (`sweep.json`, `runs.jsonl`), resuming, merging shards;
 //! - [`table`]: the rows as typed columns, written as CSV and Parquet and read back;
@@ -557,30 +557,85 @@ impl Matrix {
         })
     }
 
-    /// Checks every run before any runs (it builds, its scenario prepares on its bench, its
-    /// controller takes the bench), on all cores; returns each run's key, in index order. A
-    /// refusal lists the runs that fail (the first [`MAX_PROBLEMS`]) with their values.
-    pub fn plan(&self) -> Result<Vec<RunKey>, MatrixError> {
-        let checked: Vec<Result<RunKey, String>> = (0..self.len())
+    /// Every run's key, in run order: each run is built (its fields exist, its values have
+    /// their fields' types, its bench is inside every range, its controller mode is known) and
+    /// no two are the same run. Quick (no run is prepared): [`Matrix::check`] does the rest.
+    pub fn keys(&self) -> Result<Vec<RunKey>, MatrixError> {
+        let built: Vec<Result<RunKey, String>> = (0..self.len())
             .into_par_iter()
             .map(|i| {
                 let spec = self.spec(i)?;
-                run::check(&spec)?;
+                spec.controller.scheduler_mode()?;
                 Ok(spec.key())
             })
             .collect();
+        let keys = self.refusals(built.into_iter().enumerate())?;
+        let mut problems = Vec::new();
+        let mut first = std::collections::HashMap::new();
+        for (i, k) in keys.iter().enumerate() {
+            if let Some(j) = first.insert(*k, i) {
+                problems.push(format!(
+                    "run {} ({}) is run {} ({}) again: the same bench, scenario and controller",
+                    i + 1,
+                    self.describe(i),
+                    j + 1,
+                    self.describe(j)
+                ));
+                if problems.len() >= MAX_PROBLEMS {
+                    break;
+                }
+            }
+        }
+        if problems.is_empty() {
+            Ok(keys)
+        } else {
+            Err(MatrixError {
+                file: self.source.clone(),
+                problems,
+            })
+        }
+    }
+
+    /// Checks that runs `indices` can start, on all cores: each run's scenario prepares on its
+    /// bench (ranges, the rods' strokes over the whole motion, the accumulators' precharges)
+    /// and its controller takes the bench.
+    pub fn check(&self, indices: &[usize]) -> Result<(), MatrixError> {
+        let checked: Vec<(usize, Result<(), String>)> = indices
+            .par_iter()
+            .map(|&i| (i, self.spec(i).and_then(|s| run::check(&s))))
+            .collect();
+        self.refusals(checked.into_iter()).map(|_| ())
+    }
+
+    /// [`Matrix::keys`], then [`Matrix::check`] of every run.
+    pub fn plan(&self) -> Result<Vec<RunKey>, MatrixError> {
+        let keys = self.keys()?;
+        self.check(&(0..self.len()).collect::<Vec<_>>())?;
+        Ok(keys)
+    }
+
+    /// The results of runs, or a refusal listing the runs that fail (the first
+    /// [`MAX_PROBLEMS`]) with their values.
+    fn refusals<T>(
+        &self,
+        results: impl Iterator<Item = (usize, Result<T, String>)>,
+    ) -> Result<Vec<T>, MatrixError> {
         let mut problems = Vec::new();
         let mut failed = 0usize;
-        for (i, c) in checked.iter().enumerate() {
-            if let Err(e) = c {
-                failed += 1;
-                if problems.len() < MAX_PROBLEMS {
-                    problems.push(format!(
-                        "run {} of {} ({}): {e}",
-                        i + 1,
-                        self.len(),
-                        self.describe(i)
-                    ));
+        let mut ok = Vec::new();
+        for (i, r) in results {
+            match r {
+                Ok(t) => ok.push(t),
+                Err(e) => {
+                    failed += 1;
+                    if problems.len() < MAX_PROBLEMS {
+                        problems.push(format!(
+                            "run {} of {} ({}): {e}",
+                            i + 1,
+                            self.len(),
+                            self.describe(i)
+                        ));
+                    }
                 }
             }
         }
@@ -590,27 +645,8 @@ impl Matrix {
                 failed - problems.len()
             ));
         }
-        let keys: Vec<RunKey> = checked.into_iter().filter_map(Result::ok).collect();
         if problems.is_empty() {
-            let mut first = std::collections::HashMap::new();
-            for (i, k) in keys.iter().enumerate() {
-                if let Some(j) = first.insert(*k, i) {
-                    problems.push(format!(
-                        "run {} ({}) is run {} ({}) again: the same bench, scenario and \
-                         controller",
-                        i + 1,
-                        self.describe(i),
-                        j + 1,
-                        self.describe(j)
-                    ));
-                    if problems.len() >= MAX_PROBLEMS {
-                        break;
-                    }
-                }
-            }
-        }
-        if problems.is_empty() {
-            Ok(keys)
+            Ok(ok)
         } else {
             Err(MatrixError {
                 file: self.source.clone(),
