@@ -1,15 +1,15 @@
 //! Heat maps of a sweep: a metric over two axes, each cell the mean over the runs that share
-//! its two values (the other axes averaged out, as the title says), PNG and SVG.
+//! its two values (the other axes averaged out, as the title says), PNG and SVG
+//! (`plot::write_both`).
 
 use super::point_of;
 use super::run::Status;
 use super::store::Identity;
 use super::table::{Cells, Table};
-use crate::plot::{DrawError, PlotError, Render, write_both};
+use crate::plot::{DrawError, Render};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
-use std::path::{Path, PathBuf};
 
 /// The metrics drawn: column and label with unit.
 pub const METRICS: [(&str, &str); 4] = [
@@ -164,11 +164,6 @@ impl HeatMap {
         } else {
             (lo, hi)
         }
-    }
-
-    /// Writes `<dir>/<name>.png` and `.svg`; returns the PNG path.
-    pub fn write(&self, dir: &Path) -> Result<PathBuf, PlotError> {
-        write_both(self, dir)
     }
 }
 

@@ -586,14 +586,7 @@ impl Matrix {
                 }
             }
         }
-        if problems.is_empty() {
-            Ok(keys)
-        } else {
-            Err(MatrixError {
-                file: self.source.clone(),
-                problems,
-            })
-        }
+        self.unless(problems, keys)
     }
 
     /// Checks that runs `indices` can start, on all cores: each run's scenario prepares on its
@@ -645,6 +638,11 @@ impl Matrix {
                 failed - problems.len()
             ));
         }
+        self.unless(problems, ok)
+    }
+
+    /// `ok`, unless there are problems.
+    fn unless<T>(&self, problems: Vec<String>, ok: T) -> Result<T, MatrixError> {
         if problems.is_empty() {
             Ok(ok)
         } else {
@@ -838,7 +836,7 @@ pub fn write_tables(
     if let (true, None, Some(axes), false) = (plots, identity.shard, identity.heatmap, t.is_empty())
     {
         for h in heatmap::heatmaps(identity, &t, axes) {
-            heatmaps.push(h.write(dir)?);
+            heatmaps.push(crate::plot::write_both(&h, dir)?);
         }
     }
     Ok(Written {
