@@ -96,13 +96,14 @@ fn a_bad_matrix_is_refused_naming_file_axis_run_value_and_range() {
                 "bench.hp_accumulator.volume_l",
                 "bench.hp_acumulator.volume_l",
             ),
-            "m.toml: run 1 of 4 (bench.hp_acumulator.volume_l = 5.0, scenario.initial_hp_bar = \
-             60): bench.hp_acumulator.volume_l: unknown field `hp_acumulator` (fields here:",
+            "m.toml: runs 1, 2, 3, 4 of 4 (run 1: bench.hp_acumulator.volume_l = 5.0, \
+             scenario.initial_hp_bar = 60): bench.hp_acumulator.volume_l: unknown field \
+             `hp_acumulator` (fields here:",
         ),
         (
             ("values = [5.0, 10.0]", "values = [5.0, -1.0]"),
-            "(bench.hp_accumulator.volume_l = -1.0, scenario.initial_hp_bar = 60): \
-             bench.hp_accumulator.volume_l: -1 outside",
+            "(run 3: bench.hp_accumulator.volume_l = -1.0, scenario.initial_hp_bar = 60): \
+             bench.hp_accumulator.volume_l: -1 outside [0.1, 500] (L)",
         ),
         (
             ("values = [60, 90]", "values = [60, 900]"),
@@ -154,8 +155,19 @@ fn a_bad_matrix_is_refused_naming_file_axis_run_value_and_range() {
         let e = refusal(&text);
         assert!(e.contains(want), "{change:?}:\n{e}\nwant: {want}");
     }
-    // Every failing run is listed (here 2 of 4), each with its values.
+    // The runs refused for one reason are one line (here 2 of 4), with the first's values;
+    // each other reason a line of its own.
     let e = refusal(&SMALL.replace("values = [5.0, 10.0]", "values = [5.0, -1.0]"));
+    assert_eq!(e.lines().count(), 1, "{e}");
+    assert!(
+        e.starts_with("m.toml: runs 3, 4 of 4 (run 3: bench.hp_accumulator.volume_l = -1.0"),
+        "{e}"
+    );
+    let e = refusal(
+        &SMALL
+            .replace("values = [60, 90]", "values = [\"high\", 90]")
+            .replace("values = [5.0, 10.0]", "values = [5.0, -1.0]"),
+    );
     assert_eq!(e.lines().count(), 2, "{e}");
     // Linked fields want one value per field; an axis wants values.
     let e = refusal(
@@ -374,7 +386,7 @@ fn a_bad_matrix_exits_2_before_any_run_and_a_foreign_folder_is_refused() {
         .unwrap();
     let err = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(2), "{err}");
-    assert!(err.contains("m.toml: run 3 of 4"), "{err}");
+    assert!(err.contains("m.toml: runs 3, 4 of 4 (run 3: "), "{err}");
     assert!(!dir.join("out").exists(), "nothing written");
     let mine = dir.join("mine");
     std::fs::create_dir_all(&mine).unwrap();

@@ -613,30 +613,44 @@ impl Matrix {
         &self,
         results: impl Iterator<Item = (usize, Result<T, String>)>,
     ) -> Result<Vec<T>, MatrixError> {
-        let mut problems = Vec::new();
-        let mut failed = 0usize;
+        // Runs refused for the same reason (one bad axis value refuses a whole slice of the
+        // matrix) are one problem: the reason, the runs, the first run's values.
+        let mut why: Vec<(String, Vec<usize>)> = Vec::new();
         let mut ok = Vec::new();
         for (i, r) in results {
             match r {
                 Ok(t) => ok.push(t),
-                Err(e) => {
-                    failed += 1;
-                    if problems.len() < MAX_PROBLEMS {
-                        problems.push(format!(
-                            "run {} of {} ({}): {e}",
-                            i + 1,
-                            self.len(),
-                            self.describe(i)
-                        ));
-                    }
-                }
+                Err(e) => match why.iter_mut().find(|(w, _)| *w == e) {
+                    Some((_, runs)) => runs.push(i),
+                    None => why.push((e, vec![i])),
+                },
             }
         }
-        if failed > problems.len() {
-            problems.push(format!(
-                "… and {} more runs refused",
-                failed - problems.len()
-            ));
+        let n = self.len();
+        let mut problems: Vec<String> = why
+            .iter()
+            .take(MAX_PROBLEMS)
+            .map(|(e, runs)| match runs.as_slice() {
+                [i] => format!("run {} of {n} ({}): {e}", i + 1, self.describe(*i)),
+                [first, ..] => {
+                    let mut list: Vec<String> =
+                        runs.iter().take(8).map(|i| (i + 1).to_string()).collect();
+                    if runs.len() > 8 {
+                        list.push(format!("… ({} runs)", runs.len()));
+                    }
+                    format!(
+                        "runs {} of {n} (run {}: {}): {e}",
+                        list.join(", "),
+                        first + 1,
+                        self.describe(*first)
+                    )
+                }
+                [] => String::new(),
+            })
+            .collect();
+        if why.len() > MAX_PROBLEMS {
+            let more: usize = why[MAX_PROBLEMS..].iter().map(|(_, r)| r.len()).sum();
+            problems.push(format!("… and {more} more runs refused for other reasons"));
         }
         self.unless(problems, ok)
     }
