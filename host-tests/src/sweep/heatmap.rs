@@ -66,14 +66,22 @@ pub fn heatmaps(identity: &Identity, table: &Table, (x, y): (usize, usize)) -> V
         .map(|(_, a)| a.name())
         .collect();
     let per_cell = identity.keys.len() / (nx * ny).max(1);
-    let subtitle = if others.is_empty() {
-        "one run a cell".to_string()
-    } else {
-        format!(
-            "each cell the mean over {} ({per_cell} runs a cell)",
-            others.join(", ")
-        )
-    };
+    let failed = ok.iter().filter(|o| !**o).count();
+    let subtitle = format!(
+        "{}{}",
+        if others.is_empty() {
+            "one run a cell".to_string()
+        } else {
+            format!(
+                "each cell the mean over {} ({per_cell} runs a cell)",
+                others.join(", ")
+            )
+        },
+        match failed {
+            0 => String::new(),
+            n => format!("; {n} failed runs left out"),
+        }
+    );
     METRICS
         .iter()
         .filter_map(|(col, label)| {
@@ -175,8 +183,10 @@ impl Render for HeatMap {
     fn size(&self) -> (u32, u32) {
         let nx = self.x_ticks.len() as u32;
         let ny = self.y_ticks.len() as u32;
+        // Wide enough for the subtitle (≈ 7.5 px a character at its 15 px).
+        let text = (self.subtitle.chars().count() as u32 * 15 / 2 + 80).min(2400);
         (
-            (300 + 90 * nx).clamp(700, 1800),
+            (300 + 90 * nx).clamp(700, 1800).max(text),
             (200 + 48 * ny).clamp(480, 1200),
         )
     }

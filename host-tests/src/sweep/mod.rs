@@ -828,8 +828,9 @@ pub enum WriteError {
 }
 
 /// Writes the table of the folder's runs (`identity.indices()`, those with a row) into `dir` as
-/// `sweep.csv` and `sweep.parquet`, each whole or not at all, and, for a whole sweep (not a
-/// shard) with `plots`, the heat maps over `identity.heatmap`.
+/// `sweep.csv` and `sweep.parquet`, each whole or not at all, and, when every run of the
+/// matrix has a row (not a shard, not an unfinished sweep) and with `plots`, the heat maps over
+/// `identity.heatmap`.
 pub fn write_tables(
     dir: &Path,
     identity: &store::Identity,
@@ -846,9 +847,16 @@ pub fn write_tables(
     let parquet = dir.join(store::PARQUET);
     let bytes = t.parquet(&parquet.display().to_string())?;
     crate::output::write_atomic(&parquet, &bytes)?;
+    // Heat maps of the whole matrix only: a shard's or an unfinished sweep's would average
+    // over some of the runs. Those of an earlier table go (they would no longer match it).
+    for m in heatmap::METRICS {
+        for ext in ["png", "svg"] {
+            let _ = std::fs::remove_file(dir.join(format!("heatmap-{}.{ext}", m.0)));
+        }
+    }
     let mut heatmaps = Vec::new();
-    if let (true, None, Some(axes), false) = (plots, identity.shard, identity.heatmap, t.is_empty())
-    {
+    let whole = identity.shard.is_none() && t.len() == identity.keys.len();
+    if let (true, true, Some(axes)) = (plots, whole, identity.heatmap) {
         for h in heatmap::heatmaps(identity, &t, axes) {
             heatmaps.push(crate::plot::write_both(&h, dir)?);
         }
