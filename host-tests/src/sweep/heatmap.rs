@@ -283,3 +283,101 @@ impl Render for HeatMap {
         Ok(root.present()?)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sweep::run::{Figures, Row};
+    use crate::sweep::{Axis, RunKey};
+
+    fn figures(p2_mean_bar: f64) -> Figures {
+        Figures {
+            simulated_s: 1.0,
+            steps: 1,
+            p2_min_bar: 0.0,
+            p2_mean_bar,
+            p2_max_bar: 0.0,
+            time_at_relief_s: 0.0,
+            lp_min_bar: 0.0,
+            lp_max_bar: 0.0,
+            motor_speed_mean_rpm: 0.0,
+            motor_speed_max_rpm: 0.0,
+            motor_speed_std_rpm: 0.0,
+            input_power_w: 1.0,
+            pumped_power_w: 1.0,
+            motor_shaft_power_w: 1.0,
+            generator_power_w: 1.0,
+            efficiency_pct: None,
+            losses_w: 0.0,
+            relief_loss_w: 0.0,
+            stored_w: 0.0,
+            balance_worst_rel: 0.0,
+        }
+    }
+
+    /// A cell is the mean over the other axes of the runs that share its two values; a failed
+    /// run is left out, a cell with none is empty, a metric no run has (efficiency here) too.
+    #[test]
+    fn a_cell_is_the_mean_over_the_other_axes_without_failed_runs() {
+        let axis = |f: &str, v: &[i64]| Axis {
+            fields: vec![f.into()],
+            values: v.iter().map(|x| vec![toml::Value::Integer(*x)]).collect(),
+        };
+        // x (2 values) × other (3 values) × y (2 values): run i has key i, P2 = i.
+        let axes = vec![
+            axis("x", &[1, 2]),
+            axis("o", &[1, 2, 3]),
+            axis("y", &[5, 6]),
+        ];
+        let keys: Vec<RunKey> = (0..12).map(RunKey).collect();
+        let mut rows = std::collections::HashMap::new();
+        for i in 0..12u64 {
+            let failed = i == 1 || i == 3 || i == 5;
+            rows.insert(
+                RunKey(i),
+                Row {
+                    key: RunKey(i),
+                    status: if failed { Status::Failed } else { Status::Ok },
+                    figures: (!failed).then(|| figures(i as f64)),
+                    error: failed.then(|| "x".into()),
+                    wall_s: 0.0,
+                },
+            );
+        }
+        let identity = Identity {
+            format: 1,
+            name: "t".into(),
+            matrix: "t.toml".into(),
+            sweep_id: String::new(),
+            scenario: "s".into(),
+            bench: "b".into(),
+            axes,
+            keys,
+            shard: None,
+            heatmap: Some((0, 2)),
+        };
+        let t = Table::of_rows(&identity, &rows, &identity.indices());
+        let maps = heatmaps(&identity, &t, (0, 2));
+        let p2 = maps
+            .iter()
+            .find(|m| m.name == "heatmap-p2_mean_bar")
+            .unwrap();
+        // x = 1, y = 5: runs 0, 2, 4 → mean 2; x = 1, y = 6: runs 1, 3, 5 all failed → empty;
+        // x = 2, y = 5: runs 6, 8, 10 → 8; x = 2, y = 6: runs 7, 9, 11 → 9.
+        assert_eq!(
+            p2.cells,
+            vec![vec![Some(2.0), Some(8.0)], vec![None, Some(9.0)]]
+        );
+        assert_eq!(p2.x_ticks, ["1", "2"]);
+        assert_eq!(p2.y_ticks, ["5", "6"]);
+        assert!(
+            p2.subtitle
+                .contains("mean over o (3 runs a cell); 3 failed runs left out")
+        );
+        let eff = maps
+            .iter()
+            .find(|m| m.name == "heatmap-efficiency_pct")
+            .unwrap();
+        assert!(eff.cells.iter().flatten().all(Option::is_none));
+    }
+}
