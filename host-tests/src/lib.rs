@@ -11,7 +11,8 @@
 //!   sensors, the f64 mirror, `pto validate`, golden vectors, code cost).
 //! - [`hil`]: the firmware built from the host, run under QEMU, processor-in-the-loop, firmware cost.
 //! - [`runner`]: scenarios run in parallel on all cores; [`perf`]: the solver's timing
-//!   (`pto bench`).
+//!   (`pto bench`); [`sweep`]: a design matrix over bench, scenario and controller fields, one
+//!   row per run (`pto sweep`).
 //! - [`figures`] (the figures of a run and of the paper), [`plot`] (the plotting), [`output`]
 //!   (outputs written whole).
 
@@ -25,6 +26,7 @@ pub mod perf;
 pub mod plot;
 pub mod runner;
 pub mod sim;
+pub mod sweep;
 
 /// An error and its causes on one line, `error: cause: cause's cause` (what `anyhow` prints
 /// for `{:#}`), for reports that keep errors as text.

@@ -296,6 +296,55 @@ enum Cmd {
         #[arg(long, value_name = "CSV")]
         trace: Option<PathBuf>,
     },
+    /// Run a design matrix: axes over any bench, scenario or controller field, every run
+    /// checked first, then run on all cores into one row per run (power, efficiency, P2, time
+    /// at the relief, motor speed, balance) in CSV and Parquet, plus heat maps. Resumable
+    /// (finished runs are skipped) and shardable (`--shard K/N`; `pto sweep merge` joins the
+    /// shards).
+    #[command(
+        args_conflicts_with_subcommands = true,
+        subcommand_negates_reqs = true,
+        after_help = "Examples:\n  pto sweep host-tests/data/sweeps/accumulator-aperture.toml\n  pto sweep m.toml --dry-run\n  pto sweep m.toml --shard 3/16 --out shards/3 --jobs 1\n  pto sweep merge shards/* --out sweep\n\nExit status:\n  0 every run finished and its oil and energy balances close within 1e-4\n  1 a run failed (a failure row names why) or missed the balance target\n  2 bad input (the matrix refused before any run: file, axis, run, value, range and unit named)\n  130 interrupted (finished runs keep their rows; run again to go on)"
+    )]
+    Sweep {
+        #[command(subcommand)]
+        cmd: Option<SweepCmd>,
+        /// The design matrix (TOML): a base scenario, `[set]` fields and `[[axis]]` entries
+        /// (docs/sweep.md).
+        #[arg(required = true)]
+        matrix: Option<PathBuf>,
+        /// Bench parameter file (default: the matrix's `bench`, else the reference bench).
+        #[arg(long)]
+        bench: Option<PathBuf>,
+        /// Output folder: sweep.json, runs.jsonl (a row per finished run, kept across
+        /// reruns), sweep.csv, sweep.parquet, heatmap-*.png/svg.
+        #[arg(long, default_value = "out/sweep")]
+        out: PathBuf,
+        /// Run only shard K of N: the runs whose number minus one is K − 1 modulo N (for a job
+        /// array; `pto sweep merge` joins the shards' folders).
+        #[arg(long, value_name = "K/N", value_parser = parse_shard)]
+        shard: Option<pto_host::sweep::Shard>,
+        /// Worker threads, 1 to 1024 (default: one per core).
+        #[arg(long, value_parser = clap::value_parser!(u16).range(1..=1024))]
+        jobs: Option<u16>,
+        /// The heat maps' axes, two fields: X,Y (default: the matrix's `heatmap`, else its
+        /// first two axes of more than one value).
+        #[arg(long, value_name = "X,Y", value_delimiter = ',')]
+        heatmap: Option<Vec<String>>,
+        /// Run failed runs again (they are otherwise finished: their failure rows stay).
+        #[arg(long)]
+        retry_failed: bool,
+        /// Check the matrix and count the runs (and those already finished in --out); run
+        /// nothing.
+        #[arg(long)]
+        dry_run: bool,
+        /// Skip the heat maps.
+        #[arg(long)]
+        no_plots: bool,
+        /// Machine-readable summary on stdout.
+        #[arg(long)]
+        json: bool,
+    },
     /// Wall time, real-time factor and accuracy of Test III and a 1000 s irregular sea, on the
     /// default solver path and on the reference path side by side.
     #[command(
@@ -313,6 +362,32 @@ enum Cmd {
         #[arg(long, value_name = "RUNS")]
         batch: Option<usize>,
         /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Subcommand)]
+enum SweepCmd {
+    /// Join the folders of one sweep's shards into one table: checks they are of one matrix,
+    /// names the runs missing and those found twice.
+    #[command(
+        after_help = "Examples:\n  pto sweep merge shards/* --out sweep\n\nExit status:\n  0 every run of the matrix has a row and none failed\n  1 runs are missing (listed, with the shards not given) or failed\n  2 bad input (a folder not a sweep's, folders of different matrices)"
+    )]
+    Merge {
+        /// The shards' output folders.
+        #[arg(required = true)]
+        dirs: Vec<PathBuf>,
+        /// Output folder (replaced whole; a folder of other files is refused).
+        #[arg(long, default_value = "out/sweep")]
+        out: PathBuf,
+        /// The heat maps' axes, two fields: X,Y (default: as the sweep chose).
+        #[arg(long, value_name = "X,Y", value_delimiter = ',')]
+        heatmap: Option<Vec<String>>,
+        /// Skip the heat maps.
+        #[arg(long)]
+        no_plots: bool,
+        /// Machine-readable summary on stdout.
         #[arg(long)]
         json: bool,
     },
@@ -410,6 +485,11 @@ fn finite_in(lo: f64, hi: f64, unit: &'static str) -> impl Fn(&str) -> Result<f6
     }
 }
 
+/// `K/N` with 1 ≤ K ≤ N.
+fn parse_shard(v: &str) -> Result<pto_host::sweep::Shard, String> {
+    v.parse()
+}
+
 /// `NAME=VALUE` with a finite, positive value.
 fn name_value(v: &str) -> Result<(String, f64), String> {
     let (n, x) = v
@@ -454,6 +534,41 @@ fn main() -> ExitCode {
             batch,
             json,
         } => bench_cmd(bench.as_ref(), repeats, batch, json),
+        Cmd::Sweep {
+            cmd:
+                Some(SweepCmd::Merge {
+                    dirs,
+                    out,
+                    heatmap,
+                    no_plots,
+                    json,
+                }),
+            ..
+        } => cli::sweep::merge_cmd(&dirs, &out, heatmap.as_deref(), !no_plots, json),
+        Cmd::Sweep {
+            cmd: None,
+            matrix,
+            bench,
+            out,
+            shard,
+            jobs,
+            heatmap,
+            retry_failed,
+            dry_run,
+            no_plots,
+            json,
+        } => cli::sweep::sweep_cmd(cli::sweep::SweepOptions {
+            matrix: matrix.as_deref().unwrap_or(std::path::Path::new("")),
+            bench: bench.as_ref(),
+            out: &out,
+            shard,
+            jobs: jobs.map(usize::from),
+            heatmap: heatmap.as_deref(),
+            retry_failed,
+            dry_run,
+            plots: !no_plots,
+            json,
+        }),
         Cmd::Validate {
             bench,
             filter,

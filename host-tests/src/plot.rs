@@ -232,9 +232,12 @@ impl Figure {
 }
 
 /// What [`write_both`] renders: a size and a drawing on any backend.
-trait Render {
+pub trait Render {
+    /// File stem.
     fn name(&self) -> &str;
+    /// Size in pixels.
     fn size(&self) -> (u32, u32);
+    /// Draws it on `root`, data lines `width` px wide.
     fn render<DB: DrawingBackend>(
         &self,
         root: DrawingArea<DB, Shift>,
@@ -265,7 +268,7 @@ impl Render for Figure {
 
 /// Writes `<dir>/<name>.png` and `.svg`, rendered to temporary names and renamed, so a failed
 /// run leaves no half-written figure; returns the PNG path.
-fn write_both<R: Render>(fig: &R, dir: &Path) -> Result<PathBuf, PlotError> {
+pub fn write_both<R: Render>(fig: &R, dir: &Path) -> Result<PathBuf, PlotError> {
     register_font();
     let size = fig.size();
     let name = fig.name();

@@ -266,47 +266,6 @@ impl BenchFile {
     /// there. The result is validated when it becomes a [`Bench`](super::Bench).
     pub fn set_field(&mut self, path: &str, value: &str) -> Result<(), SetFieldError> {
         let mut root = toml::Value::try_from(&*self)?;
-        let mut at = &mut root;
-        for part in path.split('.') {
-            let (key, index) = match part.split_once('[') {
-                Some((k, rest)) => {
-                    let i = rest
-                        .strip_suffix(']')
-                        .and_then(|i| i.parse::<usize>().ok())
-                        .ok_or_else(|| SetFieldError::BadIndex {
-                            path: path.into(),
-                            part: part.into(),
-                        })?;
-                    (k, Some(i))
-                }
-                None => (part, None),
-            };
-            let table = at.as_table_mut().ok_or_else(|| SetFieldError::NotATable {
-                path: path.into(),
-                key: key.into(),
-            })?;
-            let known: Vec<String> = table.keys().cloned().collect();
-            at = table
-                .get_mut(key)
-                .ok_or_else(|| SetFieldError::UnknownField {
-                    path: path.into(),
-                    key: key.into(),
-                    known,
-                })?;
-            if let Some(i) = index {
-                let arr = at.as_array_mut().ok_or_else(|| SetFieldError::NotAList {
-                    path: path.into(),
-                    key: key.into(),
-                })?;
-                let n = arr.len();
-                at = arr.get_mut(i).ok_or_else(|| SetFieldError::IndexOutside {
-                    path: path.into(),
-                    key: key.into(),
-                    index: i,
-                    len: n,
-                })?;
-            }
-        }
         let parsed: toml::Table = toml::from_str(&format!("v = {value}"))
             .or_else(|_| toml::from_str(&format!("v = {value:?}")))
             .map_err(|error| SetFieldError::NotAValue {
@@ -314,20 +273,18 @@ impl BenchFile {
                 value: value.into(),
                 error: Box::new(error),
             })?;
-        let mut new = parsed["v"].clone();
-        new = match (&*at, new) {
-            (toml::Value::Float(_), toml::Value::Integer(i)) => toml::Value::Float(i as f64),
-            (old, new) if old.type_str() == new.type_str() => new,
-            (old, new) => {
-                return Err(SetFieldError::WrongType {
-                    path: path.into(),
-                    value: value.into(),
-                    given: new.type_str(),
-                    held: old.type_str(),
-                });
-            }
-        };
-        *at = new;
+        set_value(&mut root, path, parsed["v"].clone(), false).map_err(|e| match e {
+            // The value as the user wrote it.
+            SetFieldError::WrongType {
+                path, given, held, ..
+            } => SetFieldError::WrongType {
+                path,
+                value: value.into(),
+                given,
+                held,
+            },
+            e => e,
+        })?;
         *self = root.try_into().map_err(|error| SetFieldError::Rebuild {
             path: path.into(),
             error: Box::new(error),
@@ -342,6 +299,78 @@ impl BenchFile {
             message: e.to_string(),
         })
     }
+}
+
+/// Sets the value at a dotted path (`valve.aperture_pct`, `cylinder[1].bore_mm`) in a TOML
+/// tree (a bench file's, a scenario's) to `value`, keeping the type of the value it replaces
+/// (an integer becomes a float in a float field). A key missing at the end of the path is an
+/// error naming the keys there, or, with `add_missing`, added as given (for optional fields:
+/// the type's own deserialisation then judges it). Errors start with the path.
+pub fn set_value(
+    root: &mut toml::Value,
+    path: &str,
+    value: toml::Value,
+    add_missing: bool,
+) -> Result<(), SetFieldError> {
+    let parts: Vec<&str> = path.split('.').collect();
+    let mut at = root;
+    for (n, part) in parts.iter().enumerate() {
+        let (key, index) = match part.split_once('[') {
+            Some((k, rest)) => {
+                let i = rest
+                    .strip_suffix(']')
+                    .and_then(|i| i.parse::<usize>().ok())
+                    .ok_or_else(|| SetFieldError::BadIndex {
+                        path: path.into(),
+                        part: (*part).into(),
+                    })?;
+                (k, Some(i))
+            }
+            None => (*part, None),
+        };
+        let table = at.as_table_mut().ok_or_else(|| SetFieldError::NotATable {
+            path: path.into(),
+            key: key.into(),
+        })?;
+        if add_missing && index.is_none() && n + 1 == parts.len() && !table.contains_key(key) {
+            table.insert(key.into(), value);
+            return Ok(());
+        }
+        let known: Vec<String> = table.keys().cloned().collect();
+        at = table
+            .get_mut(key)
+            .ok_or_else(|| SetFieldError::UnknownField {
+                path: path.into(),
+                key: key.into(),
+                known,
+            })?;
+        if let Some(i) = index {
+            let arr = at.as_array_mut().ok_or_else(|| SetFieldError::NotAList {
+                path: path.into(),
+                key: key.into(),
+            })?;
+            let len = arr.len();
+            at = arr.get_mut(i).ok_or_else(|| SetFieldError::IndexOutside {
+                path: path.into(),
+                key: key.into(),
+                index: i,
+                len,
+            })?;
+        }
+    }
+    *at = match (&*at, value) {
+        (toml::Value::Float(_), toml::Value::Integer(i)) => toml::Value::Float(i as f64),
+        (old, new) if old.type_str() == new.type_str() => new,
+        (old, new) => {
+            return Err(SetFieldError::WrongType {
+                path: path.into(),
+                value: new.to_string(),
+                given: new.type_str(),
+                held: old.type_str(),
+            });
+        }
+    };
+    Ok(())
 }
 
 /// Sets a value of a bench file, as the fit's parameters do.

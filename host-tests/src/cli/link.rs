@@ -5,9 +5,7 @@ use anyhow::{Context, Result, bail};
 use pto_host::hil::client::{self, LogWriter, Units};
 use pto_host::hil::link::{self, Link};
 use pto_model::ModelConfig;
-use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::protocol::{FromFirmware, Hello, Stored, config_fingerprint};
-use pto_model::scheduler::Mode;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -61,28 +59,8 @@ pub(crate) fn status_cmd(t: &Target, json: bool) -> Result<bool> {
     Ok(true)
 }
 
-/// `fixed 12` (%), `hold-pressure 100` (bar), `hold-speed 200` (rpm), `max-autonomy 150` (rpm).
-pub(crate) fn parse_mode(kind: &str, value: f64) -> Result<Mode> {
-    let in_range = |lo: f64, hi: f64, unit: &str| -> Result<f32> {
-        if value.is_finite() && (lo..=hi).contains(&value) {
-            Ok(value as f32)
-        } else {
-            bail!("mode {kind} {value}: outside [{lo}, {hi}] {unit}")
-        }
-    };
-    Ok(match kind {
-        "fixed" => Mode::Fixed(Aperture::from_num(in_range(0.0, 100.0, "%")?)),
-        "hold-pressure" => Mode::HoldPressure(Pressure::from_num(in_range(1.0, 130.0, "bar")?)),
-        "hold-speed" => Mode::HoldSpeed(Rpm::from_num(in_range(1.0, 3000.0, "rpm")?)),
-        "max-autonomy" => Mode::MaxAutonomy(Rpm::from_num(in_range(1.0, 3000.0, "rpm")?)),
-        other => bail!(
-            "mode {other:?}: want fixed PCT, hold-pressure BAR, hold-speed RPM or max-autonomy RPM"
-        ),
-    })
-}
-
 pub(crate) fn mode_cmd(t: &Target, kind: &str, value: f64) -> Result<bool> {
-    let mode = parse_mode(kind, value)?;
+    let mode = pto_host::model::closed_loop::parse_mode(kind, value)?;
     let (mut l, _) = connect(t)?;
     client::set_mode(&mut l, mode)?;
     println!("mode {kind} {value} set");

@@ -5,6 +5,7 @@ pub(crate) mod fit;
 pub(crate) mod link;
 pub(crate) mod model;
 pub(crate) mod sim;
+pub(crate) mod sweep;
 
 use anyhow::Result;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};

@@ -29,11 +29,11 @@ pub const NOISE_FLOOR_RPM: f64 = 0.1;
 
 /// The noise σ of one sensor from every log's samples, pooled (one sensor, one noise).
 ///
-/// The second difference d = y[k+1] − 2y[k] + y[k−1] of white noise has variance 6σ², while a
+/// The second difference `d = y[k+1] − 2y[k] + y[k−1]` of white noise has variance 6σ², while a
 /// smooth signal sampled at the logs' rates contributes almost nothing to it. The largest 5 % of
 /// |d| are dropped first — a stroke's pressure step, the accumulator's emptying, a start — and
 /// the RMS of the rest corrected by the trimmed normal's factor: for |d| ≤ 1.96 σ_d,
-/// E[d²] = 0.759 σ_d². Hand-written: a dozen lines of statistics no crate of the field offers.
+/// `E[d²] = 0.759 σ_d²`. Hand-written: a dozen lines of statistics no crate of the field offers.
 /// Quantisation: the estimate is not taken below q/√12 (q the channel's smallest step).
 ///
 /// Windows within 5 samples of a value at or below `clipped_at` are left out when enough others

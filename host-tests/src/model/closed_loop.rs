@@ -12,7 +12,7 @@ use crate::sim::solver::{
 };
 use crate::sim::trace::Truth;
 use pto_model::estimator::{self, Estimate, State};
-use pto_model::fx::{Pressure, Rpm};
+use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::scheduler::{self, Mode, SchedulerCoeffs, SchedulerConfig, SchedulerState};
 use pto_model::{Coefficients, ModelConfig};
 use rayon::prelude::*;
@@ -62,6 +62,56 @@ pub enum LoopError {
     Model(#[from] ModelError),
 }
 
+/// Why a scheduler mode could not be made from its name and setpoint ([`parse_mode`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ModeError {
+    /// The setpoint is outside the mode's range.
+    #[error("mode {kind} {value}: outside [{lo}, {hi}] {unit}")]
+    Range {
+        /// The mode's name.
+        kind: String,
+        /// The setpoint.
+        value: f64,
+        /// Smallest setpoint.
+        lo: f64,
+        /// Largest setpoint.
+        hi: f64,
+        /// Its unit.
+        unit: &'static str,
+    },
+    /// No such mode.
+    #[error("mode {0:?}: want {MODES}")]
+    Unknown(String),
+}
+
+/// The modes [`parse_mode`] takes, with their setpoints' units.
+pub const MODES: &str = "fixed PCT, hold-pressure BAR, hold-speed RPM or max-autonomy RPM";
+
+/// A scheduler mode from its name and setpoint, as `pto link mode` takes them: `fixed 12` (%),
+/// `hold-pressure 100` (bar), `hold-speed 200` (rpm), `max-autonomy 150` (rpm).
+pub fn parse_mode(kind: &str, value: f64) -> Result<Mode, ModeError> {
+    let in_range = |lo: f64, hi: f64, unit: &'static str| {
+        if value.is_finite() && (lo..=hi).contains(&value) {
+            Ok(value as f32)
+        } else {
+            Err(ModeError::Range {
+                kind: kind.into(),
+                value,
+                lo,
+                hi,
+                unit,
+            })
+        }
+    };
+    Ok(match kind {
+        "fixed" => Mode::Fixed(Aperture::from_num(in_range(0.0, 100.0, "%")?)),
+        "hold-pressure" => Mode::HoldPressure(Pressure::from_num(in_range(1.0, 130.0, "bar")?)),
+        "hold-speed" => Mode::HoldSpeed(Rpm::from_num(in_range(1.0, 3000.0, "rpm")?)),
+        "max-autonomy" => Mode::MaxAutonomy(Rpm::from_num(in_range(1.0, 3000.0, "rpm")?)),
+        other => return Err(ModeError::Unknown(other.into())),
+    })
+}
+
 /// The model crate's estimator + scheduler as the plant's valve controller.
 pub struct ModelController {
     k: Coefficients,
@@ -73,7 +123,8 @@ pub struct ModelController {
     duty: u8,
     config: u8,
     cmd: f64,
-    /// Every estimate, for inspection.
+    keep_log: bool,
+    /// Every estimate, for inspection (empty after [`ModelController::without_log`]).
     pub log: Vec<(f64, Estimate, f64)>,
 }
 
@@ -106,8 +157,15 @@ impl ModelController {
             duty,
             config,
             cmd: 0.0,
+            keep_log: true,
             log: Vec::new(),
         })
+    }
+
+    /// Keeps no log of the estimates (a long run's log takes ≈ 100 MB per 1000 s at 1 kHz).
+    pub fn without_log(mut self) -> Self {
+        self.keep_log = false;
+        self
     }
 }
 
@@ -125,7 +183,9 @@ impl ValveController for ModelController {
         let e = estimator::step(&self.k, &mut self.st, &inp);
         let c = scheduler::step(&self.k, &self.sc, &mut self.sst, self.mode, &e, inp.motor);
         self.cmd = f64::from(c.aperture.to_f32());
-        self.log.push((t, e, self.cmd));
+        if self.keep_log {
+            self.log.push((t, e, self.cmd));
+        }
         self.cmd
     }
 }
