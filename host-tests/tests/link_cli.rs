@@ -125,8 +125,7 @@ fn a_firmware_of_another_protocol_is_refused() {
         e.contains(&format!(
             "protocol mismatch: the other end speaks v{}",
             PROTOCOL_VERSION - 1
-        ))
-            && e.contains("build the firmware and the host tools from the same revision"),
+        )) && e.contains("build the firmware and the host tools from the same revision"),
         "{e}"
     );
 }
