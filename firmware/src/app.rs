@@ -547,6 +547,7 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                         dump: o.dump,
                         on_duty,
                         config,
+                        hydraulic_power: o.estimate.hydraulic_power(),
                     });
                     // Never wait for the link: telemetry leaves room in the queue for the
                     // replies to commands (which the loop sends waiting), and a frame it

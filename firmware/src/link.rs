@@ -110,7 +110,6 @@ mod tests {
         e2.q_pump_mean.0 = big;
         e2.q_valve.0 = big;
         e2.q_relief.0 = big;
-        e2.hydraulic_power.0 = big;
         e2.torque.0 = big;
         e2.motor_rpm.0 = big;
         e2.autonomy.0 = big;
@@ -175,6 +174,7 @@ mod tests {
                 dump: true,
                 on_duty: 0xff,
                 config: 0xff,
+                hydraulic_power: pto_model::fx::HydraulicPower(big),
             })
         };
         let k = t.encode(&tel(e2), &mut b).expect("Telemetry fits");

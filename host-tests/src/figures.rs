@@ -405,7 +405,7 @@ pub fn loss_breakdown(name: &str, p: &Power) -> BarChart {
     BarChart {
         name: format!("{name}-losses"),
         title: format!(
-            "{name}: mean power over {:.0} s; efficiency (generator / input) {eff}",
+            "{name}: mean power over {:.0} s; efficiency (generator / supplied) {eff}",
             p.duration_s
         ),
         x_label: "mean power (W)".into(),

@@ -372,7 +372,7 @@ enum SweepCmd {
     /// Join the folders of one sweep's shards into one table: checks they are of one matrix,
     /// names the runs missing and those found twice.
     #[command(
-        after_help = "Examples:\n  pto sweep merge shards/* --out sweep\n\nExit status:\n  0 every run of the matrix has a row and none failed\n  1 runs are missing (listed, with the shards not given) or failed\n  2 bad input (a folder not a sweep's, folders of different matrices)"
+        after_help = "Examples:\n  pto sweep merge shards/* --out sweep\n\nExit status:\n  0 every run of the matrix has a row, none failed and every balance closed within 1e-4\n  1 runs are missing (listed, with the shards not given), failed or missed the balance target\n  2 bad input (a folder not a sweep's, folders of different matrices, an --out sweep folder with rows of its own or in use)"
     )]
     Merge {
         /// The shards' output folders.

@@ -219,6 +219,59 @@ proptest! {
     }
 }
 
+/// With plain `index mod N`, `--shard K/16` of a matrix whose last axis has 4 values gave each
+/// shard one value of it (the docs' Slurm example on `sea-states.toml`); the turn each block
+/// gives every shard each value.
+#[test]
+fn a_shard_does_not_hold_one_value_of_the_last_axis_alone() {
+    for (runs, n, last) in [(72usize, 16usize, 4usize), (6, 3, 3), (64, 8, 8)] {
+        for k in 1..=n {
+            let s: Shard = format!("{k}/{n}").parse().unwrap();
+            let mut values: Vec<usize> = (0..runs).filter(|i| s.has(*i)).map(|i| i % last).collect();
+            values.sort_unstable();
+            values.dedup();
+            let share = runs / n;
+            assert!(
+                values.len() >= share.min(last).min(2),
+                "{runs} runs, shard {k}/{n}, last axis of {last}: values {values:?}"
+            );
+        }
+    }
+}
+
+/// A run's key is its content: not the spelling of the matrix's folder, and a recorded motion's
+/// bytes (an edited trace makes its runs again).
+#[test]
+fn a_run_key_follows_the_trace_not_the_folder_spelling() {
+    let dir = tmp("key");
+    let trace = |amp: f64| {
+        let mut t = String::from("time_s,shaft_angle_deg\n");
+        for k in 0..=200 {
+            let x = k as f64 * 0.1;
+            t.push_str(&format!("{x},{}\n", amp * (0.6 * x).sin()));
+        }
+        t
+    };
+    std::fs::write(dir.join("motion.csv"), trace(10.0)).unwrap();
+    let text = SMALL.replace(
+        "[[axis]]\nfield = \"bench.hp_accumulator.volume_l\"",
+        "\"scenario.motion\" = { kind = \"trace\", file = \"motion.csv\" }\n[[axis]]\nfield = \"bench.hp_accumulator.volume_l\"",
+    );
+    assert!(text.contains("motion.csv"));
+    let keys = |d: &Path| {
+        Matrix::parse(&text, "m.toml", d, None)
+            .unwrap()
+            .keys()
+            .unwrap()
+    };
+    let absolute = keys(&dir);
+    let dotted = keys(&dir.join(".").join("..").join(dir.file_name().unwrap()));
+    assert_eq!(absolute, dotted);
+    std::fs::write(dir.join("motion.csv"), trace(12.0)).unwrap();
+    let edited = keys(&dir);
+    assert!(absolute.iter().zip(&edited).all(|(a, b)| a != b));
+}
+
 #[test]
 fn shard_syntax_is_checked() {
     for bad in ["0/3", "4/3", "3", "a/b", "1/0"] {
@@ -511,4 +564,50 @@ fn ctrl_c_keeps_every_finished_row_whole_and_a_rerun_goes_on() {
     assert_eq!(v["skipped_finished"].as_u64(), Some(done as u64));
     assert_eq!(v["ran"].as_u64(), Some(8 - done as u64));
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// `merge --out` does not replace a sweep folder whose rows it would lose, nor one a sweep is
+/// writing (its lock).
+#[test]
+fn a_merge_does_not_replace_a_sweep_folder_it_was_not_given() {
+    let dir = tmp("merge-out");
+    let m = dir.join("m.toml");
+    std::fs::write(&m, SMALL).unwrap();
+    let m = m.to_str().unwrap();
+    let (whole, shard) = (dir.join("whole"), dir.join("shard1"));
+    let (_, code, err) = sweep(&[m, "--out", whole.to_str().unwrap(), "--no-plots"]);
+    assert_eq!(code, Some(0), "{err}");
+    let (_, code, err) = sweep(&[m, "--shard", "1/2", "--out", shard.to_str().unwrap()]);
+    assert_eq!(code, Some(0), "{err}");
+    let rows_before = std::fs::read_to_string(whole.join("runs.jsonl")).unwrap();
+    let o = pto()
+        .args(["sweep", "merge", shard.to_str().unwrap(), "--out"])
+        .arg(&whole)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    println!("{e}");
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("rows of its own"), "{e}");
+    assert_eq!(std::fs::read_to_string(whole.join("runs.jsonl")).unwrap(), rows_before);
+    // Given among the inputs, it is merged (its rows kept).
+    let o = pto()
+        .args(["sweep", "merge"])
+        .args([&shard, &whole])
+        .arg("--out")
+        .arg(&whole)
+        .output()
+        .unwrap();
+    assert_eq!(o.status.code(), Some(0), "{}", String::from_utf8_lossy(&o.stderr));
+    // A sweep writing there holds its lock: a merge is refused.
+    let lock = std::fs::File::create(whole.join(".lock")).unwrap();
+    let _held = nix::fcntl::Flock::lock(lock, nix::fcntl::FlockArg::LockExclusiveNonblock).unwrap();
+    let o = pto()
+        .args(["sweep", "merge", whole.to_str().unwrap(), "--out"])
+        .arg(&whole)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(2), "{e}");
+    assert!(e.contains("another pto sweep is writing"), "{e}");
 }

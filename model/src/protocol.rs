@@ -55,7 +55,7 @@
 //! long fuzzing is in `tests/link_fuzz.rs`).
 
 use crate::estimator::{Estimate, Inputs};
-use crate::fx::{Aperture, Pressure, Rpm};
+use crate::fx::{Aperture, HydraulicPower, Pressure, Rpm};
 use crate::scheduler::{Command, Mode};
 use core::marker::PhantomData;
 use postcard_schema::Schema;
@@ -457,6 +457,8 @@ pub struct Telemetry {
     pub on_duty: u8,
     /// Geometry, 0..=3.
     pub config: u8,
+    /// The estimate's hydraulic power into the valve ([`Estimate::hydraulic_power`]), W.
+    pub hydraulic_power: HydraulicPower,
 }
 
 /// Frames a [`Receiver`] took and the ones it could not, by cause.
@@ -1084,7 +1086,10 @@ mod tests {
         assert!(h.check().is_ok());
         let old = Hello { protocol: 2, ..h };
         let e = old.check().unwrap_err().to_string();
-        assert!(e.contains("v2") && e.contains("v3"), "{e}");
+        assert!(
+            e.contains("v2") && e.contains(&format!("v{PROTOCOL_VERSION}")),
+            "{e}"
+        );
         let other = Hello {
             schema: [0; 8],
             ..h

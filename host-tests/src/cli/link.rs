@@ -328,7 +328,7 @@ pub(crate) fn monitor_cmd(
                 e.torque.to_f32(),
                 tel.applied.to_f32(),
                 if tel.dump { " DUMP" } else { "" },
-                e.hydraulic_power.to_f32(),
+                tel.hydraulic_power.to_f32(),
                 e.faults,
                 c.ok - before.ok,
                 c.lost - before.lost,

@@ -111,25 +111,26 @@ pub(crate) fn sweep_cmd(o: SweepOptions) -> Result<bool> {
     if !o.json {
         eprintln!("checking the {} runs of {}…", m.len(), m.source);
     }
-    let keys = m.keys()?;
+    // The checks run on `--jobs` threads too (a job array's task keeps to its cores).
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(o.jobs.unwrap_or(0))
+        .build()
+        .context("cannot start the worker threads")?;
+    let keys = pool.install(|| m.keys())?;
     let mut identity = Identity::new(&m, keys, o.shard);
     identity.heatmap = heatmap;
     let indices = identity.indices();
     if o.dry_run {
-        m.check(&(0..m.len()).collect::<Vec<_>>())?;
+        pool.install(|| m.check(&(0..m.len()).collect::<Vec<_>>()))?;
         return dry_run(&m, &identity, o.out, o.json);
     }
     // Every run this sweep is to make prepares before any runs (and before --out is touched);
     // a shard checks its own runs (`--dry-run` checks them all, before a job array).
     let before = store::read_rows(&o.out.join(store::ROWS), false)?;
-    m.check(&store::pending(&identity, &before, o.retry_failed))?;
+    pool.install(|| m.check(&store::pending(&identity, &before, o.retry_failed)))?;
     let (store, mut rows) = Store::open(o.out, &identity)?;
     let todo = store::pending(&identity, &rows, o.retry_failed);
     let skipped = indices.len() - todo.len();
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(o.jobs.unwrap_or(0))
-        .build()
-        .context("cannot start the worker threads")?;
     if !o.json {
         eprintln!(
             "{} runs{}: {} finished before, {} to run on {} threads; rows in {}",
@@ -341,6 +342,7 @@ pub(crate) fn merge_cmd(
     json: bool,
 ) -> Result<bool> {
     let merged = store::merge(dirs)?;
+    let _out_lock = store::claim_merge_out(out, dirs)?;
     let mut identity = merged.identity;
     if let Some(h) = heatmap {
         identity.heatmap = Some(heatmap_axes(&identity.axes, h).map_err(|e| anyhow!("--{e}"))?);

@@ -332,7 +332,7 @@ impl LogWriter {
             t.command.aperture.to_f32(),
             u8::from(t.dump),
             e.faults,
-            e.hydraulic_power.to_f32()
+            t.hydraulic_power.to_f32()
         )
         .map_err(|source| ClientError::Log {
             path: self.part.clone(),

@@ -212,7 +212,7 @@ pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) 
             e.q_pump.to_bits(),
             e.q_valve.to_bits(),
             e.q_relief.to_bits(),
-            e.hydraulic_power.to_bits(),
+            e.hydraulic_power().to_bits(),
             e.torque.to_bits(),
             e.motor_rpm.to_bits(),
             e.autonomy.to_bits(),

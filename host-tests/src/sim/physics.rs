@@ -183,20 +183,24 @@ pub fn valve_flow(bench: &Bench, a_pct: f64, dp: f64) -> f64 {
     orifice(&bench.oil, cd, valve_area(bench, a_pct), dp)
 }
 
-/// Nominal width of the pressure band over which the bladder lifts off its stop, Pa.
+/// Width of the pressure band above the precharge over which the bladder lifts off its stop, Pa.
 ///
 /// A real bladder does not leave its poppet at one exact pressure. More to the point for the
 /// solver: with an ideal stop, dV/dp jumps from 0 to V_T/(k·p_abs) at the precharge, and a run
 /// that hovers at the precharge (Test I with one cylinder) forces the BDF solver through that
 /// corner every stroke; restarting it at every crossing proved fragile. Over the band the
-/// capacitance rises linearly from 0 to the gas law's; above it the gas law holds exactly.
+/// capacitance rises continuously from 0 to the gas law's; above it the gas law holds exactly.
 ///
-/// The band is placed so that it takes in exactly the oil the gas law takes in up to its top:
-/// it ends half a width above the precharge and starts where a linear ramp holds
-/// V_T − V_gas(p_top) (about half a width below the precharge). Above the band the oil volume is
-/// the gas law's to rounding (`fluid_volume_above_the_band_is_the_gas_laws`); a band that started
-/// at the precharge held only half the first width's oil, and left the accumulator short by
-/// V_T·w/(2k·p_abs): 7 cm³ per litre of gas for HP, 35 for LP, at every pressure above it.
+/// The band takes in exactly the oil the gas law takes in over it, so that above it the oil
+/// volume is the gas law's to rounding (`fluid_volume_above_the_band_is_the_gas_laws`) and
+/// below the precharge there is none: its capacitance c_top·(a·u + (1 − a)·u²) (a ≈ 4) rises
+/// past the gas law's (by a third, at two thirds of the band) to hold the oil a linear ramp
+/// would miss. A linear ramp from the precharge held half the band's oil and left the
+/// accumulator short by V_T·w/(2k·p_abs) at every pressure above it (7 cm³ per litre of gas for
+/// HP, 35 for LP); a linear ramp moved to start below the precharge held the right oil above the
+/// band but some below the precharge, where the estimator's model (and a bladder on its stop)
+/// holds none: the accumulator then ran empty late, and the model-only P2 fell below the plant's
+/// for up to a second each time.
 pub const BLADDER_BAND: f64 = 0.5e5;
 
 /// A gas accumulator's law: the bench file's [`Accumulator`] with its lift-off band worked out
@@ -219,6 +223,8 @@ struct Band {
     start: f64,
     top: f64,
     c_top: f64,
+    /// Shape: C = c_top·(a·u + (1 − a)·u²), u = (p − start)/width.
+    a: f64,
     /// Energy taken in over the band, J.
     energy_top: f64,
 }
@@ -228,10 +234,24 @@ impl Band {
         self.top - self.start
     }
 
+    fn u(&self, p: f64) -> f64 {
+        (p - self.start) / self.width()
+    }
+
+    /// Oil volume and capacitance at p within the band (m³, m³/Pa).
+    fn fluid(&self, p: f64) -> (f64, f64) {
+        let (u, a, w) = (self.u(p), self.a, self.width());
+        let c = self.c_top * (a * u + (1.0 - a) * u * u);
+        let v = self.c_top * w * (a * u * u / 2.0 + (1.0 - a) * u.powi(3) / 3.0);
+        (v, c)
+    }
+
     /// ∫ p C dp from the band's start to p within the band, J.
     fn energy(&self, p: f64) -> f64 {
-        let s = self.start;
-        self.c_top / self.width() * ((p.powi(3) - s.powi(3)) / 3.0 - s * (p * p - s * s) / 2.0)
+        let (u, a, w) = (self.u(p), self.a, self.width());
+        let volume_part = a * u * u / 2.0 + (1.0 - a) * u.powi(3) / 3.0;
+        let moment = a * u.powi(3) / 3.0 + (1.0 - a) * u.powi(4) / 4.0;
+        self.c_top * w * (self.start * volume_part + w * moment)
     }
 }
 
@@ -246,17 +266,20 @@ impl GasAccumulator {
                 start: a.precharge_pa,
                 top: a.precharge_pa,
                 c_top: 0.0,
+                a: 1.0,
                 energy_top: 0.0,
             },
         };
-        let top = a.precharge_pa + 0.5 * BLADDER_BAND;
+        let (start, top) = (a.precharge_pa, a.precharge_pa + BLADDER_BAND);
         let c_top = acc.exact_capacitance(top);
-        // The ramp's volume c_top·(top − start)/2 equals the gas law's V_T − V_gas(top).
-        let start = top - 2.0 * (a.volume_m3 - acc.gas_volume(top)) / c_top;
+        // ∫ C dp over the band = c_top·w·(a/2 + (1 − a)/3) equals the gas law's
+        // V_T − V_gas(top): a = 6R − 2 with R that volume over c_top·w (≈ 1, so a ≈ 4).
+        let ratio = (a.volume_m3 - acc.gas_volume(top)) / (c_top * BLADDER_BAND);
         acc.band = Band {
             start,
             top,
             c_top,
+            a: 6.0 * ratio - 2.0,
             energy_top: 0.0,
         };
         acc.band.energy_top = acc.band.energy(top);
@@ -293,8 +316,7 @@ impl GasAccumulator {
         if p <= b.start {
             (0.0, 0.0)
         } else if p <= b.top {
-            let c = b.c_top * (p - b.start) / b.width();
-            (0.5 * c * (p - b.start), c)
+            b.fluid(p)
         } else {
             let gas = self.gas_volume(p);
             (self.volume - gas, gas / (self.index * (p + P_ATM)))
@@ -443,7 +465,7 @@ mod tests {
         let (p0, p1) = (b.hp_acc.precharge_pa - BLADDER_BAND, 102.0 * BAR);
         // (Points off the band's ends, where C is continuous but its slope is not.)
         let pc = b.hp_acc.precharge_pa;
-        for p in [pc - 0.1e5, pc + 0.1e5, pc + 0.7e5, pc + 3e5, p1] {
+        for p in [pc + 0.1e5, pc + 0.3e5, pc + 0.7e5, pc + 3e5, p1] {
             let h = 1.0;
             let dv = (acc.fluid_volume(p + h) - acc.fluid_volume(p - h)) / (2.0 * h);
             let rel = (dv / acc.capacitance(p) - 1.0).abs();
@@ -489,16 +511,24 @@ mod tests {
                 }
             }
             println!(
-                "{name} (precharge {:.1} bar, k {}): band {:.3}..{:.3} bar; |V_oil − V_law| above it \
-                 {worst_above:.2e} cm³/L, inside it {worst_in:.3} cm³/L",
+                "{name} (precharge {:.1} bar, k {}): band {:.3}..{:.3} bar (shape a = {:.3}); \
+                 |V_oil − V_law| above it {worst_above:.2e} cm³/L, inside it {worst_in:.3} cm³/L",
                 a.precharge / BAR,
                 a.index,
                 band.start / BAR,
-                band.top / BAR
+                band.top / BAR,
+                band.a
             );
             assert!(worst_above <= 1e-6, "{name}: {worst_above} cm³/L");
-            assert!(band.width() > 0.4 * BLADDER_BAND && band.width() < 1.1 * BLADDER_BAND);
-            assert!(band.start < a.precharge && band.top > a.precharge);
+            assert_eq!((band.start, band.top), (a.precharge, a.precharge + BLADDER_BAND));
+            // No oil below the precharge; the capacitance within the band stays positive and
+            // within 60 % above the gas law's (a²/(4(a − 1)) at most: 1.56 for a = 5).
+            assert_eq!(a.fluid(a.precharge - 1.0), (0.0, 0.0));
+            for k in 1..=100 {
+                let p = a.precharge + BLADDER_BAND * k as f64 / 100.0;
+                let (_, c) = a.fluid(p);
+                assert!(c > 0.0 && c < 1.6 * a.exact_capacitance(p), "{name} {p}: {c}");
+            }
         }
     }
 

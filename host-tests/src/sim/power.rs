@@ -72,10 +72,12 @@ pub struct Power {
     pub motor_shaft_w: f64,
     /// Power into the load (the generator).
     pub generator_w: f64,
-    /// The PTO's efficiency, generator / input (None when the input is not positive).
+    /// The PTO's efficiency: generator / energy supplied, the supply being the shaft input
+    /// plus what the run drew from storage (a discharge's accumulators count as a source, so
+    /// the figure stays within 0…1; None when nothing was supplied).
     pub efficiency: Option<f64>,
-    /// Share of the input not dissipated, (generator + stored) / input: differs from the
-    /// efficiency by what the run left in (or took from) the accumulators.
+    /// Share of the supply not dissipated: (generator + what the run stored) / supplied. It
+    /// differs from the efficiency by the energy a charging run left in the accumulators.
     pub efficiency_with_storage: Option<f64>,
     /// |input − losses − generator − stored| / (input + losses + generator + |stored|).
     pub closure_rel: f64,
@@ -132,7 +134,8 @@ impl Power {
         let stored = stored_w.total_w();
         let resid = input_w - losses.total_w() - generator_w - stored;
         let scale = input_w.abs() + losses.total_w().abs() + generator_w.abs() + stored.abs();
-        let ratio = |x: f64| (input_w > 0.0).then(|| x / input_w);
+        let supplied = input_w + (-stored).max(0.0);
+        let ratio = |x: f64| (supplied > 0.0).then(|| x / supplied);
         Power {
             duration_s,
             input_w,
@@ -142,7 +145,7 @@ impl Power {
             motor_shaft_w: w(quad::MOTOR_SHAFT),
             generator_w,
             efficiency: ratio(generator_w),
-            efficiency_with_storage: ratio(generator_w + stored),
+            efficiency_with_storage: ratio(generator_w + stored.max(0.0)),
             closure_rel: if scale > 0.0 {
                 resid.abs() / scale
             } else {
@@ -192,5 +195,33 @@ mod tests {
         assert!(rel < 2e-3, "{rel:e}");
         let eff = p.efficiency.expect("positive input");
         assert!(eff > 0.0 && eff < 1.0, "{eff}");
+    }
+
+    #[test]
+    fn a_discharge_counts_its_accumulators_as_the_supply() {
+        // Blocked input from 102 bar at 10 %: no shaft input, the accumulator drives the motor.
+        let mut s = scenario::builtin_named("blocked-ap10").expect("built-in");
+        s.duration_s = 100.0;
+        let (_, r) = s
+            .simulate(
+                &Bench::reference(),
+                std::path::Path::new("."),
+                SolverOptions::default(),
+                None,
+            )
+            .expect("runs");
+        let p = r.power;
+        let eff = p.efficiency.expect("the accumulator supplied energy");
+        let with = p.efficiency_with_storage.expect("same supply");
+        println!(
+            "input {:.2} W, stored {:.2} W, generator {:.2} W: efficiency {:.1} %",
+            p.input_w,
+            p.stored_w.total_w(),
+            p.generator_w,
+            eff * 100.0
+        );
+        assert!(p.stored_w.total_w() < 0.0 && p.input_w.abs() < 0.01 * p.generator_w);
+        assert!(eff > 0.0 && eff < 1.0 && (with - eff).abs() < 1e-12, "{eff} {with}");
+        assert!(p.closure_rel <= 1e-4);
     }
 }

@@ -13,7 +13,7 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 
 /// The metrics drawn: column and label with unit.
 pub const METRICS: [(&str, &str); 4] = [
-    ("efficiency_pct", "efficiency, generator / input (%)"),
+    ("efficiency_pct", "efficiency, generator / supplied (%)"),
     ("generator_power_w", "generator power (W)"),
     ("p2_mean_bar", "mean P2 (bar)"),
     ("time_at_relief_s", "time at the relief (s)"),
@@ -40,6 +40,9 @@ pub struct HeatMap {
     pub y_ticks: Vec<String>,
     /// `cells[y][x]`: the mean, `None` where no run of the cell finished with the metric.
     pub cells: Vec<Vec<Option<f64>>>,
+    /// Runs averaged in each cell, by row then column, and the runs a cell has in the matrix:
+    /// a cell over fewer (failed runs, or runs without the metric) says so in its text.
+    pub counts: (Vec<Vec<usize>>, usize),
 }
 
 /// The heat maps of [`METRICS`] over axes `x` and `y` (indices into `identity.axes`) from a
@@ -105,6 +108,10 @@ pub fn heatmaps(identity: &Identity, table: &Table, (x, y): (usize, usize)) -> V
                 y_label: ay.name(),
                 x_ticks: (0..nx).map(|i| ax.label(i)).collect(),
                 y_ticks: (0..ny).map(|i| ay.label(i)).collect(),
+                counts: (
+                    sum.iter().map(|r| r.iter().map(|c| c.1).collect()).collect(),
+                    per_cell,
+                ),
                 cells: sum
                     .into_iter()
                     .map(|r| {
@@ -248,8 +255,16 @@ impl Render for HeatMap {
                     let style = TextStyle::from(("sans-serif", 13).into_font())
                         .color(if dark { &WHITE } else { &BLACK })
                         .pos(Pos::new(HPos::Center, VPos::Center));
+                    let n = self.counts.0[j as usize][i as usize];
+                    let text = match v {
+                        None => "–".to_string(),
+                        Some(v) if n < self.counts.1 => {
+                            format!("{} ({n}/{})", cell_text(*v), self.counts.1)
+                        }
+                        Some(v) => cell_text(*v),
+                    };
                     chart.draw_series(std::iter::once(Text::new(
-                        v.map_or("–".into(), cell_text),
+                        text,
                         (SegmentValue::CenterOf(i), SegmentValue::CenterOf(j)),
                         style,
                     )))?;
@@ -308,6 +323,7 @@ mod tests {
             motor_shaft_power_w: 1.0,
             generator_power_w: 1.0,
             efficiency_pct: None,
+            efficiency_with_storage_pct: None,
             losses_w: 0.0,
             relief_loss_w: 0.0,
             stored_w: 0.0,

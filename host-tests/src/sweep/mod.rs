@@ -52,7 +52,7 @@ pub const MAX_RUNS: usize = 10_000_000;
 /// The most problems a refused matrix lists (then how many more).
 const MAX_PROBLEMS: usize = 20;
 /// Bumped when a run's figures change meaning: rows of an older format are run again.
-pub const ROW_FORMAT: u32 = 2;
+pub const ROW_FORMAT: u32 = 3;
 
 /// Why a matrix was refused: every problem, each named with the matrix file.
 #[derive(Debug, Clone, PartialEq)]
@@ -231,12 +231,29 @@ impl RunSpec {
     /// scenario, the controller, the solver tolerance, [`ROW_FORMAT`] and `pto`'s version),
     /// however the matrix wrote it. A rerun skips a run whose key has a row.
     pub fn key(&self) -> RunKey {
+        // A recorded motion's content decides the run, not where its file is or how the
+        // matrix's path was typed (the folder was in the key: a rerun from another working
+        // directory made every run again, and an edited trace made none).
+        let trace = match &self.scenario.motion {
+            crate::sim::motion::MotionSpec::Trace { file } => {
+                let path = if file.is_relative() {
+                    self.scenario_dir.join(file)
+                } else {
+                    file.clone()
+                };
+                match std::fs::read(&path) {
+                    Ok(bytes) => format!("trace {:016x}", fnv1a(&bytes)),
+                    Err(e) => format!("trace unreadable: {e}"),
+                }
+            }
+            _ => String::new(),
+        };
         let text = format!(
             "{ROW_FORMAT} {}\n{}\n{}\n{}\n{}\n{:e} {:e}",
             env!("CARGO_PKG_VERSION"),
             toml::to_string(&self.bench.file).unwrap_or_default(),
             toml::to_string(&self.scenario).unwrap_or_default(),
-            self.scenario_dir.display(),
+            trace,
             serde_json::to_string(&self.controller).unwrap_or_default(),
             self.solver.rtol,
             self.solver.atol_scale
@@ -282,7 +299,11 @@ pub fn fnv1a(bytes: &[u8]) -> u64 {
     })
 }
 
-/// `--shard K/N`: the runs whose index (from 0) is K − 1 modulo N.
+/// `--shard K/N`: in each block of N consecutive runs (by index from 0), one run, the block's
+/// (K − 1 + block) mod N-th: every shard takes one run a block (sizes differ by at most one),
+/// and the turn by one each block keeps a shard from holding one value of the last axis alone
+/// when N and that axis's length share a factor (with plain `index mod N`, `--shard K/16` of a
+/// matrix whose last axis has 4 values gave each shard a single value).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Shard {
     /// 1..=n.
@@ -294,7 +315,8 @@ pub struct Shard {
 impl Shard {
     /// Whether run `index` is this shard's.
     pub fn has(&self, index: usize) -> bool {
-        index % self.n == self.k - 1
+        let (block, place) = (index / self.n, index % self.n);
+        (place + self.n - block % self.n) % self.n == self.k - 1
     }
 }
 

@@ -52,8 +52,13 @@ pub struct Figures {
     pub motor_shaft_power_w: f64,
     /// Mean power into the generator load, W.
     pub generator_power_w: f64,
-    /// Generator power over input power, % (none when the input is not positive).
+    /// Generator power over the power supplied (shaft input plus what the run drew from
+    /// storage), % (none when nothing was supplied).
     pub efficiency_pct: Option<f64>,
+    /// (Generator power + what the run stored) over the power supplied, %: the share not
+    /// dissipated (none when nothing was supplied).
+    #[serde(default)]
+    pub efficiency_with_storage_pct: Option<f64>,
     /// Mean dissipation, all causes, W.
     pub losses_w: f64,
     /// Mean dissipation in the relief valve, W.
@@ -237,6 +242,7 @@ pub fn figures(spec: &RunSpec, res: &SimResult) -> Result<Figures, String> {
         motor_shaft_power_w: power.motor_shaft_w,
         generator_power_w: power.generator_w,
         efficiency_pct: power.efficiency.map(|e| e * 100.0),
+        efficiency_with_storage_pct: power.efficiency_with_storage.map(|e| e * 100.0),
         losses_w: power.losses.total_w(),
         relief_loss_w: power.losses.relief_w,
         stored_w: power.stored_w.total_w(),
@@ -260,7 +266,12 @@ pub fn figures(spec: &RunSpec, res: &SimResult) -> Result<Figures, String> {
         f.relief_loss_w,
         f.stored_w,
     ];
-    if all.iter().chain(&f.efficiency_pct).all(|x| x.is_finite()) {
+    if all
+        .iter()
+        .chain(&f.efficiency_pct)
+        .chain(&f.efficiency_with_storage_pct)
+        .all(|x| x.is_finite())
+    {
         Ok(f)
     } else {
         Err(format!("a figure of the run is not finite: {f:?}"))

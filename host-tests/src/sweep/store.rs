@@ -53,6 +53,13 @@ pub enum StoreError {
     /// A folder to merge is not a sweep's.
     #[error("{0}: not a sweep folder (no {IDENTITY})")]
     NotASweep(PathBuf),
+    /// `merge --out` names a sweep folder with rows that is not one of the folders merged:
+    /// replacing it would lose them.
+    #[error(
+        "--out {0}: a sweep folder with rows of its own; name it among the folders to merge, or \
+         choose a new or empty folder"
+    )]
+    WouldLoseRows(PathBuf),
     /// A `sweep.json` that cannot be read.
     #[error("{path}: {message}")]
     BadIdentity {
@@ -155,6 +162,32 @@ fn sweep_id(axes: &[Axis], keys: &[RunKey]) -> String {
         text.push_str(&k.to_string());
     }
     format!("{:016x}", fnv1a(text.as_bytes()))
+}
+
+/// Makes sure `merge --out` may replace `out`: takes its sweep lock when it is a sweep folder
+/// (refused while a sweep writes there; held until dropped, past the swap) and refuses a sweep
+/// folder with rows that is not among the folders merged.
+pub fn claim_merge_out(
+    out: &Path,
+    inputs: &[PathBuf],
+) -> Result<Option<nix::fcntl::Flock<std::fs::File>>, StoreError> {
+    let lock_path = out.join(LOCK);
+    if !lock_path.exists() {
+        return Ok(None);
+    }
+    let file = std::fs::File::open(&lock_path).map_err(io(&lock_path))?;
+    let lock = nix::fcntl::Flock::lock(file, nix::fcntl::FlockArg::LockExclusiveNonblock)
+        .map_err(|_| StoreError::Busy(out.to_path_buf()))?;
+    let rows = out.join(ROWS);
+    let has_rows = std::fs::metadata(&rows).is_ok_and(|m| m.len() > 0);
+    let same = |d: &PathBuf| match (d.canonicalize(), out.canonicalize()) {
+        (Ok(a), Ok(b)) => a == b,
+        _ => false,
+    };
+    if has_rows && !inputs.iter().any(same) {
+        return Err(StoreError::WouldLoseRows(out.to_path_buf()));
+    }
+    Ok(Some(lock))
 }
 
 /// A sweep folder open for writing: rows are appended as runs finish.

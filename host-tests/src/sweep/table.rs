@@ -99,12 +99,13 @@ pub enum TableError {
 /// The figures' columns: name (with unit) and value.
 type FigureColumn = (&'static str, fn(&Figures) -> Option<f64>);
 
-const FIGURES: [FigureColumn; 19] = [
+const FIGURES: [FigureColumn; 20] = [
     ("input_power_w", |f| Some(f.input_power_w)),
     ("pumped_power_w", |f| Some(f.pumped_power_w)),
     ("motor_shaft_power_w", |f| Some(f.motor_shaft_power_w)),
     ("generator_power_w", |f| Some(f.generator_power_w)),
     ("efficiency_pct", |f| f.efficiency_pct),
+    ("efficiency_with_storage_pct", |f| f.efficiency_with_storage_pct),
     ("losses_w", |f| Some(f.losses_w)),
     ("relief_loss_w", |f| Some(f.relief_loss_w)),
     ("stored_w", |f| Some(f.stored_w)),

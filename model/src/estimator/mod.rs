@@ -106,9 +106,6 @@ pub struct Estimate {
     pub q_valve: Flow,
     /// Relief flow.
     pub q_relief: Flow,
-    /// Hydraulic power into the control valve, P2 · valve flow (what drives the motor and the
-    /// valve's throttling; 0 … 32 767 W, saturating).
-    pub hydraulic_power: HydraulicPower,
     /// Restraining torque at the shaft.
     pub torque: Torque,
     /// Per cylinder.
@@ -136,6 +133,13 @@ impl Estimate {
     /// Standard deviation of P2 (a square root: for display and telemetry, not the step).
     pub fn p2_sigma(&self) -> Pressure {
         Pressure(sqrt0(self.p2_var.0))
+    }
+
+    /// Hydraulic power into the control valve, P2 · valve flow (what drives the motor and the
+    /// valve's throttling; 0 … 32 767 W, saturating). Taken on demand, like
+    /// [`Estimate::p2_sigma`], for the telemetry: the per-step code stays within its 8 KiB.
+    pub fn hydraulic_power(&self) -> HydraulicPower {
+        hydraulic_power(self.p2.0, self.q_valve.0)
     }
 }
 
@@ -412,7 +416,6 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         q_pump_mean: Flow(s.q_mean),
         q_valve: Flow(br.q_valve),
         q_relief: Flow(br.q_relief),
-        hydraulic_power: hydraulic_power(s.node.p2, br.q_valve),
         torque: Torque(torque),
         torque_cyl,
         motor_rpm: Rpm(br.motor_rpm),

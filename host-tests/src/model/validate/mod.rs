@@ -209,7 +209,7 @@ fn validate_scenario(
             se_w += (w - truth.motor_rpm).powi(2);
             ss_w += truth.motor_rpm.powi(2);
             let pw = value_at(tr, &tr.valve_power_w, t);
-            se_pw += (f64::from(e.hydraulic_power.to_f32()) - pw).powi(2);
+            se_pw += (f64::from(e.hydraulic_power().to_f32()) - pw).powi(2);
             sum_pw += pw;
             peak_tq = peak_tq.max(truth.torque_nm.abs());
             count += 1.0;
