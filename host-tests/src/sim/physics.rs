@@ -520,14 +520,20 @@ mod tests {
                 band.a
             );
             assert!(worst_above <= 1e-6, "{name}: {worst_above} cm³/L");
-            assert_eq!((band.start, band.top), (a.precharge, a.precharge + BLADDER_BAND));
+            assert_eq!(
+                (band.start, band.top),
+                (a.precharge, a.precharge + BLADDER_BAND)
+            );
             // No oil below the precharge; the capacitance within the band stays positive and
             // within 60 % above the gas law's (a²/(4(a − 1)) at most: 1.56 for a = 5).
             assert_eq!(a.fluid(a.precharge - 1.0), (0.0, 0.0));
             for k in 1..=100 {
                 let p = a.precharge + BLADDER_BAND * k as f64 / 100.0;
                 let (_, c) = a.fluid(p);
-                assert!(c > 0.0 && c < 1.6 * a.exact_capacitance(p), "{name} {p}: {c}");
+                assert!(
+                    c > 0.0 && c < 1.6 * a.exact_capacitance(p),
+                    "{name} {p}: {c}"
+                );
             }
         }
     }

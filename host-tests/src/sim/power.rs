@@ -221,7 +221,10 @@ mod tests {
             eff * 100.0
         );
         assert!(p.stored_w.total_w() < 0.0 && p.input_w.abs() < 0.01 * p.generator_w);
-        assert!(eff > 0.0 && eff < 1.0 && (with - eff).abs() < 1e-12, "{eff} {with}");
+        assert!(
+            eff > 0.0 && eff < 1.0 && (with - eff).abs() < 1e-12,
+            "{eff} {with}"
+        );
         assert!(p.closure_rel <= 1e-4);
     }
 }

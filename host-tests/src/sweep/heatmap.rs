@@ -109,7 +109,9 @@ pub fn heatmaps(identity: &Identity, table: &Table, (x, y): (usize, usize)) -> V
                 x_ticks: (0..nx).map(|i| ax.label(i)).collect(),
                 y_ticks: (0..ny).map(|i| ay.label(i)).collect(),
                 counts: (
-                    sum.iter().map(|r| r.iter().map(|c| c.1).collect()).collect(),
+                    sum.iter()
+                        .map(|r| r.iter().map(|c| c.1).collect())
+                        .collect(),
                     per_cell,
                 ),
                 cells: sum

@@ -172,12 +172,15 @@ pub fn claim_merge_out(
     inputs: &[PathBuf],
 ) -> Result<Option<nix::fcntl::Flock<std::fs::File>>, StoreError> {
     let lock_path = out.join(LOCK);
-    if !lock_path.exists() {
-        return Ok(None);
-    }
-    let file = std::fs::File::open(&lock_path).map_err(io(&lock_path))?;
-    let lock = nix::fcntl::Flock::lock(file, nix::fcntl::FlockArg::LockExclusiveNonblock)
-        .map_err(|_| StoreError::Busy(out.to_path_buf()))?;
+    let lock = if lock_path.exists() {
+        let file = std::fs::File::open(&lock_path).map_err(io(&lock_path))?;
+        Some(
+            nix::fcntl::Flock::lock(file, nix::fcntl::FlockArg::LockExclusiveNonblock)
+                .map_err(|_| StoreError::Busy(out.to_path_buf()))?,
+        )
+    } else {
+        None
+    };
     let rows = out.join(ROWS);
     let has_rows = std::fs::metadata(&rows).is_ok_and(|m| m.len() > 0);
     let same = |d: &PathBuf| match (d.canonicalize(), out.canonicalize()) {
@@ -187,7 +190,7 @@ pub fn claim_merge_out(
     if has_rows && !inputs.iter().any(same) {
         return Err(StoreError::WouldLoseRows(out.to_path_buf()));
     }
-    Ok(Some(lock))
+    Ok(lock)
 }
 
 /// A sweep folder open for writing: rows are appended as runs finish.

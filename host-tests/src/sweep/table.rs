@@ -105,7 +105,9 @@ const FIGURES: [FigureColumn; 20] = [
     ("motor_shaft_power_w", |f| Some(f.motor_shaft_power_w)),
     ("generator_power_w", |f| Some(f.generator_power_w)),
     ("efficiency_pct", |f| f.efficiency_pct),
-    ("efficiency_with_storage_pct", |f| f.efficiency_with_storage_pct),
+    ("efficiency_with_storage_pct", |f| {
+        f.efficiency_with_storage_pct
+    }),
     ("losses_w", |f| Some(f.losses_w)),
     ("relief_loss_w", |f| Some(f.relief_loss_w)),
     ("stored_w", |f| Some(f.stored_w)),
