@@ -111,7 +111,6 @@ impl Stored {
 /// One cylinder on duty.
 #[derive(Debug, Clone)]
 struct Active {
-    lever: Lever,
     area_cap: f64,
     area_ann: f64,
     stroke: f64,
@@ -122,7 +121,6 @@ struct Active {
 /// One idle cylinder: chambers at LP through the bypass, rod following the eye.
 #[derive(Debug, Clone)]
 struct Idle {
-    lever: Lever,
     area_cap: f64,
     area_ann: f64,
     stroke: f64,
@@ -235,10 +233,8 @@ impl Plant {
         let mut active_index = Vec::new();
         let mut idle = Vec::new();
         for (i, c) in bench.cylinders.iter().enumerate() {
-            let lever = Lever::new(geom, c.stroke_m, c.side);
             if on_duty[i] {
                 active.push(Active {
-                    lever,
                     area_cap: c.area_cap_m2,
                     area_ann: c.area_ann_m2,
                     stroke: c.stroke_m,
@@ -249,7 +245,6 @@ impl Plant {
                 idle.push((
                     i,
                     Idle {
-                        lever,
                         area_cap: c.area_cap_m2,
                         area_ann: c.area_ann_m2,
                         stroke: c.stroke_m,
@@ -405,10 +400,10 @@ impl Plant {
         omega: f64,
         aperture_pct: f64,
     ) -> Vec<f64> {
-        let (theta, _) = self.motion.at(0.0);
+        let kin = self.kinematics(0.0);
         let mut y = vec![0.0; self.n];
-        for c in &self.active {
-            let (x, _, _) = c.lever.eye(theta, 0.0);
+        for (c, &ci) in self.active.iter().zip(&self.active_index) {
+            let (x, _, _) = kin.eye[ci];
             y[c.at] = lp / BAR;
             y[c.at + 1] = lp / BAR;
             y[c.at + 2] = x * 1e3;
@@ -554,7 +549,7 @@ impl Plant {
             e.p_cap_pa[ci] = p_cap;
             e.p_rod_pa[ci] = p_rod;
             e.q_into_hp_m3_s[ci] = (del_cap + del_rod) * v_hm;
-            e.torque_nm[ci] = c.lever.side() * arm * f_contact;
+            e.torque_nm[ci] = self.levers[ci].side() * arm * f_contact;
             e.quad[6] += f_contact * v_eye;
             if want_quad {
                 let v_rel = v_eye - x_dot;
@@ -582,7 +577,7 @@ impl Plant {
             e.rod_m[*ci] = x_eye;
             e.p_cap_pa[*ci] = p_lm;
             e.p_rod_pa[*ci] = p_lm;
-            e.torque_nm[*ci] = c.lever.side() * arm * f_contact;
+            e.torque_nm[*ci] = self.levers[*ci].side() * arm * f_contact;
             e.quad[6] += f_contact * v_eye;
         }
         let q_valve = physics::valve_flow(b, aperture_pct, p2 - pm);
@@ -696,11 +691,11 @@ impl Plant {
         let b = &self.bench;
         let fl = &self.fluid;
         let (p2, lp, pm) = (y[self.i_p2] * BAR, y[self.i_lp] * BAR, y[self.i_pm] * BAR);
-        let (theta, _) = self.motion.at(t);
+        let kin = self.kinematics(t);
         let idle: f64 = self
             .idle
             .iter()
-            .map(|(_, c)| c.volume_at(b.chamber_dead_volume_m3, c.lever.eye(theta, 0.0).0))
+            .map(|(ci, c)| c.volume_at(b.chamber_dead_volume_m3, kin.eye[*ci].0))
             .sum();
         let [oil_hp, oil_lp] = self.accumulator_node_oil(
             self.hp_acc.fluid_volume(p2),

@@ -157,16 +157,15 @@ impl Power {
 
 #[cfg(test)]
 mod tests {
+    use super::Power;
     use crate::sim::bench::Bench;
     use crate::sim::scenario;
     use crate::sim::solver::SolverOptions;
 
-    #[test]
-    fn powers_close_and_follow_the_path_from_shaft_to_generator() {
-        // Test III at 10 %, shortened: the valve opens at 100 bar after ≈ 155 s, so 200 s holds
-        // both the charging and the motor running.
-        let mut s = scenario::builtin_named("test3-ap10").expect("built-in");
-        s.duration_s = 200.0;
+    /// The powers of built-in scenario `name` cut to `duration_s`.
+    fn power_of(name: &str, duration_s: f64) -> Power {
+        let mut s = scenario::builtin_named(name).expect("built-in");
+        s.duration_s = duration_s;
         let (_, r) = s
             .simulate(
                 &Bench::reference(),
@@ -175,7 +174,14 @@ mod tests {
                 None,
             )
             .expect("runs");
-        let p = r.power;
+        r.power
+    }
+
+    #[test]
+    fn powers_close_and_follow_the_path_from_shaft_to_generator() {
+        // Test III at 10 %, shortened: the valve opens at 100 bar after ≈ 155 s, so 200 s holds
+        // both the charging and the motor running.
+        let p = power_of("test3-ap10", 200.0);
         println!("{p:#?}");
         assert!(p.closure_rel <= 1e-4, "closure {:e}", p.closure_rel);
         // The path: input > pumped > motor shaft > generator > 0, each step losing its causes.
@@ -200,17 +206,7 @@ mod tests {
     #[test]
     fn a_discharge_counts_its_accumulators_as_the_supply() {
         // Blocked input from 102 bar at 10 %: no shaft input, the accumulator drives the motor.
-        let mut s = scenario::builtin_named("blocked-ap10").expect("built-in");
-        s.duration_s = 100.0;
-        let (_, r) = s
-            .simulate(
-                &Bench::reference(),
-                std::path::Path::new("."),
-                SolverOptions::default(),
-                None,
-            )
-            .expect("runs");
-        let p = r.power;
+        let p = power_of("blocked-ap10", 100.0);
         let eff = p.efficiency.expect("the accumulator supplied energy");
         let with = p.efficiency_with_storage.expect("same supply");
         println!(
