@@ -399,9 +399,7 @@ pub fn loss_breakdown(name: &str, p: &Power) -> BarChart {
             }
         })
         .collect();
-    let eff = p
-        .efficiency
-        .map_or("-".into(), |e| format!("{:.1} %", 100.0 * e));
+    let eff = crate::sim::power::percent_text(p.efficiency);
     BarChart {
         name: format!("{name}-losses"),
         title: format!(

@@ -7,7 +7,7 @@ use pto_host::paper::{self, Fact, Results, tol};
 use pto_host::perf;
 use pto_host::runner::{self, Outcome};
 use pto_host::sim::bench::BAR;
-use pto_host::sim::power::Power;
+use pto_host::sim::power::{Power, percent_text};
 use pto_host::sim::scenario;
 use pto_host::sim::solver::{SimResult, SolverOptions};
 use serde::Serialize;
@@ -155,10 +155,6 @@ pub(crate) fn simulate(
     Ok(pass)
 }
 
-fn percent(x: Option<f64>) -> String {
-    x.map_or("-".into(), |e| format!("{:.1} %", 100.0 * e))
-}
-
 /// The power lines of a run's summary: the path from the shaft to the generator, the losses by
 /// cause and the storage.
 pub(crate) fn power_lines(p: &Power) -> String {
@@ -175,8 +171,8 @@ pub(crate) fn power_lines(p: &Power) -> String {
         p.pumped_w,
         p.motor_shaft_w,
         p.generator_w,
-        percent(p.efficiency),
-        percent(p.efficiency_with_storage),
+        percent_text(p.efficiency),
+        percent_text(p.efficiency_with_storage),
         losses.join(", "),
         st.total_w(),
         st.accumulators_w,
@@ -399,7 +395,7 @@ pub(crate) fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
                     t.p2_pa[t.len() - 1] / BAR,
                     res.power.input_w,
                     res.power.generator_w,
-                    percent(res.power.efficiency),
+                    percent_text(res.power.efficiency),
                     res.balance.worst()
                 ));
             }

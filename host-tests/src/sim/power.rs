@@ -155,6 +155,12 @@ impl Power {
     }
 }
 
+/// An efficiency as printed in summaries and figures: "37.2 %", or "-" when it is undefined
+/// (nothing was supplied).
+pub fn percent_text(efficiency: Option<f64>) -> String {
+    efficiency.map_or("-".into(), |e| format!("{:.1} %", 100.0 * e))
+}
+
 #[cfg(test)]
 mod tests {
     use super::Power;
