@@ -18,6 +18,14 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
+/// A fresh folder `name` holding [`SMALL`] as `m.toml`: the folder and the matrix's path.
+fn small_matrix(name: &str) -> (PathBuf, PathBuf) {
+    let dir = tmp(name);
+    let m = dir.join("m.toml");
+    std::fs::write(&m, SMALL).unwrap();
+    (dir, m)
+}
+
 /// Test III cut to 20 s (the valve stays closed: P2 does not reach 100 bar), 2 × 2 runs.
 const SMALL: &str = r#"
 scenario = "test3-ap10"
@@ -310,9 +318,7 @@ fn without_wall(csv: &str) -> Vec<String> {
 
 #[test]
 fn a_sweep_resumes_shards_merge_to_the_whole_and_parquet_reads_back_as_the_csv() {
-    let dir = tmp("resume");
-    let m = dir.join("m.toml");
-    std::fs::write(&m, SMALL).unwrap();
+    let (dir, m) = small_matrix("resume");
     let m = m.to_str().unwrap();
     let whole = dir.join("whole");
     let whole_s = whole.to_str().unwrap();
@@ -472,9 +478,7 @@ fn a_failed_run_is_a_failure_row_and_the_sweep_exits_1_until_it_is_run_again() {
     assert!(e.contains("scenario.duration_s: -1 outside"), "{e}");
     // Through the command: a failure row (here one a past run left) makes the sweep exit 1,
     // names the run, and stays finished until --retry-failed.
-    let dir = tmp("failed");
-    let mf = dir.join("m.toml");
-    std::fs::write(&mf, SMALL).unwrap();
+    let (dir, mf) = small_matrix("failed");
     let out = dir.join("out");
     let (_, code, _) = sweep(&[mf.to_str().unwrap(), "--out", out.to_str().unwrap()]);
     assert_eq!(code, Some(0));
@@ -572,9 +576,7 @@ fn ctrl_c_keeps_every_finished_row_whole_and_a_rerun_goes_on() {
 /// writing (its lock).
 #[test]
 fn a_merge_does_not_replace_a_sweep_folder_it_was_not_given() {
-    let dir = tmp("merge-out");
-    let m = dir.join("m.toml");
-    std::fs::write(&m, SMALL).unwrap();
+    let (dir, m) = small_matrix("merge-out");
     let m = m.to_str().unwrap();
     let (whole, shard) = (dir.join("whole"), dir.join("shard1"));
     let (_, code, err) = sweep(&[m, "--out", whole.to_str().unwrap(), "--no-plots"]);

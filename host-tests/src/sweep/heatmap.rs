@@ -40,9 +40,11 @@ pub struct HeatMap {
     pub y_ticks: Vec<String>,
     /// `cells[y][x]`: the mean, `None` where no run of the cell finished with the metric.
     pub cells: Vec<Vec<Option<f64>>>,
-    /// Runs averaged in each cell, by row then column, and the runs a cell has in the matrix:
-    /// a cell over fewer (failed runs, or runs without the metric) says so in its text.
-    pub counts: (Vec<Vec<usize>>, usize),
+    /// Runs averaged in each cell, `counts[y][x]`: a cell over fewer than [`HeatMap::per_cell`]
+    /// (failed runs, or runs without the metric) says so in its text.
+    pub counts: Vec<Vec<usize>>,
+    /// The runs each cell has in the matrix.
+    pub per_cell: usize,
 }
 
 /// The heat maps of [`METRICS`] over axes `x` and `y` (indices into `identity.axes`) from a
@@ -108,12 +110,11 @@ pub fn heatmaps(identity: &Identity, table: &Table, (x, y): (usize, usize)) -> V
                 y_label: ay.name(),
                 x_ticks: (0..nx).map(|i| ax.label(i)).collect(),
                 y_ticks: (0..ny).map(|i| ay.label(i)).collect(),
-                counts: (
-                    sum.iter()
-                        .map(|r| r.iter().map(|c| c.1).collect())
-                        .collect(),
-                    per_cell,
-                ),
+                counts: sum
+                    .iter()
+                    .map(|r| r.iter().map(|c| c.1).collect())
+                    .collect(),
+                per_cell,
                 cells: sum
                     .into_iter()
                     .map(|r| {
@@ -257,11 +258,11 @@ impl Render for HeatMap {
                     let style = TextStyle::from(("sans-serif", 13).into_font())
                         .color(if dark { &WHITE } else { &BLACK })
                         .pos(Pos::new(HPos::Center, VPos::Center));
-                    let n = self.counts.0[j as usize][i as usize];
+                    let n = self.counts[j as usize][i as usize];
                     let text = match v {
                         None => "–".to_string(),
-                        Some(v) if n < self.counts.1 => {
-                            format!("{} ({n}/{})", cell_text(*v), self.counts.1)
+                        Some(v) if n < self.per_cell => {
+                            format!("{} ({n}/{})", cell_text(*v), self.per_cell)
                         }
                         Some(v) => cell_text(*v),
                     };

@@ -45,6 +45,7 @@ use crate::sim::solver::SolverOptions;
 use pto_model::scheduler::Mode;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 /// The most runs a matrix may expand to.
@@ -231,21 +232,17 @@ impl RunSpec {
     /// scenario, the controller, the solver tolerance, [`ROW_FORMAT`] and `pto`'s version),
     /// however the matrix wrote it. A rerun skips a run whose key has a row.
     pub fn key(&self) -> RunKey {
+        self.key_with(&trace_digest)
+    }
+
+    /// [`RunSpec::key`], the recorded motion's part given by `digest` (of the trace's path):
+    /// [`Matrix::keys`] reads a trace once for all the runs that share it.
+    fn key_with(&self, digest: &(dyn Fn(&Path) -> String + Sync)) -> RunKey {
         // A recorded motion's content decides the run, not where its file is or how the
         // matrix's path was typed (the folder was in the key: a rerun from another working
         // directory made every run again, and an edited trace made none).
         let trace = match &self.scenario.motion {
-            crate::sim::motion::MotionSpec::Trace { file } => {
-                let path = if file.is_relative() {
-                    self.scenario_dir.join(file)
-                } else {
-                    file.clone()
-                };
-                match std::fs::read(&path) {
-                    Ok(bytes) => format!("trace {:016x}", fnv1a(&bytes)),
-                    Err(e) => format!("trace unreadable: {e}"),
-                }
-            }
+            crate::sim::motion::MotionSpec::Trace { file } => digest(&self.scenario_dir.join(file)),
             _ => String::new(),
         };
         let text = format!(
@@ -259,6 +256,15 @@ impl RunSpec {
             self.solver.atol_scale
         );
         RunKey(fnv1a(text.as_bytes()))
+    }
+}
+
+/// A recorded motion's part of a run's key: the hash of the trace file's content, or why it
+/// cannot be read.
+fn trace_digest(path: &Path) -> String {
+    match std::fs::read(path) {
+        Ok(bytes) => format!("trace {:016x}", fnv1a(&bytes)),
+        Err(e) => format!("trace unreadable: {e}"),
     }
 }
 
@@ -583,17 +589,27 @@ impl Matrix {
     /// their fields' types, its bench is inside every range, its controller mode is known) and
     /// no two are the same run. Quick (no run is prepared): [`Matrix::check`] does the rest.
     pub fn keys(&self) -> Result<Vec<RunKey>, MatrixError> {
+        let digests = std::sync::Mutex::new(HashMap::<PathBuf, String>::new());
+        let digest = |path: &Path| {
+            let mut known = digests
+                .lock()
+                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            known
+                .entry(path.to_path_buf())
+                .or_insert_with(|| trace_digest(path))
+                .clone()
+        };
         let built: Vec<Result<RunKey, String>> = (0..self.len())
             .into_par_iter()
             .map(|i| {
                 let spec = self.spec(i)?;
                 spec.controller.scheduler_mode()?;
-                Ok(spec.key())
+                Ok(spec.key_with(&digest))
             })
             .collect();
         let keys = self.refusals(built.into_iter().enumerate())?;
         let mut problems = Vec::new();
-        let mut first = std::collections::HashMap::new();
+        let mut first = HashMap::new();
         for (i, k) in keys.iter().enumerate() {
             if let Some(j) = first.insert(*k, i) {
                 problems.push(format!(
@@ -856,7 +872,7 @@ pub enum WriteError {
 pub fn write_tables(
     dir: &Path,
     identity: &store::Identity,
-    rows: &std::collections::HashMap<RunKey, run::Row>,
+    rows: &HashMap<RunKey, run::Row>,
     plots: bool,
 ) -> Result<Written, WriteError> {
     let t = table::Table::of_rows(identity, rows, &identity.indices());

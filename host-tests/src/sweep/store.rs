@@ -164,6 +164,16 @@ fn sweep_id(axes: &[Axis], keys: &[RunKey]) -> String {
     format!("{:016x}", fnv1a(text.as_bytes()))
 }
 
+/// Takes sweep folder `dir`'s lock (`file`, its [`LOCK`]) without waiting: refused while
+/// another `pto sweep` (or merge) holds it; held until dropped.
+fn lock_sweep(
+    dir: &Path,
+    file: std::fs::File,
+) -> Result<nix::fcntl::Flock<std::fs::File>, StoreError> {
+    nix::fcntl::Flock::lock(file, nix::fcntl::FlockArg::LockExclusiveNonblock)
+        .map_err(|_| StoreError::Busy(dir.to_path_buf()))
+}
+
 /// Makes sure `merge --out` may replace `out`: takes its sweep lock when it is a sweep folder
 /// (refused while a sweep writes there; held until dropped, past the swap) and refuses a sweep
 /// folder with rows that is not among the folders merged.
@@ -174,10 +184,7 @@ pub fn claim_merge_out(
     let lock_path = out.join(LOCK);
     let lock = if lock_path.exists() {
         let file = std::fs::File::open(&lock_path).map_err(io(&lock_path))?;
-        Some(
-            nix::fcntl::Flock::lock(file, nix::fcntl::FlockArg::LockExclusiveNonblock)
-                .map_err(|_| StoreError::Busy(out.to_path_buf()))?,
-        )
+        Some(lock_sweep(out, file)?)
     } else {
         None
     };
@@ -225,8 +232,7 @@ impl Store {
         .map_err(io(&marker))?;
         let lock_path = dir.join(LOCK);
         let lock_file = std::fs::File::create(&lock_path).map_err(io(&lock_path))?;
-        let lock = nix::fcntl::Flock::lock(lock_file, nix::fcntl::FlockArg::LockExclusiveNonblock)
-            .map_err(|_| StoreError::Busy(dir.to_path_buf()))?;
+        let lock = lock_sweep(dir, lock_file)?;
         let rows_path = dir.join(ROWS);
         let rows = read_rows(&rows_path, true)?;
         let text = serde_json::to_string_pretty(identity).unwrap_or_default();
