@@ -82,6 +82,11 @@ fn embed_bench(workspace: &std::path::Path, out: &std::path::Path) {
     if let Err(e) = sched.coefficients(&k) {
         fail(&format!("{source}:controller.scheduler.{e}"));
     }
+    let hse_mhz = bench.file.controller.board.hse_mhz;
+    let hse = match hse_mhz {
+        0 => "None".to_string(),
+        mhz => format!("Some({mhz})"),
+    };
     let fingerprint = config_fingerprint(bytes);
     fs::write(out.join("bench-config.bin"), &*bytes).expect("OUT_DIR is writable");
     fs::write(
@@ -95,7 +100,9 @@ fn embed_bench(workspace: &std::path::Path, out: &std::path::Path) {
              /// The scheduler's settings (the bench file's `[controller.scheduler]`).\n\
              pub const SCHEDULER: pto_model::scheduler::SchedulerConfig = {};\n\
              /// The control settings (the bench file's `[controller]`).\n\
-             pub const CONTROL: pto_model::control::ControlConfig = {};\n",
+             pub const CONTROL: pto_model::control::ControlConfig = {};\n\
+             /// The board's crystal, MHz (`[controller.board] hse_mhz`; `None`: no crystal).\n\
+             pub const HSE_MHZ: Option<u8> = {hse};\n",
             rust_literal(&format!("{sched:?}"), "pto_model::scheduler::"),
             rust_literal(&format!("{control:?}"), "pto_model::control::"),
         ),

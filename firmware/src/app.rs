@@ -1,5 +1,9 @@
 //! The embassy tasks, shared by both boards. Hardware comes from `board` through embedded-hal and
 //! embedded-io-async traits; the logic lives in the host-tested library.
+//!
+//! The control task owns the outputs: each step's are driven before anything is logged or
+//! awaited, so neither the link nor a log (defmt-rtt never blocks: `disable-blocking-mode`)
+//! stands between a trip and the dump valve.
 
 use crate::board;
 use core::cell::Cell;
@@ -9,23 +13,21 @@ use embassy_executor::Spawner;
 use embassy_sync::blocking_mutex::Mutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
-use embassy_sync::signal::Signal;
 use embassy_time::{Duration, Timer, with_timeout};
-use embedded_hal::digital::OutputPin;
-use embedded_hal::pwm::SetDutyCycle;
 use embedded_io_async::{Read, Write};
 use pto_firmware::control::{ControlConfig, Controller, ReconfigureError, SetupError};
 use pto_firmware::link::{HostReceiver, Transmitter};
+use pto_firmware::outputs::{Actuators, Outputs};
 use pto_firmware::store::{ConfigStore, Loaded, NotStored, stored_config};
-use pto_firmware::supervisor::{Heartbeats, Supervisor, Task, Watchdog as _};
+use pto_firmware::supervisor::{Heartbeats, Supervisor, Task, Watchdog};
 use pto_firmware::upload::Upload;
 use pto_firmware::{HEARTBEAT_MS, SUPERVISOR_PERIOD_MS, VERSION};
 use pto_model::ModelConfig;
-use pto_model::fx::Aperture;
+use pto_model::protocol::selftest::OutputReport;
 use pto_model::protocol::{
-    CONFIG_MAX_BYTES, Chunk, ConfigInfo, ConfigRefusal, ConfigSource, FromFirmware, Hello,
-    LinkCounts, MAX_FRAME, PROTOCOL_VERSION, Refusal, SCHEMA_HASH, SensorFrame, Stored, Telemetry,
-    ToFirmware, config_fingerprint,
+    BoardInfo, CONFIG_MAX_BYTES, Chunk, ConfigInfo, ConfigRefusal, ConfigSource, FromFirmware,
+    Hello, LinkCounts, MAX_FRAME, PROTOCOL_VERSION, Refusal, SCHEMA_HASH, SelfTest,
+    SelfTestRefusal, SelfTestReply, SensorFrame, Stored, Telemetry, ToFirmware, config_fingerprint,
 };
 use pto_model::scheduler::SchedulerConfig;
 use static_cell::StaticCell;
@@ -40,12 +42,11 @@ pub struct Board {
     pub hardware: Option<(board::Rx, board::Tx)>,
     /// Step-cost clock.
     pub clock: board::Clock,
-    /// Proportional valve.
-    pub valve: board::Valve,
-    /// Dump valve.
-    pub dump: board::Pin,
-    /// Duty solenoids HC3.1..HC3.4.
-    pub solenoids: [board::Pin; 4],
+    /// The valve, the dump valve and the duty solenoids, already at their boot levels
+    /// ([`Outputs::at_boot`]).
+    pub actuators: Actuators<board::Valve, board::Pin>,
+    /// What the board says of itself.
+    pub info: BoardInfo,
     /// Watchdog.
     pub watchdog: board::Watchdog,
     /// The configuration store's flash and its byte range in it.
@@ -92,19 +93,39 @@ pub enum ToTx {
     Exit(u8),
 }
 
-/// Actuator outputs.
-#[derive(Clone, Copy)]
-pub struct Outputs {
-    /// Valve aperture.
-    pub aperture: Aperture,
-    /// Dump valve open.
-    pub dump: bool,
-    /// Solenoids of the cylinders on duty (bit i = HC3.(i+1)).
-    pub on_duty: u8,
+/// The board's own samples (the bench's sampler) for the control task, on a queue of their own:
+/// commands, however many the host sends, never take a sample's place. A sample the queue
+/// cannot take is dropped and counted.
+static SAMPLES: Channel<CriticalSectionRawMutex, SensorFrame, 2> = Channel::new();
+/// What the ports bring the control task, in arrival order: commands (a receive task waits for
+/// room) and the twin's samples on its hardware port (dropped and counted when it is full), in
+/// one queue so that a command and the samples around it keep their order.
+static FROM_PORTS: Channel<CriticalSectionRawMutex, ToControl, 4> = Channel::new();
+
+#[cfg_attr(not(feature = "bench"), allow(dead_code))]
+/// Queues one of the board's own samples for the control task; counts it as overrun when the
+/// queue is full.
+pub fn queue_sample(frame: SensorFrame) {
+    if SAMPLES.try_send(frame).is_err() {
+        FRAMES_OVERRUN.fetch_add(1, Ordering::Relaxed);
+    }
 }
 
-/// Samples and commands for the control task. Samples are dropped (and counted) when it is full.
-pub static TO_CONTROL: Channel<CriticalSectionRawMutex, ToControl, 4> = Channel::new();
+/// The next thing for the control task: the board's sample whenever one is waiting, else what
+/// the ports brought.
+async fn next_for_control() -> ToControl {
+    use embassy_futures::select::{Either, select};
+    // `select` polls its first future first: a waiting sample always goes ahead.
+    match select(SAMPLES.receive(), FROM_PORTS.receive()).await {
+        Either::First(frame) => ToControl::Sample { frame, from: None },
+        Either::Second(m) => m,
+    }
+}
+
+/// The control task stops proving itself alive (and so the watchdog expires) when the board's
+/// sampler has given it no sample for this long: a dead sampler, or a control loop kept busy
+/// by anything else, ends in a reset with the outputs de-energised.
+const SAMPLE_STALE_MS: u64 = 100;
 /// Frames queued for each port's transmit task.
 const TX_QUEUE: usize = 8;
 /// Queue slots telemetry leaves free for replies (the host waits for each reply, so a couple
@@ -112,7 +133,6 @@ const TX_QUEUE: usize = 8;
 const REPLY_SLOTS: usize = 2;
 static TO_TX: [Channel<CriticalSectionRawMutex, ToTx, TX_QUEUE>; 2] =
     [Channel::new(), Channel::new()];
-static ACTUATE: Signal<CriticalSectionRawMutex, Outputs> = Signal::new();
 static HEARTBEATS: Heartbeats = Heartbeats::new();
 /// What each port's receive task took and dropped, by cause, for `Status`.
 static LINK_COUNTS: [Mutex<CriticalSectionRawMutex, Cell<LinkCounts>>; 2] = [
@@ -153,8 +173,9 @@ pub fn start(spawner: Spawner) {
         spawner.spawn(rx_task(Port::Hardware, rx).expect("rx task pool"));
         spawner.spawn(tx_task(Port::Hardware, tx).expect("tx task pool"));
     }
-    spawner.spawn(control_task(b.clock, b.store.0, b.store.1).expect("one control task"));
-    spawner.spawn(actuator_task(b.valve, b.dump, b.solenoids).expect("one actuator task"));
+    spawner.spawn(
+        control_task(b.clock, b.store.0, b.store.1, b.actuators, b.info).expect("one control task"),
+    );
     spawner.spawn(supervisor_task(b.watchdog, Supervisor::new(&watched)).expect("one supervisor"));
 }
 
@@ -187,14 +208,14 @@ async fn rx_task(port: Port, mut rx: board::Rx) {
                             frame,
                             from: Some(port),
                         };
-                        if TO_CONTROL.try_send(s).is_err() {
+                        if FROM_PORTS.try_send(s).is_err() {
                             FRAMES_OVERRUN.fetch_add(1, Ordering::Relaxed);
                         }
                     }
                     ToFirmware::Sensors(_) => {
                         SENSORS_ON_LINK.fetch_add(1, Ordering::Relaxed);
                     }
-                    other => TO_CONTROL.send(ToControl::Command(port, other)).await,
+                    other => FROM_PORTS.send(ToControl::Command(port, other)).await,
                 }
             }
         }
@@ -233,9 +254,16 @@ async fn tx_task(port: Port, mut tx: board::Tx) {
     }
 }
 
+/// Queues a reply for `port`'s transmit task without waiting: a host that floods commands
+/// without reading their replies loses replies (counted), never the control loop's time.
 async fn send(port: Port, msg: FromFirmware) {
-    TO_TX[port as usize].send(ToTx::Send(msg)).await;
+    if TO_TX[port as usize].try_send(ToTx::Send(msg)).is_err() {
+        REPLIES_DROPPED.fetch_add(1, Ordering::Relaxed);
+    }
 }
+
+/// Replies the transmit queue could not take.
+static REPLIES_DROPPED: AtomicU32 = AtomicU32::new(0);
 
 fn log_setup_error(e: &SetupError) {
     match e {
@@ -430,8 +458,35 @@ impl Session {
     }
 }
 
+/// The self-test's answer to a drive: what was commanded, what the hardware reads back.
+async fn driven(
+    d: pto_model::protocol::selftest::TestDrive,
+    o: Outputs,
+    act: &Actuators<board::Valve, board::Pin>,
+) -> SelfTestReply {
+    // A GPIO's input register follows its pin within a few AHB cycles (RM0090 §8.3.1); the
+    // wait leaves the driver's output stage time to settle as well.
+    Timer::after_micros(200).await;
+    let (valve_readback, dump_readback, solenoids_readback) = act.read_back();
+    SelfTestReply::Driven(OutputReport {
+        drive: d,
+        valve: o.aperture,
+        dump_open: o.dump_open,
+        solenoids: o.on_duty,
+        valve_readback,
+        dump_readback,
+        solenoids_readback,
+    })
+}
+
 #[embassy_executor::task]
-async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range<u32>) {
+async fn control_task(
+    mut clock: board::Clock,
+    flash: board::Flash,
+    range: Range<u32>,
+    mut act: Actuators<board::Valve, board::Pin>,
+    info: BoardInfo,
+) {
     let sched = pto_firmware::built_config::SCHEDULER;
     let cc = pto_firmware::built_config::CONTROL;
     let mut store = ConfigStore::new(flash, range);
@@ -450,6 +505,12 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
     if crate::trip_memory::remembered() {
         ctl.boot_tripped();
     }
+    defmt::info!(
+        "board: clock {}; last reset: {}; brown-out reset {}",
+        info.clock,
+        info.reset,
+        info.brownout
+    );
     defmt::info!(
         "pto-firmware {}.{} protocol v{} board={} dt=2^-{} s trip={} bar on_duty={=u8:#06b} telemetry every {} steps",
         VERSION >> 8,
@@ -470,7 +531,10 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
     );
     DT_LOG2.store(u32::from(ctl.dt_log2()), Ordering::Relaxed);
     send(Port::Link, FromFirmware::Hello(hello())).await;
-    send(Port::Hardware, FromFirmware::Hello(hello())).await;
+    if !board::SAMPLES_ITSELF {
+        // Only the twin has a hardware port.
+        send(Port::Hardware, FromFirmware::Hello(hello())).await;
+    }
     let mut s = Session {
         sched,
         cc,
@@ -481,28 +545,39 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
     };
     let mut faults_prev = 0u16;
     let mut tripped_prev = ctl.status.tripped;
+    let selftest_ends = |ctl: &Controller, why: &str| {
+        if ctl.selftest_active() {
+            defmt::warn!("self-test ended by {=str}", why);
+        }
+    };
     if tripped_prev {
         defmt::error!(
             "booted tripped: the trip held when the controller reset; valve and dump open"
         );
     }
+    let mut last_sample = embassy_time::Instant::now();
     loop {
-        HEARTBEATS.beat(Task::Control);
-        let Ok(msg) = with_timeout(Duration::from_millis(HEARTBEAT_MS), TO_CONTROL.receive()).await
+        if !board::SAMPLES_ITSELF || last_sample.elapsed() < Duration::from_millis(SAMPLE_STALE_MS)
+        {
+            HEARTBEATS.beat(Task::Control);
+        }
+        let Ok(msg) = with_timeout(Duration::from_millis(HEARTBEAT_MS), next_for_control()).await
         else {
             continue;
         };
         match msg {
             ToControl::Sample { frame: f, from } => {
+                last_sample = embassy_time::Instant::now();
                 if !ctl.fresh(f.tick) {
                     continue;
                 }
                 let o = ctl.sample(&f, &mut clock);
-                ACTUATE.signal(Outputs {
-                    aperture: o.applied,
-                    dump: o.dump,
-                    on_duty: ctl.duty().0,
-                });
+                // The outputs first: nothing is logged or awaited before they are driven.
+                act.apply(&o.outputs());
+                let tripped = ctl.status.tripped;
+                if tripped != tripped_prev {
+                    crate::trip_memory::remember(tripped);
+                }
                 let new = o.estimate.faults & !faults_prev;
                 if new != 0 {
                     defmt::warn!(
@@ -514,14 +589,16 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                     );
                 }
                 faults_prev = o.estimate.faults;
-                if o.dump != tripped_prev {
-                    crate::trip_memory::remember(o.dump);
-                    if o.dump {
+                if tripped != tripped_prev {
+                    if tripped {
                         defmt::error!("tick {}: overpressure trip, valve and dump open", f.tick);
                     } else {
                         defmt::info!("tick {}: trip released", f.tick);
                     }
-                    tripped_prev = o.dump;
+                    tripped_prev = tripped;
+                }
+                if let Some(why) = o.selftest_ended {
+                    defmt::warn!("tick {}: self-test ended: {}", f.tick, why);
                 }
                 if let Some(port) = from {
                     send(
@@ -532,20 +609,21 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                             command: o.command,
                             applied: o.applied,
                             dump: o.dump,
+                            on_duty: o.on_duty,
                         },
                     )
                     .await;
                 }
                 let every = u32::from(s.telemetry_every);
                 if every != 0 && f.tick.is_multiple_of(every) {
-                    let (on_duty, config) = ctl.duty();
+                    let (_, config) = ctl.duty();
                     let t = FromFirmware::Telemetry(Telemetry {
                         sensors: f,
                         estimate: o.estimate,
                         command: o.command,
                         applied: o.applied,
                         dump: o.dump,
-                        on_duty,
+                        on_duty: o.on_duty,
                         config,
                         hydraulic_power: o.estimate.hydraulic_power(),
                     });
@@ -559,6 +637,12 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                 }
             }
             ToControl::Command(port, cmd) => match cmd {
+                // The live estimator is the trip's input: on a board that samples its own
+                // sensors, a host's inputs never step it.
+                ToFirmware::Replay { .. } if board::SAMPLES_ITSELF => {
+                    defmt::warn!("replay refused: this board steps its own sensors");
+                    send(port, FromFirmware::Refused(Refusal::ReplayOnTwinOnly)).await;
+                }
                 ToFirmware::Replay { tick, inputs } => {
                     let (estimate, command) = ctl.replay(&inputs, &mut clock);
                     send(
@@ -569,6 +653,7 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                             command,
                             applied: ctl.status.aperture,
                             dump: ctl.status.dump_valve,
+                            on_duty: act.applied().on_duty,
                         },
                     )
                     .await;
@@ -578,10 +663,12 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                 ToFirmware::Ping(n) => send(port, FromFirmware::Pong(n)).await,
                 ToFirmware::Hello => send(port, FromFirmware::Hello(hello())).await,
                 ToFirmware::SetMode(m) => {
+                    selftest_ends(ctl, "a mode command");
                     defmt::info!("mode {}", m);
                     ctl.set_mode(m);
                 }
                 ToFirmware::SetDuty { on_duty, config } => {
+                    selftest_ends(ctl, "a duty command");
                     defmt::info!("on duty {=u8:#06b}, config {}", on_duty, config + 1);
                     ctl.set_duty(on_duty, config);
                 }
@@ -596,17 +683,23 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                     s.telemetry_every = every;
                     send(port, FromFirmware::Pong(u32::from(every))).await;
                 }
-                ToFirmware::Reset { p2, lp } => match ctl.reset(p2, lp) {
-                    Ok(()) => {
-                        defmt::info!("reset: P2 {} bar, LP {} bar", p2.to_f32(), lp.to_f32());
-                        faults_prev = 0;
-                        send(port, FromFirmware::ResetDone).await;
+                ToFirmware::Reset { p2, lp } => {
+                    let selftest = ctl.selftest_active();
+                    match ctl.reset(p2, lp) {
+                        Ok(()) => {
+                            if selftest {
+                                defmt::warn!("self-test ended by a reset");
+                            }
+                            defmt::info!("reset: P2 {} bar, LP {} bar", p2.to_f32(), lp.to_f32());
+                            faults_prev = 0;
+                            send(port, FromFirmware::ResetDone).await;
+                        }
+                        Err(hold) => {
+                            defmt::warn!("reset refused: the overpressure trip holds ({})", hold);
+                            send(port, FromFirmware::Refused(Refusal::TripHeld(hold))).await;
+                        }
                     }
-                    Err(hold) => {
-                        defmt::warn!("reset refused: the overpressure trip holds ({})", hold);
-                        send(port, FromFirmware::Refused(Refusal::TripHeld(hold))).await;
-                    }
-                },
+                }
                 ToFirmware::GetStatus => {
                     let mut st = ctl.status;
                     st.link = LINK_COUNTS[port as usize].lock(Cell::get);
@@ -615,6 +708,9 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                         .wrapping_add(FRAMES_OVERRUN.load(Ordering::Relaxed))
                         .wrapping_add(SENSORS_ON_LINK.load(Ordering::Relaxed));
                     st.bytes_lost = board::bytes_lost() + RX_ERRORS.load(Ordering::Relaxed);
+                    st.samples_missed = board::samples_missed();
+                    st.stack_unused = crate::stack::unused_bytes();
+                    st.replies_dropped = REPLIES_DROPPED.load(Ordering::Relaxed);
                     st.telemetry_dropped = TELEMETRY_DROPPED.load(Ordering::Relaxed);
                     send(port, FromFirmware::Status(st)).await;
                 }
@@ -627,6 +723,11 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                     send(port, config_reply(r)).await;
                 }
                 ToFirmware::ConfigCommit { persist } => {
+                    // The loop stops for the tables (and the erase): the dump valve open and the
+                    // solenoids off meanwhile; the next step drives the outputs again.
+                    if ctl.safe_to_apply().is_ok() {
+                        act.apply(&Outputs::DE_ENERGISED);
+                    }
                     let r = s.commit(ctl, persist).await;
                     match &r {
                         Ok(_) => faults_prev = 0,
@@ -635,6 +736,9 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                     send(port, config_reply(r)).await;
                 }
                 ToFirmware::ConfigClear => {
+                    if ctl.safe_to_apply().is_ok() {
+                        act.apply(&Outputs::DE_ENERGISED);
+                    }
                     let r = s.clear(ctl).await;
                     if let Err(e) = &r {
                         defmt::warn!("configuration store not cleared: {}", e);
@@ -660,10 +764,55 @@ async fn control_task(mut clock: board::Clock, flash: board::Flash, range: Range
                     send(port, FromFirmware::Refused(Refusal::StallWhileTripped)).await;
                 }
                 ToFirmware::Stall => {
-                    defmt::warn!("watchdog test: the control task stops");
+                    let _ = ctl.selftest_end();
+                    // Nothing stays energised while the watchdog runs out.
+                    act.apply(&Outputs::DE_ENERGISED);
+                    defmt::warn!("watchdog test: outputs de-energised, the control task stops");
                     core::future::pending::<()>().await;
                 }
                 ToFirmware::Exit(code) => TO_TX[port as usize].send(ToTx::Exit(code)).await,
+                ToFirmware::SelfTest(req) => {
+                    let r: Result<SelfTestReply, SelfTestRefusal> = match req {
+                        SelfTest::Inputs => {
+                            ctl.selftest_touch();
+                            Ok(SelfTestReply::Inputs(ctl.input_report(info)))
+                        }
+                        SelfTest::Begin => match ctl.selftest_begin() {
+                            Ok(o) => {
+                                act.apply(&o);
+                                defmt::warn!(
+                                    "self-test: outputs de-energised (valve closed, dump open)"
+                                );
+                                Ok(SelfTestReply::Inputs(ctl.input_report(info)))
+                            }
+                            Err(e) => Err(e),
+                        },
+                        SelfTest::Drive(d) => match ctl.selftest_drive(d) {
+                            Ok(o) => {
+                                act.apply(&o);
+                                defmt::info!("self-test: drive {}", d);
+                                Ok(driven(d, o, &act).await)
+                            }
+                            Err(e) => Err(e),
+                        },
+                        SelfTest::End => match ctl.selftest_end() {
+                            Ok(o) => {
+                                act.apply(&o);
+                                defmt::info!("self-test ended");
+                                Ok(SelfTestReply::Ended)
+                            }
+                            Err(e) => Err(e),
+                        },
+                    };
+                    let reply = match r {
+                        Ok(r) => FromFirmware::SelfTest(r),
+                        Err(e) => {
+                            defmt::warn!("self-test request refused: {}", e);
+                            FromFirmware::Refused(Refusal::SelfTest(e))
+                        }
+                    };
+                    send(port, reply).await;
+                }
             },
         }
     }
@@ -675,29 +824,13 @@ fn config_reply(r: Result<FromFirmware, ConfigRefusal>) -> FromFirmware {
 }
 
 #[embassy_executor::task]
-async fn actuator_task(mut valve: board::Valve, mut dump: board::Pin, mut sol: [board::Pin; 4]) {
-    loop {
-        let o = ACTUATE.wait().await;
-        // Aperture % → duty: Q16.16 percent × max / 100, computed in integers.
-        let max = u64::from(SetDutyCycle::max_duty_cycle(&valve));
-        let bits = u64::try_from(o.aperture.to_bits().max(0)).unwrap_or(0);
-        let duty = ((bits * max) / (100u64 << 16)).min(max) as u16;
-        let _ = SetDutyCycle::set_duty_cycle(&mut valve, duty);
-        let _ = OutputPin::set_state(&mut dump, o.dump.into());
-        for (i, s) in sol.iter_mut().enumerate() {
-            let _ = OutputPin::set_state(s, (o.on_duty & (1 << i) != 0).into());
-        }
-    }
-}
-
-#[embassy_executor::task]
 async fn supervisor_task(mut wdg: board::Watchdog, mut sup: Supervisor) {
     let mut starving = false;
     loop {
         Timer::after_millis(SUPERVISOR_PERIOD_MS).await;
         match sup.check(&HEARTBEATS) {
             None => {
-                wdg.feed();
+                Watchdog::feed(&mut wdg);
                 starving = false;
             }
             Some(t) => {

@@ -37,7 +37,13 @@ mod tests {
         assert_eq!(FINGERPRINT, pto_model::protocol::config_fingerprint(BYTES));
         assert!(cfg.coefficients().is_ok());
         assert!(crate::control::Controller::new(&cfg, &SCHEDULER, &CONTROL).is_ok());
+        let (hz, pll) = crate::clocks::plan(HSE_MHZ, true);
+        assert!(
+            pll.unwrap().within_limits(hz),
+            "the PLL for {HSE_MHZ:?} MHz"
+        );
         if REFERENCE {
+            assert_eq!(HSE_MHZ, Some(8));
             assert_eq!(cfg, ModelConfig::reference());
             assert_eq!(SCHEDULER, pto_model::SchedulerConfig::default());
             assert_eq!(CONTROL, crate::control::ControlConfig::default());

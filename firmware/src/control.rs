@@ -1,14 +1,18 @@
-//! The control step shared by both boards: raw sample → transducer conversion → estimator →
-//! scheduler → overpressure trip latch → actuator stage (slew limit, safe state).
+//! The control step shared by both boards: raw sample → supply correction → transducer
+//! conversion → estimator → scheduler → overpressure trip latch → actuator stage (slew limit,
+//! safe state) → the bring-up self-test's overlay, if one is active.
 //!
 //! Configuration ([`ControlConfig`], [`ModelConfig`], [`SchedulerConfig`]) is validated once by
 //! [`Controller::new`]; the per-step functions cannot fail.
 
-use crate::frontend::{SpecError, Transducer};
+use crate::frontend::{LoopReading, SpecError, SupplyCorrection, Transducer};
+use crate::outputs::Outputs;
+use crate::selftest::{Ended, SelfTestState};
 use crate::trip::{TripLatch, TripSample};
 use pto_model::estimator::{self, Estimate, Inputs, State, fault};
 use pto_model::fx::{Aperture, Fx, Pressure, ZERO, clamp, mul_dt};
-use pto_model::protocol::{SensorFrame, Status, TripHold};
+use pto_model::protocol::selftest::{InputReport, LoopReport, LoopState, TestDrive};
+use pto_model::protocol::{BoardInfo, SelfTestRefusal, SensorFrame, Status, TripHold};
 use pto_model::scheduler::{self, Command, Mode, Override, SchedulerCoeffs, SchedulerConfig};
 use pto_model::{Coefficients, ConfigError, ModelConfig, SchedulerState};
 
@@ -92,6 +96,21 @@ pub struct StepOut {
     pub applied: Aperture,
     /// Dump valve open.
     pub dump: bool,
+    /// Solenoids energised (bit i = HC3.(i+1)).
+    pub on_duty: u8,
+    /// A self-test ended by itself in this step, and why.
+    pub selftest_ended: Option<Ended>,
+}
+
+impl StepOut {
+    /// The outputs to drive.
+    pub fn outputs(&self) -> Outputs {
+        Outputs {
+            aperture: self.applied,
+            dump_open: self.dump,
+            on_duty: self.on_duty,
+        }
+    }
 }
 
 /// The controller: model coefficients, estimator and scheduler state, trip latch, actuator.
@@ -104,8 +123,18 @@ pub struct Controller {
     mode: Mode,
     on_duty: u8,
     config: u8,
+    /// The outputs held de-energised since boot, until the host's first mode, duty or reset
+    /// command: a controller that reset (watchdog, fault, brown-out) does not close the dump
+    /// valve or energise a solenoid by itself.
+    held: bool,
     hp: Transducer,
     lp: Transducer,
+    hp_supply: SupplyCorrection,
+    lp_supply: SupplyCorrection,
+    /// The last sample stepped and how many were (the self-test's report).
+    last_frame: Option<SensorFrame>,
+    samples: u32,
+    selftest: Option<SelfTestState>,
     safe_op: Fx,
     latch: TripLatch,
     /// What the latch saw of the last step (what a host reset is judged on; `None` before the
@@ -123,16 +152,30 @@ pub struct Controller {
     pub status: Status,
 }
 
-impl Controller {
-    /// Validates the configuration and precomputes everything; the estimator starts with P2
-    /// unknown (large uncertainty) until [`Controller::reset`].
-    pub fn new(
-        model: &ModelConfig,
+/// What a configuration makes of the controller besides its coefficient tables, worked out
+/// and checked from them. The tables (≈ 11 KB) are built once into a local and moved into place
+/// at the end: no second whole controller, and no chain of functions each returning a copy of
+/// the tables, is ever on the stack (a commit that stored once took the stack down through the
+/// statics: a QEMU lockup).
+struct Rest {
+    sc: SchedulerCoeffs,
+    hp: Transducer,
+    lp: Transducer,
+    latch: TripLatch,
+    safe_op: Fx,
+    boot_var: Fx,
+    boot_sigma: Fx,
+    slew_step: Fx,
+}
+
+impl Rest {
+    #[inline(never)]
+    fn of(
+        k: &Coefficients,
         sched: &SchedulerConfig,
         cc: &ControlConfig,
     ) -> Result<Self, SetupError> {
-        let k = model.coefficients().map_err(SetupError::Model)?;
-        let sc = sched.coefficients(&k).map_err(SetupError::Model)?;
+        let sc = sched.coefficients(k).map_err(SetupError::Model)?;
         let hp = Transducer::new(cc.hp).map_err(SetupError::Loop)?;
         let lp = Transducer::new(cc.lp).map_err(SetupError::Loop)?;
         let check = |field, v: f32, lo: f32, hi: f32| {
@@ -167,34 +210,63 @@ impl Controller {
             (65_535e3 / steps_per_s).min(60_000.0),
         )?;
         let hold_steps = (cc.trip_release_hold_ms * 1e-3 * steps_per_s + 0.5) as u16;
-        let latch = TripLatch::new(Pressure(k.trip_bar), Pressure(release), hold_steps);
-        let slew_step = mul_dt(Fx::saturating_from_num(cc.valve_slew_pct_per_s), k.dt_log2);
-        let mut c = Controller {
+        Ok(Rest {
+            latch: TripLatch::new(Pressure(k.trip_bar), Pressure(release), hold_steps),
+            slew_step: mul_dt(Fx::saturating_from_num(cc.valve_slew_pct_per_s), k.dt_log2),
+            safe_op: Fx::saturating_from_num(sched.overpressure_aperture_pct),
+            boot_var: Fx::saturating_from_num(cc.boot_sigma_bar * cc.boot_sigma_bar),
+            boot_sigma: Fx::saturating_from_num(cc.boot_sigma_bar),
             sc,
-            st: State::default(),
+            hp,
+            lp,
+        })
+    }
+}
+
+impl Controller {
+    /// Validates the configuration and precomputes everything; the estimator starts with P2
+    /// unknown (large uncertainty) until [`Controller::reset`]. The outputs are held
+    /// de-energised ([`Controller::held`]) until the host's first mode, duty or reset command.
+    pub fn new(
+        model: &ModelConfig,
+        sched: &SchedulerConfig,
+        cc: &ControlConfig,
+    ) -> Result<Self, SetupError> {
+        let k = match model.coefficients() {
+            Ok(k) => k,
+            Err(e) => return Err(SetupError::Model(e)),
+        };
+        let p = Rest::of(&k, sched, cc)?;
+        Ok(Controller {
+            sc: p.sc,
+            st: State::new(Pressure::ZERO, Pressure::ZERO, Pressure(p.boot_sigma)),
             sst: SchedulerState::default(),
             mode: Mode::Fixed(Aperture::ZERO),
             on_duty: BOOT_ON_DUTY,
             config: 0,
-            hp,
-            lp,
-            safe_op: Fx::saturating_from_num(sched.overpressure_aperture_pct),
-            latch,
+            held: true,
+            hp_supply: SupplyCorrection::new(p.hp.vref_mv()),
+            lp_supply: SupplyCorrection::new(p.lp.vref_mv()),
+            hp: p.hp,
+            lp: p.lp,
+            last_frame: None,
+            samples: 0,
+            selftest: None,
+            safe_op: p.safe_op,
+            latch: p.latch,
             last: None,
             confirmed: false,
-            boot_var: Fx::saturating_from_num(cc.boot_sigma_bar * cc.boot_sigma_bar),
-            slew_step,
+            boot_var: p.boot_var,
+            slew_step: p.slew_step,
             applied: ZERO,
             last_tick: None,
-            status: Status::default(),
+            status: Status {
+                held: true,
+                dump_valve: true,
+                ..Status::default()
+            },
             k,
-        };
-        c.st = State::new(
-            Pressure::ZERO,
-            Pressure::ZERO,
-            Pressure(Fx::saturating_from_num(cc.boot_sigma_bar)),
-        );
-        Ok(c)
+        })
     }
 
     /// Runs another model configuration from the next step, refused (nothing changed) outside
@@ -202,54 +274,62 @@ impl Controller {
     /// the board samples at; otherwise the same checks as [`Controller::new`]. The estimator
     /// restarts from its last P2 and LP with the boot uncertainty (a missing HP reading keeps
     /// it there until a reading confirms P2, as after a host reset); the mode, the cylinders
-    /// on duty, the health counters, the tick count, the trip latch (its count; its state when
-    /// the trip pressure is unchanged) and the applied aperture carry over.
+    /// on duty, the hold, the health counters, the tick count, the trip latch (its count; its
+    /// state when the trip pressure is unchanged) and the applied aperture carry over.
+    #[inline(never)]
     pub fn reconfigure(
         &mut self,
         model: &ModelConfig,
         sched: &SchedulerConfig,
         cc: &ControlConfig,
     ) -> Result<(), ReconfigureError> {
-        let mut next = self.successor(model, sched, cc)?;
-        next.mode = self.mode;
-        (next.on_duty, next.config) = (self.on_duty, self.config);
-        next.status = self.status;
-        next.last_tick = self.last_tick;
-        next.last = self.last;
-        next.applied = self.applied;
-        if next.k.trip_bar == self.k.trip_bar {
-            next.latch = self.latch;
-        } else {
-            next.latch.trips = self.latch.trips;
+        self.may_take(model)?;
+        let k = match model.coefficients() {
+            Ok(k) => k,
+            Err(e) => return Err(SetupError::Model(e).into()),
+        };
+        let p = Rest::of(&k, sched, cc)?;
+        if k.trip_bar != self.k.trip_bar {
+            let trips = self.latch.trips;
+            self.latch = p.latch;
+            self.latch.trips = trips;
         }
-        next.st = State::new(
+        self.st = State::new(
             Pressure(self.st.node.p2),
             Pressure(self.st.node.lp),
-            Pressure(Fx::saturating_from_num(cc.boot_sigma_bar)),
+            Pressure(p.boot_sigma),
         );
-        *self = next;
+        self.sst = SchedulerState::default();
+        self.confirmed = false;
+        self.hp_supply = SupplyCorrection::new(p.hp.vref_mv());
+        self.lp_supply = SupplyCorrection::new(p.lp.vref_mv());
+        (self.hp, self.lp) = (p.hp, p.lp);
+        (self.safe_op, self.boot_var, self.slew_step) = (p.safe_op, p.boot_var, p.slew_step);
+        self.sc = p.sc;
+        self.k = k;
         Ok(())
     }
 
-    /// Whether [`Controller::reconfigure`] would take `model`, without changing anything (a
-    /// whole controller is built on the stack and dropped).
+    /// Whether [`Controller::reconfigure`] would take `model`, without changing anything (its
+    /// coefficients are worked out on the stack and dropped).
+    #[inline(never)]
     pub fn check_reconfigure(
         &self,
         model: &ModelConfig,
         sched: &SchedulerConfig,
         cc: &ControlConfig,
     ) -> Result<(), ReconfigureError> {
-        self.successor(model, sched, cc).map(|_| ())
+        self.may_take(model)?;
+        match model.coefficients() {
+            Ok(k) => Rest::of(&k, sched, cc)
+                .map(|_| ())
+                .map_err(ReconfigureError::from),
+            Err(e) => Err(SetupError::Model(e).into()),
+        }
     }
 
-    /// A fresh controller for `model`, if this one may be replaced by it: the safe state, the
-    /// board's step, then [`Controller::new`]'s checks.
-    fn successor(
-        &self,
-        model: &ModelConfig,
-        sched: &SchedulerConfig,
-        cc: &ControlConfig,
-    ) -> Result<Controller, ReconfigureError> {
+    /// Whether this controller may take `model` at all: the safe state, the board's step.
+    fn may_take(&self, model: &ModelConfig) -> Result<(), ReconfigureError> {
         self.safe_to_apply().map_err(ReconfigureError::NotSafe)?;
         if model.dt_log2 != self.k.dt_log2 {
             // The step is the board's sampling period, fixed at boot.
@@ -261,7 +341,7 @@ impl Controller {
                 max: dt,
             })));
         }
-        Ok(Controller::new(model, sched, cc)?)
+        Ok(())
     }
 
     /// The declared safe state in which the controller may stop stepping for a while (building
@@ -271,6 +351,8 @@ impl Controller {
     pub fn safe_to_apply(&self) -> Result<(), NotSafe> {
         if self.status.tripped {
             Err(NotSafe::Tripped)
+        } else if self.selftest.is_some() {
+            Err(NotSafe::SelfTest)
         } else if self.mode != Mode::Fixed(Aperture::ZERO) || self.applied != ZERO {
             Err(NotSafe::ValveOpen)
         } else if !self.last.is_some_and(|s| s.in_range) {
@@ -324,6 +406,8 @@ impl Controller {
     /// host's pressures cannot stand in for a lost transducer.
     pub fn reset(&mut self, p2: Pressure, lp: Pressure) -> Result<(), TripHold> {
         self.latch.reset_allowed(self.last.as_ref())?;
+        self.selftest = None;
+        self.held = false;
         self.st = State::new(p2, lp, Pressure(Fx::ONE));
         self.sst = SchedulerState::default();
         self.last_tick = None;
@@ -345,16 +429,115 @@ impl Controller {
         ok
     }
 
-    /// Switches the scheduler mode (bumpless: the integrator keeps its value).
+    /// Switches the scheduler mode (bumpless: the integrator keeps its value); ends a
+    /// self-test.
     pub fn set_mode(&mut self, mode: Mode) {
         self.mode = mode;
+        self.selftest = None;
+        self.held = false;
     }
 
     /// Cylinders on duty and geometry; out-of-range values are ignored and flagged by the
-    /// estimator's `BAD_CONFIG` fault.
+    /// estimator's `BAD_CONFIG` fault. Ends a self-test.
     pub fn set_duty(&mut self, on_duty: u8, config: u8) {
         self.on_duty = on_duty;
         self.config = config;
+        self.selftest = None;
+        self.held = false;
+    }
+
+    /// Whether the outputs are held de-energised since boot (until the host's first mode, duty
+    /// or reset command).
+    pub fn held(&self) -> bool {
+        self.held
+    }
+
+    /// Whether a self-test drives the outputs.
+    pub fn selftest_active(&self) -> bool {
+        self.selftest.is_some()
+    }
+
+    /// Begins the bring-up self-test: only with the trip armed, in mode fixed 0 % with the
+    /// valve closed. Returns the outputs to drive at once (all de-energised).
+    pub fn selftest_begin(&mut self) -> Result<Outputs, SelfTestRefusal> {
+        if self.status.tripped {
+            return Err(SelfTestRefusal::NotSafe(NotSafe::Tripped));
+        }
+        if self.mode != Mode::Fixed(Aperture::ZERO) {
+            return Err(SelfTestRefusal::NotSafe(NotSafe::ValveOpen));
+        }
+        // Without a valid HP reading P2 is unknown (in fixed 0 % the valve then stands at the
+        // sensor-fault safe aperture): the outputs are not stepped.
+        if !self.last.is_some_and(|s| s.in_range) {
+            return Err(SelfTestRefusal::NotSafe(NotSafe::NoReading));
+        }
+        if self.applied != ZERO {
+            return Err(SelfTestRefusal::NotSafe(NotSafe::ValveOpen));
+        }
+        let t = SelfTestState::begin(self.k.dt_log2);
+        self.selftest = Some(t);
+        Ok(self.selftest_applied(&t))
+    }
+
+    /// Drives one output (the others de-energised); returns the outputs to drive at once.
+    pub fn selftest_drive(&mut self, d: TestDrive) -> Result<Outputs, SelfTestRefusal> {
+        let mut t = self.selftest.ok_or(SelfTestRefusal::NotActive)?;
+        t.drive(d)?;
+        self.selftest = Some(t);
+        Ok(self.selftest_applied(&t))
+    }
+
+    /// Ends the self-test; the controller's own outputs apply from the next step, from the
+    /// de-energised state.
+    pub fn selftest_end(&mut self) -> Result<Outputs, SelfTestRefusal> {
+        self.selftest.take().ok_or(SelfTestRefusal::NotActive)?;
+        let off = SelfTestState::begin(self.k.dt_log2);
+        Ok(self.selftest_applied(&off))
+    }
+
+    /// A self-test request came (the idle time starts again).
+    pub fn selftest_touch(&mut self) {
+        if let Some(t) = &mut self.selftest {
+            t.touch();
+        }
+    }
+
+    /// The self-test's outputs, recorded as applied (the estimator sees the valve it drives).
+    fn selftest_applied(&mut self, t: &SelfTestState) -> Outputs {
+        let o = t.outputs();
+        self.applied = o.aperture.0;
+        let s = &mut self.status;
+        s.aperture = o.aperture;
+        s.dump_valve = o.dump_open;
+        o
+    }
+
+    /// The inputs of the last sample as the self-test reports them.
+    pub fn input_report(&self, board: BoardInfo) -> InputReport {
+        let f = self.last_frame;
+        let report = |t: &Transducer, c: &SupplyCorrection, raw: u16| {
+            let (state, counts) = match c.correct(raw) {
+                LoopReading::Counts(n) => (t.state(n), n),
+                LoopReading::Saturated => (LoopState::Saturated, raw),
+                LoopReading::SupplyFault => (LoopState::SupplyFault, raw),
+            };
+            LoopReport {
+                adc: raw,
+                current_ua: t.current_ua(counts),
+                state,
+            }
+        };
+        InputReport {
+            tick: f.map_or(0, |f| f.tick),
+            samples: self.samples,
+            hp: report(&self.hp, &self.hp_supply, f.map_or(0, |f| f.hp_adc)),
+            lp: report(&self.lp, &self.lp_supply, f.map_or(0, |f| f.lp_adc)),
+            supply_mv: f.and_then(|f| f.supply_mv),
+            encoder: f.map_or(0, |f| f.encoder),
+            motor: f.and_then(|f| f.motor),
+            active: self.selftest.is_some(),
+            board,
+        }
     }
 
     fn model_step<C: StepClock>(&mut self, inp: &Inputs, clock: &mut C) -> (Estimate, Command) {
@@ -380,7 +563,17 @@ impl Controller {
 
     /// One closed-loop step from a raw sample.
     pub fn sample<C: StepClock>(&mut self, f: &SensorFrame, clock: &mut C) -> StepOut {
-        let reading = self.hp.pressure(f.hp_adc);
+        self.last_frame = Some(*f);
+        self.samples = self.samples.wrapping_add(1);
+        let supply_ok = self.hp_supply.update(f.supply_mv) & self.lp_supply.update(f.supply_mv);
+        if !supply_ok {
+            self.status.supply_faults = self.status.supply_faults.wrapping_add(1);
+        }
+        let pressure = |t: &Transducer, c: &SupplyCorrection, raw: u16| match c.correct(raw) {
+            LoopReading::Counts(n) => t.pressure(n),
+            LoopReading::Saturated | LoopReading::SupplyFault => None,
+        };
+        let reading = pressure(&self.hp, &self.hp_supply, f.hp_adc);
         if reading.is_none() {
             self.status.hp_loop_faults = self.status.hp_loop_faults.wrapping_add(1);
         }
@@ -394,10 +587,15 @@ impl Controller {
         let inp = Inputs {
             encoder: Some(f.encoder),
             hp: reading,
-            lp: self.lp.pressure(f.lp_adc),
+            lp: pressure(&self.lp, &self.lp_supply, f.lp_adc),
             motor: f.motor,
             aperture_cmd: Aperture(self.applied),
-            on_duty: self.on_duty,
+            // During a self-test the cylinders are on duty as its solenoids are; held, none is.
+            on_duty: match self.selftest {
+                Some(t) => t.outputs().on_duty,
+                None if self.held => 0,
+                None => self.on_duty,
+            },
             config: self.config,
         };
         let (e, c) = self.model_step(&inp, clock);
@@ -430,13 +628,48 @@ impl Controller {
                 self.applied.saturating_add(self.slew_step),
             )
         };
-        s.dump_valve = s.tripped;
-        s.aperture = Aperture(self.applied);
+        let mut out = Outputs {
+            aperture: Aperture(self.applied),
+            dump_open: s.tripped,
+            on_duty: self.on_duty,
+        };
+        if self.held {
+            // De-energised until the host asks for more; a trip still opens its valve.
+            out.dump_open = true;
+            out.on_duty = 0;
+            if !s.tripped {
+                out.aperture = Aperture::ZERO;
+                self.applied = ZERO;
+            }
+        }
+        s.held = self.held;
+        // The self-test's overlay: the trip ends it at once; otherwise its outputs.
+        let mut selftest_ended = None;
+        if let Some(mut t) = self.selftest {
+            match (s.tripped, t.step()) {
+                (true, _) => selftest_ended = Some(Ended::Tripped),
+                (false, Err(why)) => selftest_ended = Some(why),
+                (false, Ok(())) => {
+                    out = t.outputs();
+                    self.applied = out.aperture.0;
+                }
+            }
+            self.selftest = selftest_ended.is_none().then_some(t);
+            if selftest_ended.is_some_and(|w| w != Ended::Tripped) {
+                // Back to the controller from the de-energised state.
+                out = Outputs::DE_ENERGISED;
+                self.applied = ZERO;
+            }
+        }
+        s.dump_valve = out.dump_open;
+        s.aperture = out.aperture;
         StepOut {
             estimate: e,
             command: c,
-            applied: Aperture(self.applied),
-            dump: s.dump_valve,
+            applied: out.aperture,
+            dump: out.dump_open,
+            on_duty: out.on_duty,
+            selftest_ended,
         }
     }
 }
@@ -464,6 +697,7 @@ mod tests {
             hp_adc: t.counts_at_bar(hp_bar),
             lp_adc: l.counts_at_bar(8.0),
             motor: Some(pto_model::fx::Rpm::from_num(200.0)),
+            supply_mv: Some(3300),
         }
     }
 

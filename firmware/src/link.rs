@@ -1,4 +1,4 @@
-//! The serial link: protocol v2 frames (`pto_model::protocol`: sequence number, postcard,
+//! The serial link: protocol frames (`pto_model::protocol`: sequence number, postcard,
 //! CRC-32C, COBS, `0`-terminated; a leading `0` is allowed and resynchronises after a truncated
 //! frame). The receiver counts every frame it cannot take by cause and every gap in the host's
 //! sequence numbers; the transmitter numbers its own frames.
@@ -126,6 +126,7 @@ mod tests {
             },
             applied: Aperture(big),
             dump: true,
+            on_duty: 0xff,
         };
         let mut t = Transmitter::new();
         let mut b = [0u8; MAX_FRAME];
@@ -143,17 +144,22 @@ mod tests {
             },
             frames_overrun: all,
             bytes_lost: all,
+            samples_missed: all,
+            replies_dropped: all,
             telemetry_dropped: all,
             steps: all,
             faults_seen: fault::HP_SENSOR | fault::OVERPRESSURE,
             hp_loop_faults: all,
+            supply_faults: all,
             trips: all,
             tripped: true,
+            held: true,
             dump_valve: true,
             aperture: Aperture(big),
             step_cost_last: all,
             step_cost_max: all,
             step_cost_sum: u64::MAX,
+            stack_unused: all,
         });
         let m = t.encode(&st, &mut b).expect("Status fits");
         let tel = |e: Estimate| {
@@ -164,6 +170,7 @@ mod tests {
                     hp_adc: u16::MAX,
                     lp_adc: u16::MAX,
                     motor: Some(pto_model::fx::Rpm(big)),
+                    supply_mv: Some(u16::MAX),
                 },
                 estimate: e,
                 command: Command {
@@ -178,7 +185,33 @@ mod tests {
             })
         };
         let k = t.encode(&tel(e2), &mut b).expect("Telemetry fits");
-        println!("largest frames: Output {n} B, Status {m} B, Telemetry {k} B (limit {MAX_FRAME})");
+        use pto_model::protocol::selftest::{InputReport, LoopReport, LoopState};
+        use pto_model::protocol::{BoardInfo, BrownOut, ClockSource, ResetCause, SelfTestReply};
+        let lr = LoopReport {
+            adc: u16::MAX,
+            current_ua: u32::MAX,
+            state: LoopState::SupplyFault,
+        };
+        let inputs = FromFirmware::SelfTest(SelfTestReply::Inputs(InputReport {
+            tick: all,
+            samples: all,
+            hp: lr,
+            lp: lr,
+            supply_mv: Some(u16::MAX),
+            encoder: i32::MIN,
+            motor: Some(pto_model::fx::Rpm(big)),
+            active: true,
+            board: BoardInfo {
+                clock: ClockSource::InternalFallback { mhz: u8::MAX },
+                reset: ResetCause::Unknown,
+                brownout: BrownOut::NotApplicable,
+            },
+        }));
+        let i = t.encode(&inputs, &mut b).expect("self-test inputs fit");
+        println!(
+            "largest frames: Output {n} B, Status {m} B, Telemetry {k} B, self-test inputs {i} B \
+             (limit {MAX_FRAME})"
+        );
         // The link budget (docs/bench.md): at 230 400 baud 8N1 (23 040 B/s), the default 64
         // telemetry frames per second of the largest size take under half of the link.
         assert!(k * 64 * 2 < 23_040, "{k} B × 64/s");

@@ -13,8 +13,10 @@ mod app;
 #[cfg_attr(feature = "bench", path = "board/bench.rs")]
 #[cfg_attr(not(feature = "bench"), path = "board/qemu.rs")]
 mod board;
-#[cfg(target_os = "none")]
+#[cfg(all(target_os = "none", not(feature = "bench")))]
 mod executor;
+#[cfg(target_os = "none")]
+mod stack;
 #[cfg(target_os = "none")]
 mod trip_memory;
 
@@ -23,10 +25,27 @@ compile_error!("choose one board: the default `qemu` or `--no-default-features -
 #[cfg(all(target_os = "none", not(feature = "qemu"), not(feature = "bench")))]
 compile_error!("choose one board feature: `qemu` or `bench`");
 
-#[cfg(target_os = "none")]
+/// The QEMU twin: a WFI executor (QEMU treats WFE as a no-op, `executor.rs`).
+#[cfg(all(target_os = "none", not(feature = "bench")))]
 #[cortex_m_rt::entry]
 fn main() -> ! {
     executor::run(app::start)
+}
+
+/// The bench: embassy's own thread executor (WFE/SEV, interrupts never masked around the
+/// sleep). A WFI executed from flash with interrupts masked while a debugger has set
+/// `DBGMCU_CR.DBG_SLEEP` (probe-rs does, to keep RTT alive) can fetch the wrong instruction on
+/// wake-up on STM32F4 parts: a hard fault or a wrong path, only with the probe attached (not in
+/// ES0182; reproduced and written up by Cliff Biffle, "An STM32 WFI bug", cliffle.com). The
+/// twin's executor masks interrupts around its WFI, so the bench does not use it.
+#[cfg(all(target_os = "none", feature = "bench"))]
+#[cortex_m_rt::entry]
+fn main() -> ! {
+    static EXECUTOR: static_cell::StaticCell<embassy_executor::Executor> =
+        static_cell::StaticCell::new();
+    EXECUTOR
+        .init(embassy_executor::Executor::new())
+        .run(app::start)
 }
 
 /// On the host the firmware is only a library (its logic is unit-tested there).

@@ -33,6 +33,8 @@ struct Bench {
     hp: Transducer,
     lp: Transducer,
     tick: u32,
+    /// The ADC reference the board reports, mV.
+    supply_mv: Option<u16>,
 }
 
 impl Bench {
@@ -52,6 +54,7 @@ impl Bench {
             hp: Transducer::new(LoopSpec::HP).unwrap(),
             lp: Transducer::new(LoopSpec::LP).unwrap(),
             tick: 0,
+            supply_mv: Some(3300),
         }
     }
 
@@ -64,6 +67,7 @@ impl Bench {
                 .map_or(self.hp.counts_at_ma(0.0), |p| self.hp.counts_at_bar(p)),
             lp_adc: self.lp.counts_at_bar(8.0),
             motor: Some(Rpm::from_num(s.rpm)),
+            supply_mv: self.supply_mv,
         };
         self.tick += 1;
         self.c.sample(&f, &mut NoClock)
@@ -85,6 +89,54 @@ fn still(hp_bar: Option<f32>) -> Sensors {
 
 fn release_bar(c: &Controller) -> f32 {
     c.latch().release().to_f32()
+}
+
+/// A failed measurement of the ADC's reference (VREFINT reading as 1.5 V, or not at all): no
+/// loop reading can be trusted. They count as missing: the estimate runs on the model with the
+/// HP sensor fault, a trip that holds keeps holding, and a high reading taken with it does not
+/// release anything.
+#[test]
+fn an_implausible_supply_makes_the_readings_missing_and_the_trip_holds() {
+    let mut b = Bench::new(100.0, 10.0);
+    b.run(HZ, |_| still(Some(100.0)));
+    b.supply_mv = Some(1500);
+    let out = b.run(HZ, |_| still(Some(100.0)));
+    assert!(
+        out.iter()
+            .all(|o| o.estimate.faults & fault::HP_SENSOR != 0)
+    );
+    assert!(
+        out.iter().all(|o| !o.dump),
+        "no trip from a missing reading alone"
+    );
+    assert_eq!(b.c.status.supply_faults, HZ);
+    assert_eq!(b.c.status.hp_loop_faults, HZ);
+    // Trip on a real reading, then the supply measurement fails: the trip holds, and the host
+    // cannot reset it away.
+    b.supply_mv = Some(3300);
+    let out = b.run(10, |_| still(Some(150.0)));
+    assert!(out.iter().all(|o| o.dump));
+    b.supply_mv = Some(0);
+    let out = b.run(5 * HZ, |_| still(Some(60.0)));
+    assert!(
+        out.iter().all(|o| o.dump),
+        "released on an untrusted reading"
+    );
+    assert_eq!(
+        b.c.reset(Pressure::from_num(60.0), Pressure::from_num(8.0)),
+        Err(TripHold::HpMissing)
+    );
+    // The measurement back: readings count again.
+    b.supply_mv = Some(3290);
+    let out = b.run(10, |_| still(Some(60.0)));
+    let last = out.last().unwrap();
+    assert_eq!(
+        last.estimate.faults & fault::HP_SENSOR,
+        0,
+        "{:?}",
+        last.estimate
+    );
+    assert_eq!(b.c.status.supply_faults, HZ + 5 * HZ);
 }
 
 #[test]
@@ -230,6 +282,7 @@ fn a_reset_while_high_is_refused_with_its_reason() {
     println!("reset while high: refused ({e})");
     // Still tripped, the estimator untouched: it steps on exactly as a twin never asked.
     let mut twin = Bench {
+        supply_mv: Some(3300),
         c: b.c.clone(),
         hp: b.hp,
         lp: b.lp,
@@ -474,4 +527,137 @@ proptest! {
             was = now;
         }
     }
+}
+
+/// The bring-up self-test: it starts only from the safe state, drives one output at a time
+/// from the de-energised state, and the trip wins over it in the very step that sees the
+/// overpressure — with the dump valve driven closed by the test at that moment.
+#[test]
+fn the_self_test_starts_only_when_safe_and_the_trip_ends_it_at_once() {
+    use pto_firmware::outputs::Outputs;
+    use pto_firmware::selftest::Ended;
+    use pto_model::protocol::selftest::{SELFTEST_IDLE_S, TestDrive};
+    use pto_model::protocol::{NotSafe, SelfTestRefusal};
+
+    let mut b = Bench::new(60.0, 10.0);
+    b.run(HZ, |_| still(Some(60.0)));
+    assert_eq!(
+        b.c.selftest_begin(),
+        Err(SelfTestRefusal::NotSafe(NotSafe::ValveOpen)),
+        "valve open"
+    );
+    b.c.set_mode(Mode::Fixed(Aperture::ZERO));
+    b.run(HZ, |_| still(Some(60.0)));
+    assert_eq!(b.c.selftest_begin(), Ok(Outputs::DE_ENERGISED));
+    assert_eq!(
+        b.c.selftest_drive(TestDrive::Valve(Aperture::from_num(11.0))),
+        Err(SelfTestRefusal::ApertureTooHigh(Aperture::from_num(11.0)))
+    );
+    let o =
+        b.c.selftest_drive(TestDrive::Valve(Aperture::from_num(5.0)))
+            .unwrap();
+    assert!(o.dump_open && o.aperture.to_f32() == 5.0);
+    let out = b.run(10, |_| still(Some(60.0)));
+    assert!(
+        out.iter()
+            .all(|o| o.dump && o.applied.to_f32() == 5.0 && o.on_duty == 0)
+    );
+    assert_eq!(
+        b.c.safe_to_apply(),
+        Err(NotSafe::SelfTest),
+        "no commit meanwhile"
+    );
+    // The dump valve closed by the test, then an overpressure: the trip's safe state in that
+    // same step, and the self-test is over.
+    b.c.selftest_drive(TestDrive::DumpClosed).unwrap();
+    let out = b.run(5, |_| still(Some(60.0)));
+    assert!(out.iter().all(|o| !o.dump && o.applied == Aperture::ZERO));
+    let out = b.step(still(Some(150.0)));
+    assert!(out.dump && out.applied.to_f32() == 100.0, "{out:?}");
+    assert_eq!(out.selftest_ended, Some(Ended::Tripped));
+    assert!(!b.c.selftest_active());
+    assert_eq!(
+        b.c.selftest_drive(TestDrive::AllOff),
+        Err(SelfTestRefusal::NotActive)
+    );
+    assert_eq!(
+        b.c.selftest_begin(),
+        Err(SelfTestRefusal::NotSafe(NotSafe::Tripped))
+    );
+
+    // A self-test left alone ends by itself, the outputs back to the controller from
+    // de-energised; a mode command ends one at once.
+    let mut b = Bench::new(60.0, 0.0);
+    b.run(HZ, |_| still(Some(60.0)));
+    b.c.selftest_begin().unwrap();
+    b.c.selftest_drive(TestDrive::Solenoid(3)).unwrap();
+    let out = b.run(u32::from(SELFTEST_IDLE_S) * HZ, |_| still(Some(60.0)));
+    let ended: Vec<_> = out.iter().filter_map(|o| o.selftest_ended).collect();
+    assert_eq!(ended, [Ended::Idle]);
+    assert!(out[..10].iter().all(|o| o.on_duty == 0b1000));
+    let last = out.last().unwrap();
+    assert_eq!(last.selftest_ended, Some(Ended::Idle));
+    assert_eq!(last.outputs(), Outputs::DE_ENERGISED, "the step it ends in");
+    let next = b.step(still(Some(60.0)));
+    assert!(!next.dump && next.on_duty == pto_firmware::control::BOOT_ON_DUTY);
+    b.c.selftest_begin().unwrap();
+    b.c.set_mode(Mode::Fixed(Aperture::ZERO));
+    assert!(!b.c.selftest_active());
+}
+
+/// A controller that just booted — after a watchdog reset, a fault, a brown-out — keeps every
+/// output de-energised (the dump valve open, no solenoid) until the host's first mode, duty or
+/// reset command, however plausible its readings; booted tripped, it drives the trip's valve
+/// and still no solenoid. A configuration's commit keeps the hold.
+#[test]
+fn after_a_reset_nothing_is_energised_until_the_host_asks() {
+    use pto_firmware::outputs::Outputs;
+    let fresh = || {
+        Controller::new(
+            &ModelConfig::reference(),
+            &SchedulerConfig::default(),
+            &ControlConfig::default(),
+        )
+        .unwrap()
+    };
+    let mut b = Bench::new(60.0, 0.0);
+    b.c = fresh();
+    assert!(b.c.held() && b.c.status.held && b.c.status.dump_valve);
+    let out = b.run(2 * HZ, |_| still(Some(60.0)));
+    assert!(
+        out.iter().all(|o| o.outputs() == Outputs::DE_ENERGISED),
+        "{:?}",
+        out[0]
+    );
+    // The commit of another configuration keeps it held.
+    let mut cfg = ModelConfig::reference();
+    cfg.trapped_air_fraction = 0.08;
+    b.c.reconfigure(&cfg, &SchedulerConfig::default(), &ControlConfig::default())
+        .unwrap();
+    let out = b.run(10, |_| still(Some(60.0)));
+    assert!(out.iter().all(|o| o.outputs() == Outputs::DE_ENERGISED));
+    b.c.set_mode(Mode::Fixed(Aperture::ZERO));
+    let o = b.step(still(Some(60.0)));
+    assert!(
+        !o.dump && o.on_duty == pto_firmware::control::BOOT_ON_DUTY,
+        "{o:?}"
+    );
+    assert!(!b.c.status.held);
+
+    // Booted tripped: the trip's valve, the dump valve open, no solenoid; released (a valid
+    // low reading for the hold time), back to de-energised, not to running.
+    let mut b = Bench::new(60.0, 0.0);
+    b.c = fresh();
+    b.c.boot_tripped();
+    let out = b.run(HZ, |_| still(Some(60.0)));
+    let tripped = out
+        .iter()
+        .take_while(|o| o.applied.to_f32() == 100.0)
+        .count();
+    assert!(
+        tripped >= HZ as usize / 2 - 2,
+        "released after {tripped} steps"
+    );
+    assert!(out.iter().all(|o| o.dump && o.on_duty == 0));
+    assert_eq!(out.last().unwrap().outputs(), Outputs::DE_ENERGISED);
 }

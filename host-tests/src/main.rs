@@ -238,7 +238,7 @@ enum Cmd {
     /// upload and read-back, live monitor and bench log. Over a serial port (the bench) or the
     /// QEMU twin's pseudo-terminal (`pto twin` prints it).
     #[command(
-        after_help = "Examples:\n  pto link --port /dev/ttyUSB0 status\n  pto link --port /dev/ttyUSB0 monitor --log run1.csv --rate 64\n  pto link --port /dev/ttyUSB0 mode fixed 12\n  pto link --port /dev/ttyUSB0 duty --on 1001 --config 1\n  pto link --port /dev/ttyUSB0 reset --p2 60 --lp 8\n  pto link --port /dev/ttyUSB0 config upload fit/my-bench.model.toml --store\n  pto link --port /dev/ttyUSB0 config show --out running.model.toml\n\nExit status:\n  0 done (monitor: no frame lost or damaged)\n  1 monitor: frames were lost, damaged or not sent, the controller restarted, or none arrived\n  2 bad input, port missing or busy, no answer, protocol mismatch, or a refusal (its reason named)\n  130 interrupted (monitor: Ctrl-C ends it cleanly, its log kept, and the status is as above)"
+        after_help = "Examples:\n  pto link --port /dev/ttyUSB0 status\n  pto link --port /dev/ttyUSB0 monitor --log run1.csv --rate 64\n  pto link --port /dev/ttyUSB0 mode fixed 12\n  pto link --port /dev/ttyUSB0 duty --on 1001 --config 1\n  pto link --port /dev/ttyUSB0 reset --p2 60 --lp 8\n  pto link --port /dev/ttyUSB0 config upload fit/my-bench.model.toml --store\n  pto link --port /dev/ttyUSB0 config show --out running.model.toml\n  pto link --port /dev/ttyUSB0 selftest\n\nExit status:\n  0 done (monitor: no frame lost or damaged)\n  1 monitor: frames were lost, damaged or not sent, the controller restarted, or none arrived\n  2 bad input, port missing or busy, no answer, protocol mismatch, or a refusal (its reason named)\n  130 interrupted (monitor: Ctrl-C ends it cleanly, its log kept, and the status is as above)"
     )]
     Link {
         /// Serial port of the controller (`/dev/ttyUSB0`, `COM3`), the QEMU twin's
@@ -442,6 +442,32 @@ enum LinkCmd {
         /// Stop after this much firmware time, s (default: at Ctrl-C).
         #[arg(long)]
         duration: Option<f64>,
+    },
+    /// Guided bring-up of a freshly flashed controller: each input's reading and verdict
+    /// (loop currents, ADC reference, clock, brown-out level), the encoder and the motor
+    /// pickup while you move them by hand, then each output one at a time from the safe
+    /// state (valve to a few % with the dump valve open, the dump valve closed, each
+    /// solenoid), read back. A pass/fail checklist; `--json`.
+    #[command(
+        after_help = "Examples:\n  pto link --port /dev/ttyUSB0 selftest\n  pto link --port /dev/ttyUSB0 selftest --skip motor\n  pto link --port /dev/pts/3 selftest --yes --window 10 --json\n\nThe outputs are stepped only from the firmware's safe state (trip armed, mode fixed 0 %, valve\nclosed); the trip stays armed throughout and ends the self-test if it latches.\n\nExit status:\n  0 every check passed (n/a: what this board cannot show)\n  1 a check failed or was skipped\n  2 bad input, no answer, or a protocol mismatch\n  130 interrupted (the outputs are returned to the controller first)"
+    )]
+    Selftest {
+        /// Unattended: no questions (instructions on stderr; motions must happen within
+        /// each window). Needed when stdin is not a terminal.
+        #[arg(long)]
+        yes: bool,
+        /// Seconds for each motion by hand (the lever, the motor's shaft).
+        #[arg(long, default_value_t = 20.0)]
+        window: f64,
+        /// Seconds each output is held for you to see or hear it.
+        #[arg(long, default_value_t = 2.0)]
+        hold: f64,
+        /// The valve's test aperture, % (at most 10).
+        #[arg(long, default_value_t = 5.0)]
+        valve: f32,
+        /// Checks to skip (each is reported as skipped, and the run does not pass).
+        #[arg(long, value_enum, value_delimiter = ',')]
+        skip: Vec<pto_host::hil::selftest::Skippable>,
     },
 }
 
@@ -652,6 +678,13 @@ fn main() -> ExitCode {
                     rate,
                     duration,
                 } => monitor_cmd(&t, log.as_ref(), rate, duration, json),
+                LinkCmd::Selftest {
+                    yes,
+                    window,
+                    hold,
+                    valve,
+                    skip,
+                } => selftest_cmd(&t, yes, window, hold, valve, skip, json),
             }
         }
         Cmd::Twin {

@@ -26,10 +26,18 @@ fn boots_logs_answers_a_ping_and_exits_zero() {
     }
     println!("boot + ping + exit: {:.2} s", t0.elapsed().as_secs_f64());
     assert_eq!(code, 0);
+    let v = pto_firmware::VERSION;
+    let version = format!("pto-firmware {}.{} ", v >> 8, v & 0xff);
     let boot = log
         .iter()
-        .find(|l| l.text.starts_with("pto-firmware 2.0"))
+        .find(|l| l.text.starts_with(&version))
         .expect("version line");
+    assert!(
+        log.iter().any(|l| l.text
+            == "board: clock emulated (QEMU); last reset: unknown (no reset flag); brown-out \
+                reset not applicable (QEMU)"),
+        "the board's clock, reset cause and brown-out level are logged"
+    );
     assert!(boot.text.contains("board=qemu-netduinoplus2"), "{boot}");
     assert!(boot.text.contains("dt=2^-10 s"), "{boot}");
     assert!(boot.text.contains("trip=140.0 bar"), "{boot}");

@@ -15,6 +15,14 @@ use pto_model::protocol::{
 use pto_model::scheduler::Mode;
 use std::time::Duration;
 
+/// One twin at a time in this file: the monitor test reads a pseudo-terminal against the clock,
+/// and two more QEMUs beside it on a 2-core machine starved it (42 of 100 frames read).
+static ONE_TWIN: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn one_twin() -> std::sync::MutexGuard<'static, ()> {
+    ONE_TWIN.lock().unwrap_or_else(|e| e.into_inner())
+}
+
 /// `n` sensor frames on the hardware port, HP reading 60 bar, each step's output awaited.
 fn feed(q: &mut Qemu, tick: &mut u32, n: u32) {
     use pto_firmware::frontend::{LoopSpec, Transducer};
@@ -27,6 +35,7 @@ fn feed(q: &mut Qemu, tick: &mut u32, n: u32) {
             hp_adc: hp.counts_at_bar(60.0),
             lp_adc: lp.counts_at_bar(8.0),
             motor: Some(pto_model::fx::Rpm::from_num(0.0)),
+            supply_mv: Some(3300),
         };
         let t = *tick;
         q.link
@@ -48,6 +57,7 @@ fn refusal(e: client::ClientError) -> ConfigRefusal {
 
 #[test]
 fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
+    let _twin = one_twin();
     let elf = build::build(Build::Qemu).expect("QEMU build");
     let mut q = Qemu::boot_twin(&elf, false).expect("twin");
     let pty = q.pty.clone().unwrap();
@@ -68,7 +78,10 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
     // The plant's samples on the hardware port: a valid HP reading of 60 bar.
     let mut tick = 0;
     feed(&mut q, &mut tick, 10);
-    let (info, stored) = client::upload(&mut l, &wet, true, |_, _| {}).unwrap();
+    let (info, stored) = client::upload(&mut l, &wet, true, |_, _| {}).unwrap_or_else(|e| {
+        let code = q.wait_exit(Duration::from_secs(5));
+        panic!("{e}: exit {code:?}: {}", q.qemu_stderr())
+    });
     assert_eq!(
         (info.source, stored),
         (ConfigSource::UploadedStored, Stored::Yes)
@@ -179,6 +192,11 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
         l.counts()
     );
     assert_eq!((st.link.dropped(), st.link.lost), (0, 0));
+    // Boot, a stored commit, commits and a clear have run: the deepest paths. Their stack
+    // must leave room (before the change that built a second controller per commit, one
+    // stored commit took it through the statics: a lockup).
+    println!("stack never used: {} B", st.stack_unused);
+    assert!(st.stack_unused >= 16 * 1024, "{} B left", st.stack_unused);
     let log: Vec<String> = q.log().iter().map(ToString::to_string).collect();
     assert!(
         log.iter()
@@ -191,6 +209,7 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
 /// `.part` left), every frame it took is in it, and the exit status says no frame was missed.
 #[test]
 fn a_monitor_stopped_by_ctrl_c_keeps_its_log() {
+    let _twin = one_twin();
     use nix::sys::signal::{Signal, kill};
     use nix::unistd::Pid;
     use std::io::{BufRead, BufReader};
@@ -223,8 +242,7 @@ fn a_monitor_stopped_by_ctrl_c_keeps_its_log() {
     let mut tick = 0;
     feed(&mut q, &mut tick, 1_600);
     // Time for the monitor to read every frame the pseudo-terminal holds (Ctrl-C stops it at
-    // once: frames still unread are not taken); the other test of this file may run a twin
-    // beside it.
+    // once: frames still unread are not taken).
     std::thread::sleep(Duration::from_millis(2_000));
     kill(Pid::from_raw(mon.id() as i32), Signal::SIGINT).unwrap();
     let t0 = std::time::Instant::now();
@@ -248,4 +266,194 @@ fn a_monitor_stopped_by_ctrl_c_keeps_its_log() {
     assert_eq!(rows, 100, "{out}");
     assert!(!dir.join("run.csv.part").exists());
     let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// The twin's actuators in one step: valve %, dump valve open, solenoids.
+type TwinOutputs = (f32, bool, u8);
+
+/// The plant and the operator's hands on the twin's hardware port, from a thread: the lever
+/// swung by hand (±2 000 counts, `lever` false: held still), the motor's shaft turned at 30 rpm,
+/// HP at 60 bar (`hp_open`: the loop open), LP at 8 bar. Records every step's outputs as the
+/// twin's actuators got them (valve %, dump valve open, solenoids).
+fn hands(
+    mut q: Qemu,
+    lever: bool,
+    hp_open: bool,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+) -> std::thread::JoinHandle<(Qemu, Vec<TwinOutputs>)> {
+    use pto_firmware::frontend::{LoopSpec, Transducer};
+    std::thread::spawn(move || {
+        let hp = Transducer::new(LoopSpec::HP).unwrap();
+        let lp = Transducer::new(LoopSpec::LP).unwrap();
+        let mut outs = Vec::new();
+        let mut tick = 0u32;
+        while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+            let phase = f64::from(tick) * std::f64::consts::TAU / 1500.0;
+            let f = pto_model::protocol::SensorFrame {
+                tick,
+                encoder: if lever {
+                    (2000.0 * phase.sin()) as i32
+                } else {
+                    0
+                },
+                hp_adc: if hp_open {
+                    hp.counts_at_ma(0.0)
+                } else {
+                    hp.counts_at_bar(60.0)
+                },
+                lp_adc: lp.counts_at_bar(8.0),
+                motor: Some(pto_model::fx::Rpm::from_num(30.0)),
+                supply_mv: Some(3300),
+            };
+            let t = tick;
+            let o = q
+                .link
+                .request(&ToFirmware::Sensors(f), |r| match r {
+                    FromFirmware::Output {
+                        tick,
+                        applied,
+                        dump,
+                        on_duty,
+                        ..
+                    } if *tick == t => Some((applied.to_f32(), *dump, *on_duty)),
+                    _ => None,
+                })
+                .expect("a step's output");
+            if outs.last() != Some(&o) {
+                outs.push(o);
+            }
+            tick += 1;
+        }
+        (q, outs)
+    })
+}
+
+/// `pto link selftest` end to end on the twin, over its pseudo-terminal: a healthy bench (the
+/// test plays the plant and the operator's hands on the hardware port) passes every check the
+/// twin can show, its clock, brown-out level and supply reported n/a or measured, and the
+/// twin's actuators went through each output step from the de-energised state and back to the
+/// controller; a bench with an open HP loop and a lever nobody moves fails, those checks named,
+/// and its outputs are not stepped (P2 unknown: the valve at its sensor-fault aperture).
+#[test]
+fn a_guided_selftest_passes_on_a_healthy_twin_and_names_what_fails() {
+    let _twin = one_twin();
+    use std::process::Command;
+    use std::sync::Arc;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let elf = build::build(Build::Qemu).expect("QEMU build");
+    let run = |lever: bool, hp_open: bool, extra: &[&str]| {
+        let q = Qemu::boot_twin(&elf, false).expect("twin");
+        let pty = q.pty.clone().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let feeder = hands(q, lever, hp_open, stop.clone());
+        let out = Command::new(env!("CARGO_BIN_EXE_pto"))
+            .args(["link", "--port"])
+            .arg(&pty)
+            .args(["selftest", "--yes", "--hold", "0.2", "--json"])
+            .args(extra)
+            .output()
+            .expect("pto runs");
+        stop.store(true, Ordering::Relaxed);
+        let (q, outs) = feeder.join().expect("the feeder");
+        let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+            panic!(
+                "{e}: {}\n{}",
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            )
+        });
+        (q, out.status.code(), json, outs)
+    };
+
+    let (q, code, json, outs) = run(true, false, &["--window", "30"]);
+    let checks = json["checks"].as_array().unwrap();
+    for c in checks {
+        println!(
+            "{:<34} {:<14} {}",
+            c["name"].as_str().unwrap(),
+            c["outcome"].as_str().unwrap(),
+            c["measured"].as_str().unwrap()
+        );
+    }
+    let outcome = |name: &str| {
+        checks
+            .iter()
+            .find(|c| c["name"] == name)
+            .map(|c| c["outcome"].as_str().unwrap().to_string())
+            .unwrap_or_else(|| panic!("no check {name}"))
+    };
+    assert_eq!(code, Some(0), "{json:#}");
+    assert_eq!(json["passed"], true);
+    for name in ["clock", "brown-out reset level"] {
+        assert_eq!(outcome(name), "not_applicable", "the twin has no {name}");
+    }
+    for name in [
+        "controller sampling",
+        "HP transducer loop",
+        "LP transducer loop",
+        "ADC reference (VDDA)",
+        "shaft encoder",
+        "motor pickup",
+        "valve to 5 % (dump open)",
+        "dump valve closed (valve closed)",
+        "solenoid HC3.1",
+        "solenoid HC3.4",
+    ] {
+        assert_eq!(outcome(name), "pass", "{name}");
+    }
+    // The twin's actuators, step by step: held de-energised since boot (no mode, duty or reset
+    // command came), each output alone and back to de-energised, held again after the test.
+    println!("twin outputs: {outs:?}");
+    let off = (0.0, true, 0u8);
+    let expected = [
+        off,
+        (5.0, true, 0),
+        off,
+        (0.0, false, 0),
+        off,
+        (0.0, true, 0b0001),
+        off,
+        (0.0, true, 0b0010),
+        off,
+        (0.0, true, 0b0100),
+        off,
+        (0.0, true, 0b1000),
+        off,
+    ];
+    assert_eq!(outs.len(), expected.len(), "{outs:?}");
+    for (got, want) in outs.iter().zip(expected) {
+        assert!(
+            (got.0 - want.0).abs() < 0.01 && got.1 == want.1 && got.2 == want.2,
+            "{outs:?}"
+        );
+    }
+    drop(q);
+
+    let (_q, code, json, _) = run(false, true, &["--window", "3", "--skip", "motor"]);
+    assert_eq!(code, Some(1), "{json:#}");
+    assert_eq!(json["passed"], false);
+    let failed: Vec<&str> = json["checks"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["outcome"] == "fail" || c["outcome"] == "skipped")
+        .map(|c| c["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        failed,
+        [
+            "HP transducer loop",
+            "shaft encoder",
+            "motor pickup",
+            "outputs"
+        ],
+        "{json:#}"
+    );
+    // No HP reading: P2 is unknown, the valve stands at its sensor-fault aperture, and the
+    // outputs are not stepped.
+    let outputs = &json["checks"].as_array().unwrap().last().unwrap()["measured"];
+    assert!(
+        outputs.as_str().unwrap().contains("no valid HP reading"),
+        "{outputs}"
+    );
 }

@@ -1,5 +1,6 @@
-//! Messages between host tools and the firmware, defined once, and their framing (protocol v3:
-//! v2's frames, with telemetry and configuration upload).
+//! Messages between host tools and the firmware, defined once, and their framing (protocol v5:
+//! v4's, with the board's supply reading in each sensor sample, the solenoids in each step's
+//! output, and the bring-up self-test, [`selftest`]).
 //!
 //! A frame on the wire is `COBS(seq ‖ payload ‖ crc) 0`:
 //! - `seq`: a `u16` (little-endian) counting the sender's frames, so the receiver counts the
@@ -54,6 +55,12 @@
 //! Over 600 lines: the messages, the framing and the `Receiver` belong to one wire format (the
 //! long fuzzing is in `tests/link_fuzz.rs`).
 
+mod board;
+pub mod selftest;
+
+pub use board::*;
+pub use selftest::{SelfTest, SelfTestRefusal, SelfTestReply};
+
 use crate::estimator::{Estimate, Inputs};
 use crate::fx::{Aperture, HydraulicPower, Pressure, Rpm};
 use crate::scheduler::{Command, Mode};
@@ -64,7 +71,7 @@ use serde::de::DeserializeOwned;
 use serde::{Deserialize, Serialize};
 
 /// Protocol version (in `Hello`).
-pub const PROTOCOL_VERSION: u16 = 4;
+pub const PROTOCOL_VERSION: u16 = 5;
 
 /// Hash of the postcard schemas of [`ToFirmware`] and [`FromFirmware`] (each hashed with its
 /// path by `postcard-schema`, FNV-1a 64, the two combined): it changes with any field, variant
@@ -108,6 +115,10 @@ pub struct SensorFrame {
     pub lp_adc: u16,
     /// Motor speed from the pickup's input capture; `None` when no pulse was seen.
     pub motor: Option<Rpm>,
+    /// The ADC's reference (VDDA) as the board measured it against its internal reference, mV;
+    /// the loops' readings are corrected by it. `None`: not measured (the nominal reference of
+    /// the loops' configuration is taken).
+    pub supply_mv: Option<u16>,
 }
 
 /// Host → firmware.
@@ -191,6 +202,9 @@ pub enum ToFirmware {
         /// First byte.
         offset: u16,
     },
+    /// The bring-up self-test ([`selftest`]). Answered with `SelfTest(…)` or
+    /// `Refused(SelfTest(…))`.
+    SelfTest(SelfTest),
 }
 
 /// Bytes carried by one configuration frame.
@@ -417,6 +431,8 @@ pub enum NotSafe {
     ValveOpen,
     /// No valid HP reading in the last sample (or no sample yet): P2 is not known.
     NoReading,
+    /// The bring-up self-test drives the outputs.
+    SelfTest,
 }
 
 impl core::fmt::Display for NotSafe {
@@ -425,6 +441,7 @@ impl core::fmt::Display for NotSafe {
             NotSafe::Tripped => "the overpressure trip holds",
             NotSafe::ValveOpen => "the mode is not fixed 0 % or the valve has not closed yet",
             NotSafe::NoReading => "no valid HP reading: P2 is not known",
+            NotSafe::SelfTest => "the self-test drives the outputs",
         })
     }
 }
@@ -515,6 +532,12 @@ pub struct Status {
     pub frames_overrun: u32,
     /// Received bytes lost because the receive buffer was full.
     pub bytes_lost: u32,
+    /// Replies not sent because the link's transmit queue was full (a host sending commands
+    /// faster than it reads their replies): the control loop never waits for the link.
+    pub replies_dropped: u32,
+    /// Sample periods the bench's sampler missed (the controller stalled: a flash erase, a
+    /// table build); its ticks count them, so the log's time jumps over them.
+    pub samples_missed: u32,
     /// Telemetry frames not sent because the link's transmit queue was full (the telemetry
     /// rate is above what the baud rate carries): the control loop never waits for the link.
     pub telemetry_dropped: u32,
@@ -524,10 +547,16 @@ pub struct Status {
     pub faults_seen: u16,
     /// Steps run with the HP transducer out of its 4–20 mA window (wire break or short).
     pub hp_loop_faults: u32,
+    /// Samples whose measured ADC reference was implausible (their loop readings were taken as
+    /// missing).
+    pub supply_faults: u32,
     /// Times the overpressure trip latched.
     pub trips: u32,
     /// Trip latch state.
     pub tripped: bool,
+    /// The outputs are held de-energised since boot, until the host's first mode, duty or reset
+    /// command.
+    pub held: bool,
     /// Dump valve output state.
     pub dump_valve: bool,
     /// Last valve aperture applied by the actuator stage.
@@ -539,6 +568,9 @@ pub struct Status {
     pub step_cost_max: u32,
     /// Sum over every step (mean = sum / steps).
     pub step_cost_sum: u64,
+    /// Bytes of the stack never used since boot (its high-water mark's distance from the
+    /// statics).
+    pub stack_unused: u32,
 }
 
 /// Firmware → host.
@@ -560,8 +592,10 @@ pub enum FromFirmware {
         /// Aperture the actuator stage applied to the valve (after its slew limit and the trip
         /// latch).
         applied: Aperture,
-        /// Dump (safe) valve output.
+        /// Dump (safe) valve output: open.
         dump: bool,
+        /// Solenoids energised (bit i = HC3.(i+1)).
+        on_duty: u8,
     },
     /// Reply to `GetStatus`.
     Status(Status),
@@ -593,6 +627,8 @@ pub enum FromFirmware {
         /// The piece.
         chunk: Chunk,
     },
+    /// Reply to a `SelfTest` request.
+    SelfTest(SelfTestReply),
 }
 
 /// What the firmware says of itself at connect.
@@ -658,6 +694,11 @@ pub enum Refusal {
     StallWhileTripped,
     /// A configuration upload step was refused; the running configuration is unchanged.
     Config(ConfigRefusal),
+    /// A self-test request was refused; nothing changed.
+    SelfTest(SelfTestRefusal),
+    /// `Replay` on a board that samples its own sensors: the live estimator is the trip's input
+    /// and is never stepped with a host's inputs (the QEMU twin takes it).
+    ReplayOnTwinOnly,
 }
 
 /// Why a tripped latch cannot release now.
@@ -719,6 +760,11 @@ impl core::fmt::Display for Refusal {
                 f.write_str("watchdog test refused: the overpressure trip holds")
             }
             Refusal::Config(c) => write!(f, "configuration refused: {c}"),
+            Refusal::SelfTest(t) => write!(f, "self-test refused: {t}"),
+            Refusal::ReplayOnTwinOnly => f.write_str(
+                "replay refused: this controller steps its own sensors (only the QEMU twin \
+                 replays a host's inputs)",
+            ),
         }
     }
 }

@@ -9,6 +9,7 @@
 use proptest::prelude::*;
 use pto_model::estimator::Inputs;
 use pto_model::fx::{Aperture, Pressure, Rpm};
+use pto_model::protocol::selftest::{SelfTest, TestDrive};
 use pto_model::protocol::{MAX_FRAME, Receiver, SensorFrame, ToFirmware, encode};
 use pto_model::scheduler::Mode;
 
@@ -28,15 +29,17 @@ fn message() -> impl Strategy<Value = ToFirmware> {
             any::<i32>(),
             any::<u16>(),
             any::<u16>(),
-            any::<i32>()
+            any::<i32>(),
+            any::<u16>()
         )
-            .prop_map(|(tick, encoder, hp_adc, lp_adc, m)| ToFirmware::Sensors(
+            .prop_map(|(tick, encoder, hp_adc, lp_adc, m, v)| ToFirmware::Sensors(
                 SensorFrame {
                     tick,
                     encoder,
                     hp_adc,
                     lp_adc,
                     motor: (m % 3 != 0).then(|| Rpm::from_bits(m)),
+                    supply_mv: (v % 5 != 0).then_some(v),
                 }
             )),
         (any::<u32>(), any::<i32>(), any::<i32>(), any::<u8>()).prop_map(|(tick, e, p, d)| {
@@ -56,6 +59,15 @@ fn message() -> impl Strategy<Value = ToFirmware> {
         any::<i32>().prop_map(|p| ToFirmware::SetMode(Mode::HoldPressure(Pressure::from_bits(p)))),
         (any::<u8>(), any::<u8>())
             .prop_map(|(on_duty, config)| ToFirmware::SetDuty { on_duty, config }),
+        (any::<i32>(), any::<u8>()).prop_map(|(a, k)| ToFirmware::SelfTest(match k % 7 {
+            0 => SelfTest::Inputs,
+            1 => SelfTest::Begin,
+            2 => SelfTest::End,
+            3 => SelfTest::Drive(TestDrive::AllOff),
+            4 => SelfTest::Drive(TestDrive::DumpClosed),
+            5 => SelfTest::Drive(TestDrive::Solenoid(k)),
+            _ => SelfTest::Drive(TestDrive::Valve(Aperture::from_bits(a))),
+        })),
     ]
 }
 

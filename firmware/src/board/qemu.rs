@@ -11,7 +11,8 @@
 //!   watchdog that ends the run with exit code 3 (the real board's IWDG resets the MCU);
 //! - TIM2 free-running: under `-icount shift=0` it counts executed instructions, the cost metric;
 //! - defmt and exit codes over semihosting; valve, dump valve and solenoids are virtual outputs
-//!   (the host learns their state from the telemetry).
+//!   that remember their level (read back by the self-test; the host learns them from each
+//!   step's `Output` and the telemetry).
 #![allow(unsafe_code)]
 
 use crate::app::Board;
@@ -26,11 +27,16 @@ use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::pipe::Pipe;
 use embassy_time_queue_utils::Queue;
 use pto_firmware::control::StepClock;
+use pto_firmware::outputs::{Actuators, DutyReadBack, Outputs, ReadBack};
 use pto_firmware::{EXIT_HARDFAULT, EXIT_PANIC, EXIT_WATCHDOG, WATCHDOG_TIMEOUT_MS};
+use pto_model::protocol::BoardInfo;
 use stm32_metapac as pac;
 
 /// Board name in the boot log.
 pub const NAME: &str = "qemu-netduinoplus2";
+/// The twin's samples come from its host, which may pause or replay: the control task beats
+/// without them, and `Replay` is taken.
+pub const SAMPLES_ITSELF: bool = false;
 /// Telemetry on the bench link every 16th step, as on the bench (the hardware port answers
 /// every step).
 pub const TELEMETRY_EVERY: u16 = 16;
@@ -61,8 +67,19 @@ pub type Pin = VirtualPin;
 pub type Watchdog = SoftWatchdog;
 
 /// Starts SysTick, TIM2, USART1 and USART2 (with their interrupts). Under QEMU the sensor
-/// samples arrive on the hardware port: there is no sampling task.
+/// samples arrive on the hardware port: there is no sampling task. The virtual outputs start
+/// at their boot levels, as the bench's do.
 pub fn init(_spawner: Spawner) -> Board {
+    let at_boot = Outputs::at_boot(
+        crate::trip_memory::remembered(),
+        pto_firmware::built_config::SCHEDULER.overpressure_aperture_pct,
+    );
+    let actuators = Actuators::new(
+        VirtualPwm(0),
+        VirtualPin(false),
+        [VirtualPin(false); 4],
+        at_boot,
+    );
     // SAFETY: called once at boot, before any other user of the core peripherals.
     let mut cp = unsafe { cortex_m::Peripherals::steal() };
     cp.SYST.set_clock_source(SystClkSource::Core);
@@ -92,9 +109,8 @@ pub fn init(_spawner: Spawner) -> Board {
         hardware: Some((&RX_PIPE[0], Tx(pac::USART1))),
         store: (STORE.take(), 0..8 * 1024),
         clock: Tim2Clock::calibrated(),
-        valve: VirtualPwm(0),
-        dump: VirtualPin(false),
-        solenoids: [VirtualPin(false); 4],
+        actuators,
+        info: BoardInfo::EMULATED,
         watchdog: SoftWatchdog::start(),
     }
 }
@@ -102,6 +118,11 @@ pub fn init(_spawner: Spawner) -> Board {
 /// Bytes lost because the receive pipe was full.
 pub fn bytes_lost() -> u32 {
     BYTES_LOST.load(Ordering::Relaxed)
+}
+
+/// The twin is stepped by its host: no sample period is missed.
+pub fn samples_missed() -> u32 {
+    0
 }
 
 /// Ends the QEMU run with `code`.
@@ -202,6 +223,12 @@ impl embedded_hal::pwm::SetDutyCycle for VirtualPwm {
     }
 }
 
+impl DutyReadBack for VirtualPwm {
+    fn duty_read_back(&self) -> Option<u16> {
+        Some(self.0)
+    }
+}
+
 /// A digital output that only remembers its level.
 #[derive(Clone, Copy)]
 pub struct VirtualPin(bool);
@@ -218,6 +245,12 @@ impl embedded_hal::digital::OutputPin for VirtualPin {
     fn set_high(&mut self) -> Result<(), Infallible> {
         self.0 = true;
         Ok(())
+    }
+}
+
+impl ReadBack for VirtualPin {
+    fn read_back(&self) -> Option<bool> {
+        Some(self.0)
     }
 }
 

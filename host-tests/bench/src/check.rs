@@ -463,6 +463,16 @@ impl BenchFile {
         // SchedulerConfig::coefficients), so that a bench the firmware cannot take stops here
         // with the field's path.
         let k = &self.controller;
+        let hse = k.board.hse_mhz;
+        if hse != 0 && !(4..=26).contains(&hse) {
+            c.fail(
+                "controller.board.hse_mhz",
+                format!(
+                    "{hse} outside [4, 26] (MHz): the STM32F405's crystal range (DS8626, HSE \
+                     oscillator); 0 for a board without a crystal"
+                ),
+            );
+        }
         c.range(
             "controller.trip_release_margin_bar",
             k.trip_release_margin_bar,

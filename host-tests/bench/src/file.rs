@@ -193,6 +193,26 @@ pub struct ControllerSection {
     pub hp_transducer: TransducerSection,
     pub lp_transducer: TransducerSection,
     pub scheduler: SchedulerSection,
+    /// The controller board (its crystal); absent: the reference board's.
+    #[serde(default)]
+    pub board: BoardSection,
+}
+
+/// The controller board's hardware settings the firmware is built with.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct BoardSection {
+    /// The crystal on the board's HSE pins, MHz: a whole number of 4–26 (the STM32F405's
+    /// range), or 0 for a board without one (the internal 16 MHz RC oscillator, ±1 % at 25 °C,
+    /// −8 … +4.5 % over temperature: the link's baud rate and the model's step drift with it).
+    pub hse_mhz: u32,
+}
+
+impl Default for BoardSection {
+    /// The reference board: an 8 MHz crystal.
+    fn default() -> Self {
+        BoardSection { hse_mhz: 8 }
+    }
 }
 
 /// A 4–20 mA pressure transducer loop read by the controller's 12-bit ADC.
@@ -255,6 +275,7 @@ impl Default for ControllerSection {
                 sensor_fault_aperture_pct: 12.0,
                 sensor_fault_sigma_bar: 3.0,
             },
+            board: BoardSection::default(),
         }
     }
 }

@@ -388,6 +388,32 @@ mod tests {
         );
     }
 
+    /// The board's crystal is a setting with the datasheet's range; a file without the section
+    /// gets the reference board's 8 MHz; 0 is a board without a crystal.
+    #[test]
+    fn the_crystal_is_checked_and_defaults_to_the_reference_board() {
+        let text = REFERENCE_BENCH_TOML.replace("hse_mhz = 8", "hse_mhz = 30");
+        let err = Bench::from_toml(&text, "my.toml").unwrap_err().to_string();
+        assert!(
+            err.contains("controller.board.hse_mhz") && err.contains("[4, 26] (MHz)"),
+            "{err}"
+        );
+        let i = REFERENCE_BENCH_TOML.find("[controller.board]").unwrap();
+        let without = &REFERENCE_BENCH_TOML[..i];
+        let b = Bench::from_toml(without, "old.toml").unwrap();
+        assert_eq!(b.file.controller.board.hse_mhz, 8);
+        let none = REFERENCE_BENCH_TOML.replace("hse_mhz = 8", "hse_mhz = 0");
+        assert_eq!(
+            Bench::from_toml(&none, "x.toml")
+                .unwrap()
+                .file
+                .controller
+                .board
+                .hse_mhz,
+            0
+        );
+    }
+
     #[test]
     fn unknown_key_is_an_error() {
         let text = REFERENCE_BENCH_TOML.replace("[input]\n", "[input]\nbogus_key = 1.0\n");

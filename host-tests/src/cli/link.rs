@@ -417,3 +417,56 @@ pub(crate) fn monitor_cmd(
     // Frames lost on the way, or never sent, are a miss: the log has gaps; so is no frame.
     Ok(frames > 0 && lost == 0 && bad == 0 && not_sent == Some(0) && restarts == 0)
 }
+
+pub(crate) fn selftest_cmd(
+    t: &Target,
+    yes: bool,
+    window_s: f64,
+    hold_s: f64,
+    valve_pct: f32,
+    skip: Vec<pto_host::hil::selftest::Skippable>,
+    json: bool,
+) -> Result<bool> {
+    use pto_host::hil::selftest::{self as st, AtTerminal, Operator, Unattended};
+    for (name, v, hi) in [("--window", window_s, 600.0), ("--hold", hold_s, 60.0)] {
+        if !(v.is_finite() && v > 0.0 && v <= hi) {
+            bail!("{name} {v}: outside (0, {hi}] s");
+        }
+    }
+    if !yes && !std::io::stdin().is_terminal() {
+        bail!("stdin is not a terminal: answer the questions at one, or run unattended with --yes");
+    }
+    let opts = st::Options {
+        window: Duration::from_secs_f64(window_s),
+        hold: Duration::from_secs_f64(hold_s),
+        valve_pct,
+        skip,
+    };
+    let (mut l, h) = connect(t)?;
+    pto_host::output::stop_on_interrupt();
+    let mut op: Box<dyn Operator> = if yes {
+        Box::new(Unattended)
+    } else {
+        Box::new(AtTerminal)
+    };
+    let r = st::run(&mut l, &opts, op.as_mut())?;
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "port": t.port,
+                "firmware": format!("{}.{}", h.firmware >> 8, h.firmware & 0xff),
+                "protocol": h.protocol,
+                "checks": r.checks,
+                "passed": r.passed,
+                "interrupted": r.interrupted,
+            }))?
+        );
+    } else {
+        print!("{}", st::table(&r));
+    }
+    if r.interrupted {
+        std::process::exit(130);
+    }
+    Ok(r.passed)
+}

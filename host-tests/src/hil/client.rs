@@ -60,6 +60,17 @@ fn ask(link: &mut Link, msg: &ToFirmware) -> Result<FromFirmware, LinkError> {
     link.request(msg, refused)?.map_err(LinkError::Refused)
 }
 
+/// [`ask`], waiting at least `ms` for the answer: a commit or a clear answers only after its
+/// flash erases, during which the whole controller stalls (their datasheet bounds are in
+/// `pto_model::protocol`: `COMMIT_REPLY_MAX_MS`, `CLEAR_REPLY_MAX_MS`).
+fn ask_within(link: &mut Link, msg: &ToFirmware, ms: u32) -> Result<FromFirmware, LinkError> {
+    let before = link.timeout;
+    link.timeout = before.max(std::time::Duration::from_millis(u64::from(ms)));
+    let r = ask(link, msg);
+    link.timeout = before;
+    r
+}
+
 /// A command without an answer of its own, confirmed by a ping that follows it (the firmware
 /// takes commands in order).
 fn command(link: &mut Link, msg: &ToFirmware) -> Result<(), LinkError> {
@@ -120,7 +131,11 @@ pub fn set_telemetry(link: &mut Link, every: u16) -> Result<u16, LinkError> {
 
 /// Erases the stored configuration (the next boot runs the built-in one).
 pub fn clear_store(link: &mut Link) -> Result<(), LinkError> {
-    match ask(link, &ToFirmware::ConfigClear)? {
+    match ask_within(
+        link,
+        &ToFirmware::ConfigClear,
+        pto_model::protocol::CLEAR_REPLY_MAX_MS,
+    )? {
         FromFirmware::ConfigCleared => Ok(()),
         other => Err(unexpected(ToFirmware::ConfigClear, other)),
     }
@@ -162,7 +177,7 @@ pub fn upload(
         progress(off, bytes.len());
     }
     let commit = ToFirmware::ConfigCommit { persist };
-    match ask(link, &commit)? {
+    match ask_within(link, &commit, pto_model::protocol::COMMIT_REPLY_MAX_MS)? {
         FromFirmware::ConfigApplied { info, stored } => {
             if info.fingerprint != crc {
                 return Err(ClientError::Mismatch {
@@ -224,13 +239,26 @@ pub struct Sample {
     pub raw: Telemetry,
 }
 
-/// Turns telemetry into engineering units with the firmware's own conversions.
+/// Turns telemetry into engineering units with the firmware's own conversions (its supply
+/// correction included).
 #[derive(Debug, Clone)]
 pub struct Units {
     dt_s: f64,
     deg_per_count: f64,
     hp: Transducer,
     lp: Transducer,
+}
+
+/// A loop's reading as the firmware takes it: corrected for the sample's supply reading, `None`
+/// when saturated, implausible or outside the loop's window.
+fn loop_bar(t: &Transducer, raw: u16, supply_mv: Option<u16>) -> Option<f64> {
+    use pto_firmware::frontend::{LoopReading, SupplyCorrection};
+    let mut c = SupplyCorrection::new(t.vref_mv());
+    c.update(supply_mv);
+    match c.correct(raw) {
+        LoopReading::Counts(n) => t.pressure(n).map(|p| f64::from(p.to_f32())),
+        LoopReading::Saturated | LoopReading::SupplyFault => None,
+    }
 }
 
 impl Units {
@@ -251,8 +279,8 @@ impl Units {
         Sample {
             t_s: f64::from(f.tick) * self.dt_s,
             shaft_angle_deg: f64::from(f.encoder) * self.deg_per_count,
-            hp_bar: self.hp.pressure(f.hp_adc).map(|p| f64::from(p.to_f32())),
-            lp_bar: self.lp.pressure(f.lp_adc).map(|p| f64::from(p.to_f32())),
+            hp_bar: loop_bar(&self.hp, f.hp_adc, f.supply_mv),
+            lp_bar: loop_bar(&self.lp, f.lp_adc, f.supply_mv),
             motor_rpm: f.motor.map_or(0.0, |r| f64::from(r.to_f32())),
             raw: *t,
         }

@@ -1,7 +1,8 @@
 //! The firmware in the loop: its builds ([`build`]), the link to a controller over a serial
 //! port or a QEMU socket ([`link`]) and what the bench engineer does over it ([`client`]), QEMU
 //! runs of the firmware ([`qemu`]), processor-in-the-loop with the full simulation ([`pil`]),
-//! and the firmware's cost per step and per build ([`fw_cost`]).
+//! the firmware's cost per step and per build ([`fw_cost`]), and the bring-up self-test of a
+//! freshly flashed controller ([`selftest`]).
 
 pub mod build;
 pub mod client;
@@ -9,3 +10,4 @@ pub mod fw_cost;
 pub mod link;
 pub mod pil;
 pub mod qemu;
+pub mod selftest;

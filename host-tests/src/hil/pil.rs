@@ -270,6 +270,8 @@ impl FirmwareController {
             },
             lp_adc: self.lp.counts_at_bar(lp as f32),
             motor: Some(Rpm::from_num(motor as f32)),
+            // The twin's ADC reference is the loops' nominal one, as its counts are made.
+            supply_mv: Some(self.hp.vref_mv()),
         }
     }
 

@@ -121,6 +121,8 @@ pub struct Qemu {
     pub link: Link,
     /// The pseudo-terminal of USART2, the bench link, when booted with [`Qemu::boot_twin`].
     pub pty: Option<PathBuf>,
+    /// What QEMU itself wrote to stderr.
+    stderr: Arc<Mutex<String>>,
 }
 
 static SEQ: AtomicU32 = AtomicU32::new(0);
@@ -210,6 +212,7 @@ impl Qemu {
         let mut stderr = child.stderr.take().ok_or(QemuError::NoPipe("stderr"))?;
         let errors = Arc::new(Mutex::new(String::new()));
         let errors2 = errors.clone();
+        let stderr_kept = errors.clone();
         std::thread::spawn(move || {
             let mut s = String::new();
             let _ = stderr.read_to_string(&mut s);
@@ -324,6 +327,7 @@ impl Qemu {
             reader: Some(reader),
             link: Link::new(Box::new(stream)),
             pty: pty_path,
+            stderr: stderr_kept,
         };
         if pty && q.pty.is_none() {
             // `q`'s Drop ends and reaps QEMU.
@@ -335,6 +339,11 @@ impl Qemu {
         q.link.send(&ToFirmware::Hello)?;
         q.link.hello()?;
         Ok(q)
+    }
+
+    /// What QEMU itself wrote to stderr so far (its own errors; the firmware logs to stdout).
+    pub fn qemu_stderr(&self) -> String {
+        self.stderr.lock().map(|g| g.clone()).unwrap_or_default()
     }
 
     /// QEMU is still running.
@@ -416,13 +425,29 @@ pub fn status_table(st: &Status, host: &LinkCounts) -> String {
     );
     s += &format!("{:<28} {:>10}\n", "received bytes lost", st.bytes_lost);
     s += &format!(
+        "{:<28} {:>10} (the host sent commands faster than it read their replies)\n",
+        "replies dropped", st.replies_dropped
+    );
+    s += &format!(
+        "{:<28} {:>10} (sample periods the controller stalled through: flash erases)\n",
+        "sample periods missed", st.samples_missed
+    );
+    s += &format!(
         "{:<28} {:>10} (the link's transmit queue was full: rate above the baud rate's)\n",
         "telemetry frames dropped", st.telemetry_dropped
     );
     s += &format!("{:<28} {:>10}\n", "estimator steps", st.steps);
     s += &format!(
+        "{:<28} {:>10} B (never used since boot)\n",
+        "stack unused", st.stack_unused
+    );
+    s += &format!(
         "{:<28} {:>10} (steps with the HP loop outside 4–20 mA)\n",
         "HP loop faults", st.hp_loop_faults
+    );
+    s += &format!(
+        "{:<28} {:>10} (samples whose measured ADC reference was implausible)\n",
+        "supply faults", st.supply_faults
     );
     s += &format!("{:<28} {:>#10x}\n", "fault flags seen", st.faults_seen);
     s += &format!(
