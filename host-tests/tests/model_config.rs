@@ -53,6 +53,11 @@ fn model_leaves(b: &Bench) -> Result<BTreeMap<String, (f64, bool)>, ModelError> 
 /// Bench-file fields the reduced model does not take, and why.
 const NOT_IN_MODEL: &[(&str, &str)] = &[
     (
+        "controller.board.hse_mhz",
+        "the controller board's crystal: the firmware's clock (its PLL), built in by the build \
+         script (`built_config::HSE_MHZ`), not the model",
+    ),
+    (
         "check_valve.",
         "the reduced model holds each chamber a constant `check_valve_drop_bar` (0.7 bar) above \
          P2 or below LP; the bench's flow-dependent valve law (cracking, full-open, area, Cd) has \
