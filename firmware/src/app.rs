@@ -597,6 +597,14 @@ async fn control_task(
                     }
                     tripped_prev = tripped;
                 }
+                if o.sensor_faults_new != 0 {
+                    defmt::error!(
+                        "tick {}: sensor fault held (bits {=u8:#06b}: 1 HP, 2 LP, 4 motor, 8 \
+                         encoder): its readings withheld, valve at the sensor-fault aperture",
+                        f.tick,
+                        o.sensor_faults_new
+                    );
+                }
                 if let Some(why) = o.selftest_ended {
                     defmt::warn!("tick {}: self-test ended: {}", f.tick, why);
                 }
@@ -626,6 +634,7 @@ async fn control_task(
                         on_duty: o.on_duty,
                         config,
                         hydraulic_power: o.estimate.hydraulic_power(),
+                        sensor_faults: ctl.sensor_faults(),
                     });
                     // Never wait for the link: telemetry leaves room in the queue for the
                     // replies to commands (which the loop sends waiting), and a frame it
@@ -771,6 +780,16 @@ async fn control_task(
                     core::future::pending::<()>().await;
                 }
                 ToFirmware::Exit(code) => TO_TX[port as usize].send(ToTx::Exit(code)).await,
+                ToFirmware::ClearSensorFaults => {
+                    let before = ctl.sensor_faults();
+                    let held = ctl.clear_sensor_faults();
+                    defmt::warn!(
+                        "sensor faults: {=u8:#06b} cleared by the host, {=u8:#06b} still held",
+                        before & !held,
+                        held
+                    );
+                    send(port, FromFirmware::SensorFaults(held)).await;
+                }
                 ToFirmware::SelfTest(req) => {
                     let r: Result<SelfTestReply, SelfTestRefusal> = match req {
                         SelfTest::Inputs => {

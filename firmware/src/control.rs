@@ -8,6 +8,7 @@
 use crate::frontend::{LoopReading, SpecError, SupplyCorrection, Transducer};
 use crate::outputs::Outputs;
 use crate::selftest::{Ended, SelfTestState};
+use crate::sensor_faults::{SensorFaults, bit};
 use crate::trip::{TripLatch, TripSample};
 use pto_model::estimator::{self, Estimate, Inputs, State, fault};
 use pto_model::fx::{Aperture, Fx, Pressure, ZERO, clamp, mul_dt};
@@ -100,6 +101,8 @@ pub struct StepOut {
     pub on_duty: u8,
     /// A self-test ended by itself in this step, and why.
     pub selftest_ended: Option<Ended>,
+    /// Sensors the residuals named in this step and the controller now holds faulted.
+    pub sensor_faults_new: u8,
 }
 
 impl StepOut {
@@ -136,6 +139,12 @@ pub struct Controller {
     samples: u32,
     selftest: Option<SelfTestState>,
     safe_op: Fx,
+    /// The valve's aperture while a sensor is held faulted (`sensor_fault_aperture_pct`).
+    sensor_fault_op: Fx,
+    /// The sensors held faulted.
+    sensor_faults: SensorFaults,
+    /// LP is known: from a reading since boot, or from the host's reset.
+    lp_known: bool,
     latch: TripLatch,
     /// What the latch saw of the last step (what a host reset is judged on; `None` before the
     /// first step).
@@ -159,6 +168,7 @@ pub struct Controller {
 /// statics: a QEMU lockup).
 struct Rest {
     sc: SchedulerCoeffs,
+    sensor_fault_op: Fx,
     hp: Transducer,
     lp: Transducer,
     latch: TripLatch,
@@ -214,6 +224,7 @@ impl Rest {
             latch: TripLatch::new(Pressure(k.trip_bar), Pressure(release), hold_steps),
             slew_step: mul_dt(Fx::saturating_from_num(cc.valve_slew_pct_per_s), k.dt_log2),
             safe_op: Fx::saturating_from_num(sched.overpressure_aperture_pct),
+            sensor_fault_op: Fx::saturating_from_num(sched.sensor_fault_aperture_pct),
             boot_var: Fx::saturating_from_num(cc.boot_sigma_bar * cc.boot_sigma_bar),
             boot_sigma: Fx::saturating_from_num(cc.boot_sigma_bar),
             sc,
@@ -253,6 +264,9 @@ impl Controller {
             samples: 0,
             selftest: None,
             safe_op: p.safe_op,
+            sensor_fault_op: p.sensor_fault_op,
+            sensor_faults: SensorFaults::default(),
+            lp_known: false,
             latch: p.latch,
             last: None,
             confirmed: false,
@@ -305,6 +319,7 @@ impl Controller {
         self.lp_supply = SupplyCorrection::new(p.lp.vref_mv());
         (self.hp, self.lp) = (p.hp, p.lp);
         (self.safe_op, self.boot_var, self.slew_step) = (p.safe_op, p.boot_var, p.slew_step);
+        self.sensor_fault_op = p.sensor_fault_op;
         self.sc = p.sc;
         self.k = k;
         Ok(())
@@ -408,6 +423,7 @@ impl Controller {
         self.latch.reset_allowed(self.last.as_ref())?;
         self.selftest = None;
         self.held = false;
+        self.lp_known = true;
         self.st = State::new(p2, lp, Pressure(Fx::ONE));
         self.sst = SchedulerState::default();
         self.last_tick = None;
@@ -450,6 +466,11 @@ impl Controller {
     /// or reset command).
     pub fn held(&self) -> bool {
         self.held
+    }
+
+    /// The estimator's residuals (each sensor against the model).
+    pub fn residuals(&self) -> pto_model::estimator::ResidualState {
+        self.st.resid
     }
 
     /// Whether a self-test drives the outputs.
@@ -598,7 +619,19 @@ impl Controller {
             },
             config: self.config,
         };
+        let mut inp = inp;
+        if !self.lp_known
+            && let Some(z) = inp.lp
+        {
+            // A controller that boots does not know LP: its first reading is the best start
+            // (its residual check would otherwise judge the estimate's way there).
+            (self.st.node.lp, self.st.node.lp_lo) = (z.0, 0);
+            self.lp_known = true;
+        }
+        self.sensor_faults.mask(&mut inp);
         let (e, c) = self.model_step(&inp, clock);
+        let newly = self.sensor_faults.take(e.faults, inp.encoder);
+        let held_faults = self.sensor_faults.latched();
         // Trip latch (`crate::trip`): any reading in the loop window counts toward a trip,
         // whether or not the estimator took it; only a valid one the gate took counts toward a
         // release.
@@ -616,9 +649,13 @@ impl Controller {
         let s = &mut self.status;
         s.tripped = tripped;
         s.trips = self.latch.trips;
+        s.sensor_faults = held_faults;
         // Actuator stage: safety at once, otherwise slew-limited.
         self.applied = if s.tripped {
             self.safe_op
+        } else if held_faults != 0 {
+            // A sensor held faulted: the declared safe aperture, at once.
+            self.sensor_fault_op
         } else if c.safety != Override::None {
             c.aperture.0
         } else {
@@ -628,9 +665,13 @@ impl Controller {
                 self.applied.saturating_add(self.slew_step),
             )
         };
+        // With the HP transducer held faulted and no motor speed to read P2 from, nothing bounds
+        // P2: the dump valve opens.
+        let unbounded =
+            held_faults & bit::HP != 0 && (held_faults & bit::MOTOR != 0 || f.motor.is_none());
         let mut out = Outputs {
             aperture: Aperture(self.applied),
-            dump_open: s.tripped,
+            dump_open: s.tripped || unbounded,
             on_duty: self.on_duty,
         };
         if self.held {
@@ -670,7 +711,57 @@ impl Controller {
             dump: out.dump_open,
             on_duty: out.on_duty,
             selftest_ended,
+            sensor_faults_new: newly,
         }
+    }
+
+    /// The sensors held faulted (bits of [`crate::sensor_faults::bit`]).
+    pub fn sensor_faults(&self) -> u8 {
+        self.sensor_faults.latched()
+    }
+
+    /// The host's clear of the held sensor faults: each is released only if its last reading
+    /// agrees with the model now (HP: within 3σ of the estimate, at least 2 bar; LP: within
+    /// 2 bar of the estimate; motor: within
+    /// the motor check's allowance of the modelled speed; encoder: it moved since its fault).
+    /// Returns the sensors still held (0: all cleared).
+    pub fn clear_sensor_faults(&mut self) -> u8 {
+        let Some(f) = self.last_frame else {
+            return self.sensor_faults.latched();
+        };
+        let mut agree = 0;
+        if let LoopReading::Counts(n) = self.lp_supply.correct(f.lp_adc)
+            && let Some(z) = self.lp.pressure(n)
+            && z.0.saturating_sub(self.st.node.lp).abs() <= Fx::from_num(2)
+        {
+            agree |= bit::LP;
+        }
+        let pressure = match self.hp_supply.correct(f.hp_adc) {
+            LoopReading::Counts(n) => self.hp.pressure(n),
+            _ => None,
+        };
+        let p2 = self.st.node.p2;
+        // 3σ from the variance without a square root: (z − P2)² ≤ 9·var, or ≤ (2 bar)².
+        if let Some(z) = pressure {
+            let d = z.0.saturating_sub(p2);
+            let d2 = d.saturating_mul(d);
+            if d2 <= self.st.node.var.saturating_mul(Fx::from_num(9)) || d2 <= Fx::from_num(4) {
+                agree |= bit::HP;
+            }
+        }
+        if let Some(m) = f.motor {
+            let model = self
+                .st
+                .branch
+                .q_motor
+                .saturating_mul(self.k.branch.rpm_per_lpm);
+            let allow = Fx::from_num(5).saturating_add(model.abs() / 16);
+            if m.0.saturating_sub(model).abs() <= allow {
+                agree |= bit::MOTOR;
+            }
+        }
+        agree |= bit::ENCODER;
+        self.sensor_faults.clear(agree, Some(f.encoder))
     }
 }
 
@@ -725,19 +816,27 @@ mod tests {
         // Still latched a little below the trip.
         let o = c.sample(&frame(51, trip - 5.0), &mut NoClock);
         assert!(o.dump && o.applied.to_f32() == 100.0);
-        // Released once P2 is 15 bar below, then the valve slews back (100 %/s, 2^-10 s).
+        // Released once P2 is 15 bar below, then the valve slews back (100 %/s, 2^-10 s) —
+        // or, once the residuals name a sensor (these frames hold the encoder still while P2
+        // rises, and the motor at 200 rpm whatever the valve), it goes at once to the
+        // sensor-fault aperture.
         let mut n = 0;
         let mut last = 100.0;
-        for i in 52..2000 {
+        for i in 52..6000 {
             let o = c.sample(&frame(i, trip - 30.0), &mut NoClock);
             if !o.dump {
                 let a = o.applied.to_f32();
-                assert!(last - a <= 100.0 / 1024.0 + 1e-3, "slew {last} -> {a}");
+                if c.sensor_faults() == 0 {
+                    assert!(last - a <= 100.0 / 1024.0 + 1e-3, "slew {last} -> {a}");
+                    n += 1;
+                } else {
+                    assert_eq!(a, 12.0, "the sensor-fault aperture");
+                }
                 last = a;
-                n += 1;
             }
         }
         assert!(n > 0 && c.status.trips == 1 && !c.status.tripped);
+        assert_ne!(c.sensor_faults(), 0);
     }
 
     #[test]

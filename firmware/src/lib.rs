@@ -11,6 +11,8 @@
 //! - [`outputs`]: the outputs, their de-energised (safe) levels, the actuators and their
 //!   read-back.
 //! - [`selftest`]: the bring-up self-test's state.
+//! - [`sensor_faults`]: the sensor-fault latch: a sensor the estimator's residuals name is held
+//!   faulted, its readings withheld, the controller in its safe state, until the host clears it.
 //! - [`watchdog`]: the independent watchdog's settings over the LSI's range and its driver.
 //! - [`link`]: COBS frame assembly with drop counting, reply encoding.
 //! - [`control`]: the control step: raw sample → estimator → scheduler → trip latch → actuator
@@ -33,6 +35,7 @@ pub mod link;
 pub mod outputs;
 pub mod sampler;
 pub mod selftest;
+pub mod sensor_faults;
 pub mod store;
 pub mod supervisor;
 pub mod trip;

@@ -153,6 +153,7 @@ mod tests {
             supply_faults: all,
             trips: all,
             tripped: true,
+            sensor_faults: u8::MAX,
             held: true,
             dump_valve: true,
             aperture: Aperture(big),
@@ -182,6 +183,7 @@ mod tests {
                 on_duty: 0xff,
                 config: 0xff,
                 hydraulic_power: pto_model::fx::HydraulicPower(big),
+                sensor_faults: 0xff,
             })
         };
         let k = t.encode(&tel(e2), &mut b).expect("Telemetry fits");

@@ -87,6 +87,15 @@ fn still(hp_bar: Option<f32>) -> Sensors {
     }
 }
 
+/// Sensors of a bench at rest: the lever still, the motor stopped.
+fn rest(hp_bar: Option<f32>) -> Sensors {
+    Sensors {
+        hp_bar,
+        encoder: 0,
+        rpm: 0.0,
+    }
+}
+
 fn release_bar(c: &Controller) -> f32 {
     c.latch().release().to_f32()
 }
@@ -540,14 +549,15 @@ fn the_self_test_starts_only_when_safe_and_the_trip_ends_it_at_once() {
     use pto_model::protocol::{NotSafe, SelfTestRefusal};
 
     let mut b = Bench::new(60.0, 10.0);
-    b.run(HZ, |_| still(Some(60.0)));
+    b.run(300, |_| rest(Some(60.0)));
     assert_eq!(
         b.c.selftest_begin(),
         Err(SelfTestRefusal::NotSafe(NotSafe::ValveOpen)),
         "valve open"
     );
     b.c.set_mode(Mode::Fixed(Aperture::ZERO));
-    b.run(HZ, |_| still(Some(60.0)));
+    b.run(HZ, |_| rest(Some(60.0)));
+    assert_eq!(b.c.sensor_faults(), 0);
     assert_eq!(b.c.selftest_begin(), Ok(Outputs::DE_ENERGISED));
     assert_eq!(
         b.c.selftest_drive(TestDrive::Valve(Aperture::from_num(11.0))),
@@ -557,7 +567,7 @@ fn the_self_test_starts_only_when_safe_and_the_trip_ends_it_at_once() {
         b.c.selftest_drive(TestDrive::Valve(Aperture::from_num(5.0)))
             .unwrap();
     assert!(o.dump_open && o.aperture.to_f32() == 5.0);
-    let out = b.run(10, |_| still(Some(60.0)));
+    let out = b.run(10, |_| rest(Some(60.0)));
     assert!(
         out.iter()
             .all(|o| o.dump && o.applied.to_f32() == 5.0 && o.on_duty == 0)
@@ -570,9 +580,9 @@ fn the_self_test_starts_only_when_safe_and_the_trip_ends_it_at_once() {
     // The dump valve closed by the test, then an overpressure: the trip's safe state in that
     // same step, and the self-test is over.
     b.c.selftest_drive(TestDrive::DumpClosed).unwrap();
-    let out = b.run(5, |_| still(Some(60.0)));
+    let out = b.run(5, |_| rest(Some(60.0)));
     assert!(out.iter().all(|o| !o.dump && o.applied == Aperture::ZERO));
-    let out = b.step(still(Some(150.0)));
+    let out = b.step(rest(Some(150.0)));
     assert!(out.dump && out.applied.to_f32() == 100.0, "{out:?}");
     assert_eq!(out.selftest_ended, Some(Ended::Tripped));
     assert!(!b.c.selftest_active());
@@ -588,17 +598,17 @@ fn the_self_test_starts_only_when_safe_and_the_trip_ends_it_at_once() {
     // A self-test left alone ends by itself, the outputs back to the controller from
     // de-energised; a mode command ends one at once.
     let mut b = Bench::new(60.0, 0.0);
-    b.run(HZ, |_| still(Some(60.0)));
+    b.run(HZ, |_| rest(Some(60.0)));
     b.c.selftest_begin().unwrap();
     b.c.selftest_drive(TestDrive::Solenoid(3)).unwrap();
-    let out = b.run(u32::from(SELFTEST_IDLE_S) * HZ, |_| still(Some(60.0)));
+    let out = b.run(u32::from(SELFTEST_IDLE_S) * HZ, |_| rest(Some(60.0)));
     let ended: Vec<_> = out.iter().filter_map(|o| o.selftest_ended).collect();
     assert_eq!(ended, [Ended::Idle]);
     assert!(out[..10].iter().all(|o| o.on_duty == 0b1000));
     let last = out.last().unwrap();
     assert_eq!(last.selftest_ended, Some(Ended::Idle));
     assert_eq!(last.outputs(), Outputs::DE_ENERGISED, "the step it ends in");
-    let next = b.step(still(Some(60.0)));
+    let next = b.step(rest(Some(60.0)));
     assert!(!next.dump && next.on_duty == pto_firmware::control::BOOT_ON_DUTY);
     b.c.selftest_begin().unwrap();
     b.c.set_mode(Mode::Fixed(Aperture::ZERO));

@@ -224,12 +224,19 @@ enum Cmd {
     /// controller in lockstep (hold P2, hold motor speed, overpressure trip, the trip held
     /// through a wire break and a refused reset, a motor reading behind a closed valve).
     #[command(
-        after_help = "Examples:\n  pto pil\n  pto pil --bench my-bench.toml --json\n\nExit status:\n  0 every check met\n  1 a check missed\n  2 bad input, QEMU or the build missing\n  130 interrupted"
+        after_help = "Examples:\n  pto pil\n  pto pil --bench my-bench.toml --json\n  pto pil --fault hp:stuck=60 --fault motor:gain=1.2 --fault lp:drift=0.5@10\n\nExit status:\n  0 every check met\n  1 a check missed\n  2 bad input, QEMU or the build missing\n  130 interrupted"
     )]
     Pil {
         /// Bench parameter file (default: the reference bench).
         #[arg(long)]
         bench: Option<PathBuf>,
+        /// Instead of the standard checks, inject this sensor fault into the firmware's
+        /// readings and check that it is flagged, named and made safe (repeatable):
+        /// SENSOR:KIND with SENSOR hp, lp, motor or encoder and KIND stuck (at its reading),
+        /// stuck=VALUE (bar, rpm, counts), drift=RATE (per s) or gain=FACTOR; from 20 s, or
+        /// from the time after an @ (hp:drift=0.5@10).
+        #[arg(long, value_name = "SENSOR:KIND")]
+        fault: Vec<pto_host::model::faults::Fault>,
         /// Machine-readable output.
         #[arg(long)]
         json: bool,
@@ -443,6 +450,9 @@ enum LinkCmd {
         #[arg(long)]
         duration: Option<f64>,
     },
+    /// Release the sensors the controller holds faulted (its residuals named them: the valve
+    /// went to its sensor-fault aperture), each only if its reading agrees with the model now.
+    ClearFaults,
     /// Guided bring-up of a freshly flashed controller: each input's reading and verdict
     /// (loop currents, ADC reference, clock, brown-out level), the encoder and the motor
     /// pickup while you move them by hand, then each output one at a time from the safe
@@ -649,7 +659,7 @@ fn main() -> ExitCode {
             write_anyway,
             json,
         ),
-        Cmd::Pil { bench, json } => pil_cmd(bench.as_ref(), json),
+        Cmd::Pil { bench, fault, json } => pil_cmd(bench.as_ref(), &fault, json),
         Cmd::FwCost { json, trace } => fw_cost_cmd(json, trace.as_deref()),
         Cmd::Link {
             port,
@@ -678,6 +688,7 @@ fn main() -> ExitCode {
                     rate,
                     duration,
                 } => monitor_cmd(&t, log.as_ref(), rate, duration, json),
+                LinkCmd::ClearFaults => clear_faults_cmd(&t, json),
                 LinkCmd::Selftest {
                     yes,
                     window,

@@ -457,3 +457,69 @@ fn a_guided_selftest_passes_on_a_healthy_twin_and_names_what_fails() {
         "{outputs}"
     );
 }
+
+/// A sensor held faulted over the link: a motor pickup reading 100 rpm behind the closed valve
+/// (the motor check names it after 1 s), `status` names it, `pto link clear-faults` refuses while
+/// it still reads 100 rpm (exit 1, "still held: motor") and clears it once it reads the standing
+/// motor again (exit 0).
+#[test]
+fn a_held_sensor_fault_is_shown_and_cleared_only_when_it_agrees() {
+    use pto_firmware::frontend::{LoopSpec, Transducer};
+    use std::process::Command;
+    let _twin = one_twin();
+    let elf = build::build(Build::Qemu).expect("QEMU build");
+    let mut q = Qemu::boot_twin(&elf, false).expect("twin");
+    let pty = q.pty.clone().unwrap().display().to_string();
+    let hp = Transducer::new(LoopSpec::HP).unwrap();
+    let lp = Transducer::new(LoopSpec::LP).unwrap();
+    let mut tick = 0u32;
+    let mut feed_rpm = |q: &mut Qemu, rpm: f32, n: u32| {
+        for _ in 0..n {
+            let f = pto_model::protocol::SensorFrame {
+                tick,
+                encoder: 0,
+                hp_adc: hp.counts_at_bar(60.0),
+                lp_adc: lp.counts_at_bar(8.0),
+                motor: Some(pto_model::fx::Rpm::from_num(rpm)),
+                supply_mv: Some(3300),
+            };
+            let t = tick;
+            q.link
+                .request(&ToFirmware::Sensors(f), |r| match r {
+                    FromFirmware::Output { tick, .. } if *tick == t => Some(()),
+                    _ => None,
+                })
+                .expect("a step's output");
+            tick += 1;
+        }
+    };
+    let clear = || {
+        Command::new(env!("CARGO_BIN_EXE_pto"))
+            .args(["link", "--port", &pty, "clear-faults"])
+            .output()
+            .expect("pto runs")
+    };
+    feed_rpm(&mut q, 100.0, 2_000);
+    let (mut l, _) = link::connect(&pty, 230_400, Duration::from_secs(5)).unwrap();
+    let st = client::status(&mut l).unwrap();
+    assert_eq!(
+        st.sensor_faults,
+        pto_firmware::sensor_faults::bit::MOTOR,
+        "{st:?}"
+    );
+    drop(l);
+    let out = clear();
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    assert_eq!(out.status.code(), Some(1), "{text}");
+    assert!(text.contains("still held: motor"), "{text}");
+    feed_rpm(&mut q, 0.0, 600);
+    let out = clear();
+    let text = String::from_utf8_lossy(&out.stdout).to_string();
+    assert_eq!(out.status.code(), Some(0), "{text}");
+    assert!(text.contains("cleared: motor"), "{text}");
+    let log: Vec<String> = q.log().iter().map(ToString::to_string).collect();
+    assert!(
+        log.iter().any(|l| l.contains("sensor fault held")),
+        "{log:#?}"
+    );
+}

@@ -74,6 +74,13 @@ fn pil_motor_reading_behind_a_closed_valve_is_flagged_without_a_false_trip() {
     run(pil::check_motor_behind_closed_valve);
 }
 
+/// The HP transducer stuck at its reading: named by the firmware's residuals within 5 s, the
+/// valve at the sensor-fault aperture from then on.
+#[test]
+fn pil_names_a_stuck_hp_transducer_and_goes_safe() {
+    run(pil::check_sensor_fault);
+}
+
 #[test]
 fn pil_survives_injected_faults() {
     let q = boot();

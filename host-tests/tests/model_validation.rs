@@ -412,3 +412,62 @@ fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
     assert!(worst_all <= 2.0 * lsb, "{:.2} LSB", worst_all / lsb);
     assert!(worst_stiff <= 1e-4, "{worst_stiff:e} of the step");
 }
+
+/// Sensors failing at plausible values, in closed loop with the firmware's own controller on
+/// the full simulation (`model::faults`): every case of the table, from four onsets across the
+/// HP check's window, is flagged within its bound (5 s; a drift within the time it takes to
+/// drift 5 bar, plus 5 s; a motor reading stuck where the speed was within 5 s of the speed
+/// leaving it, or never if it never left), the right sensor named, and the controller in its
+/// safe state from then on; the fault-free loops hold no sensor faulted.
+#[test]
+fn sensors_failing_at_plausible_values_are_caught_named_and_made_safe() {
+    use pto_host::model::faults::{self, Detection};
+    use rayon::prelude::*;
+    let bench = Bench::reference();
+    // Each case from four onsets across the HP check's 4 s window (20 s starts one).
+    let runs: Vec<faults::Case> = faults::cases()
+        .into_iter()
+        .flat_map(|c| {
+            [0.0, 1.0, 2.5, 3.9].map(|dt| {
+                let mut c = c;
+                c.fault.from_s += dt;
+                c
+            })
+        })
+        .collect();
+    let rows: Vec<Detection> = runs
+        .par_iter()
+        .map(|c| faults::detect(&bench, c, 11).unwrap())
+        .collect();
+    println!(
+        "{:<48} {:>6} {:>9} {:>9} {:<8} {:>9} {:>15} safe",
+        "case", "from", "after s", "bound s", "held", "P2 then", "P2 after"
+    );
+    for d in &rows {
+        println!(
+            "{:<48} {:>6.1} {:>9} {:>9.1} {:<8} {:>9} {:>6.1}–{:<6.1} {}",
+            d.case.name,
+            d.case.fault.from_s,
+            d.after_s.map_or("never".into(), |t| format!("{t:.2}")),
+            d.bound_s,
+            d.held.join(","),
+            d.p2_at_detection_bar
+                .map_or("-".into(), |p| format!("{p:.1}")),
+            d.p2_after_bar.0,
+            d.p2_after_bar.1,
+            d.safe_after
+        );
+    }
+    let failed: Vec<String> = rows
+        .iter()
+        .filter(|d| !d.pass)
+        .map(|d| format!("{} from {} s", d.case.name, d.case.fault.from_s))
+        .collect();
+    assert!(failed.is_empty(), "missed: {failed:?}");
+    let fa: Vec<usize> = faults::fault_free_loops()
+        .par_iter()
+        .map(|(m, p0)| faults::false_alarms(&bench, *m, *p0, 12).unwrap())
+        .collect();
+    println!("false alarms in the fault-free loops (steps): {fa:?}");
+    assert!(fa.iter().all(|&n| n == 0), "{fa:?}");
+}

@@ -302,6 +302,11 @@ pub struct Coefficients {
     /// Below this P2 the estimate reports the HP accumulator empty, bar: the precharge plus
     /// `ModelConfig::hp_empty_margin_bar`.
     pub hp_empty_below_bar: Fx,
+    /// The predicted P2 range in which the HP shadow check judges (`estimator::residual`), bar:
+    /// from 2 bar above the empty accumulator (below it the node is the lines' stiff oil, where
+    /// a small flow error moves P2 by bars) to 2 bar below the relief (whose reduced law the
+    /// filter corrects from the transducer).
+    pub residual_p2_range: (Fx, Fx),
 }
 
 /// An f32 coefficient in Q16.16, saturated. Out of line: the conversion is ≈ 100 bytes of
@@ -699,6 +704,10 @@ impl ModelConfig {
             motor_max_rpm: fx(self.motor_sensor_max_rpm),
             trip_bar: fx(self.trip_bar),
             hp_empty_below_bar: fx(self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar),
+            residual_p2_range: (
+                fx(self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar + 2.0),
+                fx(self.relief_setting_bar - 2.0),
+            ),
         })
     }
 }

@@ -205,6 +205,9 @@ pub enum ToFirmware {
     /// The bring-up self-test ([`selftest`]). Answered with `SelfTest(…)` or
     /// `Refused(SelfTest(…))`.
     SelfTest(SelfTest),
+    /// Release the sensors the controller holds faulted, each only if its reading agrees with
+    /// the model now. Answered with `SensorFaults` (those still held).
+    ClearSensorFaults,
 }
 
 /// Bytes carried by one configuration frame.
@@ -476,6 +479,8 @@ pub struct Telemetry {
     pub config: u8,
     /// The estimate's hydraulic power into the valve ([`Estimate::hydraulic_power`]), W.
     pub hydraulic_power: HydraulicPower,
+    /// Sensors the controller holds faulted (as `Status::sensor_faults`).
+    pub sensor_faults: u8,
 }
 
 /// Frames a [`Receiver`] took and the ones it could not, by cause.
@@ -554,6 +559,9 @@ pub struct Status {
     pub trips: u32,
     /// Trip latch state.
     pub tripped: bool,
+    /// Sensors the controller holds faulted (bit 0 HP, 1 LP, 2 motor, 3 encoder): latched
+    /// until the host clears them with the sensor agreeing again.
+    pub sensor_faults: u8,
     /// The outputs are held de-energised since boot, until the host's first mode, duty or reset
     /// command.
     pub held: bool,
@@ -629,6 +637,9 @@ pub enum FromFirmware {
     },
     /// Reply to a `SelfTest` request.
     SelfTest(SelfTestReply),
+    /// Reply to `ClearSensorFaults`: the sensors still held faulted (bit 0 HP, 1 LP, 2 motor,
+    /// 3 encoder; 0: none).
+    SensorFaults(u8),
 }
 
 /// What the firmware says of itself at connect.

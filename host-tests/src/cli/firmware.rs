@@ -58,31 +58,61 @@ pub(crate) fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
     Ok(code == 0)
 }
 
-pub(crate) fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
+pub(crate) fn pil_cmd(
+    bench: Option<&PathBuf>,
+    faults: &[pto_host::model::faults::Fault],
+    json: bool,
+) -> Result<bool> {
     use pto_host::hil::build::{self, Build};
+    use pto_host::hil::pil::{self, Check, PilError};
     use pto_host::hil::qemu::Qemu;
+    use pto_host::sim::bench::Bench;
+    type Run = Box<dyn Fn(Qemu, &Bench) -> Result<(Qemu, Check), PilError>>;
     let bench = load_bench(bench)?;
     eprintln!("building the QEMU firmware…");
     let elf = build::build(Build::Qemu)?;
-    let checks: [(&str, pto_host::hil::pil::CheckFn); 5] = [
-        ("hold P2", pto_host::hil::pil::check_hold_p2),
-        ("hold speed", pto_host::hil::pil::check_hold_speed),
-        ("trip", pto_host::hil::pil::check_trip),
-        ("trip holds", pto_host::hil::pil::check_trip_holds),
-        (
-            "motor behind a closed valve",
-            pto_host::hil::pil::check_motor_behind_closed_valve,
-        ),
-    ];
+    let checks: Vec<(String, Run)> = if faults.is_empty() {
+        let standard: [(&str, pil::CheckFn); 6] = [
+            ("hold P2", pil::check_hold_p2),
+            ("hold speed", pil::check_hold_speed),
+            ("trip", pil::check_trip),
+            ("trip holds", pil::check_trip_holds),
+            (
+                "motor behind a closed valve",
+                pil::check_motor_behind_closed_valve,
+            ),
+            ("HP stuck (sensor fault)", pil::check_sensor_fault),
+        ];
+        standard
+            .into_iter()
+            .map(|(n, f)| (n.to_owned(), Box::new(f) as Run))
+            .collect()
+    } else {
+        faults
+            .iter()
+            .map(|&f| {
+                (
+                    f.to_string(),
+                    Box::new(move |q, b: &Bench| pil::check_fault(q, b, f)) as Run,
+                )
+            })
+            .collect()
+    };
+    let width = checks
+        .iter()
+        .map(|(n, _)| n.chars().count())
+        .max()
+        .unwrap_or(0)
+        .max(24);
     let mut out = Vec::new();
-    for (name, f) in checks {
+    for (name, f) in &checks {
         eprintln!("PIL {name}: running in lockstep with the firmware (≈ 2–3 ms per step)…");
         let q = Qemu::boot(&elf, false)?;
         let (mut q, c) = f(q, &bench)?;
         let _ = q.link.send(&pto_model::protocol::ToFirmware::Exit(0));
         if !json {
             println!(
-                "{:<24} {:>8.3} {:<13} target {:<6} {}  ({} steps, {:.0} s)\n    {}",
+                "{:<w$} {:>8.3} {:<13} target {:<6.1} {}  ({} steps, {:.0} s)\n    {}",
                 c.name,
                 c.measured,
                 c.unit,
@@ -90,7 +120,8 @@ pub(crate) fn pil_cmd(bench: Option<&PathBuf>, json: bool) -> Result<bool> {
                 if c.pass { "ok" } else { "MISSED" },
                 c.steps,
                 c.wall_s,
-                c.detail
+                c.detail,
+                w = width
             );
         }
         out.push(c);

@@ -318,7 +318,7 @@ pub(crate) fn monitor_cmd(
             let e = &tel.estimate;
             let line = format!(
                 "t {:>8.2} s  P2 {:>6.2} ± {:.2} bar (HP {})  LP {:>5.2}  motor {:>6.1} rpm  \
-                 torque {:>7.0} N·m  valve {:>5.1} %{} {:>6.0} W  faults {:#06x}  frames {} ok, {} lost, {} bad",
+                 torque {:>7.0} N·m  valve {:>5.1} %{} {:>6.0} W  faults {:#06x}{}  frames {} ok, {} lost, {} bad",
                 s.t_s,
                 e.p2.to_f32(),
                 e.p2_sigma().to_f32(),
@@ -330,6 +330,16 @@ pub(crate) fn monitor_cmd(
                 if tel.dump { " DUMP" } else { "" },
                 tel.hydraulic_power.to_f32(),
                 e.faults,
+                if tel.sensor_faults == 0 {
+                    String::new()
+                } else {
+                    format!(
+                        " SENSOR FAULT: {}",
+                        pto_firmware::sensor_faults::names(tel.sensor_faults)
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    )
+                },
                 c.ok - before.ok,
                 c.lost - before.lost,
                 c.dropped() - before.dropped()
@@ -469,4 +479,37 @@ pub(crate) fn selftest_cmd(
         std::process::exit(130);
     }
     Ok(r.passed)
+}
+
+pub(crate) fn clear_faults_cmd(t: &Target, json: bool) -> Result<bool> {
+    let (mut l, _) = connect(t)?;
+    let before = client::status(&mut l)?.sensor_faults;
+    let held = client::clear_sensor_faults(&mut l)?;
+    let names = |b: u8| pto_firmware::sensor_faults::names(b).collect::<Vec<_>>();
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "cleared": names(before & !held),
+                "still_held": names(held),
+            }))?
+        );
+    } else if before == 0 {
+        println!("no sensor fault held");
+    } else {
+        if before & !held != 0 {
+            println!(
+                "cleared: {} (they agree with the model again)",
+                names(before & !held).join(", ")
+            );
+        }
+        if held != 0 {
+            println!(
+                "still held: {} — the reading still disagrees with the model (check the sensor; \
+                 `pto link … status`, `monitor`)",
+                names(held).join(", ")
+            );
+        }
+    }
+    Ok(held == 0)
 }

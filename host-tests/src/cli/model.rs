@@ -158,6 +158,54 @@ pub(crate) fn validate_cmd(
             if l.pass { "met" } else { "MISSED" }
         );
     }
+    if with_loop {
+        println!(
+            "sensor faults in closed loop with the firmware's controller (fault from {} s):",
+            pto_host::model::faults::FAULT_FROM_S
+        );
+        println!(
+            "  {:<48} {:>9} {:>8} {:<8} {:>8} {:>13}  verdict",
+            "case", "flagged", "bound", "held", "P2 then", "P2 after"
+        );
+        for d in &rep.sensor_faults {
+            println!(
+                "  {:<48} {:>9} {:>8} {:<8} {:>8} {:>13}  {}",
+                d.case.name,
+                d.after_s.map_or("never".into(), |t| format!("{t:.2} s")),
+                format!("{:.1} s", d.bound_s),
+                d.held.join(","),
+                d.p2_at_detection_bar
+                    .map_or("-".into(), |p| format!("{p:.1}")),
+                format!("{:.1}–{:.1}", d.p2_after_bar.0, d.p2_after_bar.1),
+                if d.pass {
+                    "met".to_string()
+                } else {
+                    format!("MISSED (named {:?}, safe after: {})", d.held, d.safe_after)
+                }
+            );
+        }
+        println!(
+            "  false alarms: {} steps in {} fault-free scenarios, {} in the fault-free closed loops",
+            rep.rows
+                .iter()
+                .map(|r| r.false_alarms.iter().sum::<u64>())
+                .sum::<u64>(),
+            rep.rows.len(),
+            rep.loop_false_alarms
+        );
+        let most = |f: fn(&pto_host::model::validate::Row) -> f64| {
+            rep.rows.iter().map(f).fold(0.0, f64::max)
+        };
+        println!(
+            "  the checks' margins over them: HP shadow excess {:.3} bar (allowed 0.25), motor \
+             {:.1} rpm beyond 1/16 of the speed (allowed 5, for 1 s; longest beyond: {} steps of \
+             1024), LP {:.2} bar (allowed 2)",
+            most(|r| r.resid_hp_max_bar),
+            most(|r| r.resid_motor_max_rpm),
+            rep.rows.iter().map(|r| r.motor_over_max).max().unwrap_or(0),
+            most(|r| r.resid_lp_max_bar),
+        );
+    }
     for e in &rep.errors {
         println!("error: {e}");
     }
@@ -167,8 +215,11 @@ pub(crate) fn validate_cmd(
         rep.rows.len(),
         if !with_loop {
             "not run (--no-loop)"
-        } else if rep.closed_loop.iter().all(|l| l.pass) {
-            "met"
+        } else if rep.closed_loop.iter().all(|l| l.pass)
+            && rep.sensor_faults.iter().all(|d| d.pass)
+            && rep.loop_false_alarms == 0
+        {
+            "met (and every sensor fault caught)"
         } else {
             "MISSED"
         }

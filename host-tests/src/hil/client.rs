@@ -129,6 +129,15 @@ pub fn set_telemetry(link: &mut Link, every: u16) -> Result<u16, LinkError> {
     }
 }
 
+/// Asks the controller to release the sensors it holds faulted (each only if it agrees with the
+/// model now); returns those still held (bits of `pto_firmware::sensor_faults::bit`).
+pub fn clear_sensor_faults(link: &mut Link) -> Result<u8, LinkError> {
+    match ask(link, &ToFirmware::ClearSensorFaults)? {
+        FromFirmware::SensorFaults(held) => Ok(held),
+        other => Err(unexpected(ToFirmware::ClearSensorFaults, other)),
+    }
+}
+
 /// Erases the stored configuration (the next boot runs the built-in one).
 pub fn clear_store(link: &mut Link) -> Result<(), LinkError> {
     match ask_within(

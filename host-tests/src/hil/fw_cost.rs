@@ -53,11 +53,12 @@ pub enum FwCostError {
 }
 
 /// Budgets of the controller-safety issue (the old 2 000 / 64 KiB / 16 KiB left no room for
-/// safety work).
+/// safety work), the step raised from 2 200 to 2 400 for the sensor-fault checks and the motor
+/// line (the team's budget).
 pub mod target {
-    /// Instructions per estimator + scheduler step, worst case (1.3 % of a 168 MHz Cortex-M4 at
+    /// Instructions per estimator + scheduler step, worst case (1.4 % of a 168 MHz Cortex-M4 at
     /// 1 kHz).
-    pub const STEP_INSTRUCTIONS: u32 = 2_200;
+    pub const STEP_INSTRUCTIONS: u32 = 2_400;
     /// Flash of the bench build, bytes (still fits an STM32F401-class part).
     pub const FLASH: u64 = 128 * 1024;
     /// Static RAM of the bench build, bytes.

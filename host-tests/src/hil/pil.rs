@@ -165,6 +165,8 @@ pub enum Injection {
     MotorReads(f32),
     /// HP wire break and the motor speed sensor reading this, rpm.
     HpWireBreakMotorReads(f32),
+    /// A sensor failing at plausible values (stuck, drifting, scaled: `model::faults`).
+    Sensor(crate::model::faults::Fault),
 }
 
 impl Injection {
@@ -215,6 +217,8 @@ pub struct FirmwareController {
     applied: f64,
     dump: bool,
     inject: Box<dyn Fn(f64) -> Injection>,
+    /// The faulty sensor's reading when its [`Injection::Sensor`] began.
+    fault_start: Option<f64>,
     /// Every step.
     pub rows: Vec<PilRow>,
     /// The first failed exchange (the run then holds the last command).
@@ -241,6 +245,7 @@ impl FirmwareController {
             applied: 0.0,
             dump: false,
             inject,
+            fault_start: None,
             rows: Vec::new(),
             error: None,
         })
@@ -250,13 +255,25 @@ impl FirmwareController {
         let Readings {
             encoder_count: mut enc,
             hp_bar: mut hp,
-            lp_bar: lp,
+            lp_bar: mut lp,
             motor_rpm: mut motor,
         } = self.synth.read_analog(theta, truth);
         match inj {
             Injection::EncoderStuck => enc = self.last_enc,
             Injection::HpNoise(a) => hp += if self.tick.is_multiple_of(2) { a } else { -a },
             Injection::MotorReads(r) | Injection::HpWireBreakMotorReads(r) => motor = f64::from(r),
+            Injection::Sensor(f) => {
+                use crate::model::faults::Sensor;
+                let t = f64::from(self.tick) * self.period;
+                let mut v = [hp, lp, motor, f64::from(enc)];
+                let i = f.sensor as usize;
+                let start = *self.fault_start.get_or_insert(v[i]);
+                v[i] = f.apply(t, v[i], start);
+                (hp, lp, motor) = (v[0], v[1], v[2]);
+                if f.sensor == Sensor::Encoder {
+                    enc = v[3].round() as i32;
+                }
+            }
             _ => {}
         }
         self.last_enc = enc;
@@ -586,6 +603,134 @@ pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
             steps: rows.len(),
             wall_s: t0.elapsed().as_secs_f64(),
             pass: late == 0 && held && near && peak < trip + 0.5,
+        },
+    ))
+}
+
+/// A sensor failing at a plausible value under QEMU: the HP transducer stuck at its reading 5 s
+/// into a hold of P2 at 100 bar from 60 bar (P2 rising). See [`check_fault`].
+pub fn check_sensor_fault(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
+    use crate::model::faults::{Fault, FaultKind, Sensor};
+    check_fault(
+        q,
+        bench,
+        Fault {
+            sensor: Sensor::Hp,
+            kind: FaultKind::StuckAtReading,
+            from_s: 5.0,
+        },
+    )
+}
+
+/// A sensor fault injected into the firmware's readings under QEMU (`pto pil --fault`), in the
+/// mode [`Fault::mode`] picks, from 60 bar (100 bar for a motor fault): the firmware must hold
+/// that sensor — and only it — faulted within the fault's bound ([`Fault::bound`]: 5 s; a
+/// drift, the time to drift 5 units more; a motor reading stuck, 5 s after the speed left it)
+/// and keep its valve at the sensor-fault aperture (or the dump open) from then to the end.
+/// The run lasts until 10 s past the bound (120 s at most for a stuck motor reading).
+///
+/// [`Fault::mode`]: crate::model::faults::Fault::mode
+/// [`Fault::bound`]: crate::model::faults::Fault::bound
+pub fn check_fault(
+    q: Qemu,
+    bench: &Bench,
+    fault: crate::model::faults::Fault,
+) -> Result<(Qemu, Check), PilError> {
+    use crate::model::faults::{Bound, Sensor, sensor_bit};
+    use pto_firmware::sensor_faults::{SensorFaults, names};
+    let t0 = std::time::Instant::now();
+    let from = fault.from_s;
+    let bound = fault.bound();
+    let run_s = from
+        + match bound {
+            Bound::MotorLeaves => 120.0,
+            _ => fault.bound_s(bound, None, std::iter::empty()) + 10.0,
+        };
+    let p2_start = if fault.sensor == Sensor::Motor {
+        100.0
+    } else {
+        60.0
+    };
+    let (mut q, _res, rows) = closed_loop(
+        q,
+        bench,
+        fault.mode(),
+        p2_start,
+        run_s,
+        SensorSpec::default(),
+        Box::new(move |t| {
+            if t >= from {
+                Injection::Sensor(fault)
+            } else {
+                Injection::None
+            }
+        }),
+    )?;
+    // The firmware's latch, followed step by step from its outputs (the same code: what it
+    // holds after each step); checked against its status at the end.
+    let mut latch = SensorFaults::default();
+    let mut first = None;
+    for (k, r) in rows.iter().enumerate() {
+        if let Some(e) = r.estimate {
+            latch.take(e.faults, Some(r.frame.encoder));
+        }
+        if first.is_none() && latch.latched() != 0 {
+            first = Some((k, latch.latched()));
+        }
+    }
+    // The motor reading it stuck at (sent in the fault's first step): what its bound needs.
+    let stuck = rows
+        .iter()
+        .find(|r| r.t >= from)
+        .and_then(|r| r.frame.motor)
+        .map(|m| f64::from(m.to_f32()));
+    let bound_s = fault.bound_s(bound, stuck, rows.iter().map(|r| (r.t, r.rpm)));
+    let safe_op = f64::from(
+        crate::model::controller_config(bench)
+            .0
+            .sensor_fault_aperture_pct,
+    );
+    let after = first.map_or(f64::INFINITY, |(k, _)| rows[k].t - from);
+    let safe = first.is_some_and(|(k, _)| {
+        rows[k + 1..]
+            .iter()
+            .all(|r| r.dump || (r.applied - safe_op).abs() < 1e-3)
+    });
+    let (lo, hi) = rows
+        .iter()
+        .filter(|r| r.t >= from)
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), r| {
+            (a.min(r.p2_bar), b.max(r.p2_bar))
+        });
+    let held_first = first.map_or(0, |(_, b)| b);
+    let st = status(&mut q)?;
+    let want = sensor_bit(fault.sensor);
+    let named = |b: u8| names(b).collect::<Vec<_>>().join(", ");
+    Ok((
+        q,
+        Check {
+            name: fault.to_string(),
+            measured: after,
+            target: bound_s,
+            unit: "s to the flag".into(),
+            detail: format!(
+                "{:?} from {p2_start} bar; held first: [{}] (want [{}]), at the end: [{}]; valve \
+                 at the sensor-fault aperture ({safe_op} %) or dumped from then: {safe}; plant P2 \
+                 {lo:.1}–{hi:.1} bar after the fault",
+                fault.mode(),
+                named(held_first),
+                named(want),
+                named(st.sensor_faults),
+            ),
+            steps: rows.len(),
+            wall_s: t0.elapsed().as_secs_f64(),
+            pass: crate::model::faults::judge(
+                held_first,
+                want,
+                first.map(|_| after),
+                bound_s,
+                safe,
+            ) && st.sensor_faults == latch.latched(),
         },
     ))
 }

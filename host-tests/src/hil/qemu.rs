@@ -450,6 +450,19 @@ pub fn status_table(st: &Status, host: &LinkCounts) -> String {
         "supply faults", st.supply_faults
     );
     s += &format!("{:<28} {:>#10x}\n", "fault flags seen", st.faults_seen);
+    let held: Vec<&str> = pto_firmware::sensor_faults::names(st.sensor_faults).collect();
+    s += &format!(
+        "{:<28} {:>10}\n",
+        "sensor faults held",
+        if held.is_empty() {
+            "none".to_string()
+        } else {
+            format!(
+                "{} (valve at the sensor-fault aperture; `clear-faults` once they agree)",
+                held.join(", ")
+            )
+        }
+    );
     s += &format!(
         "{:<28} {:>10} (now {}; dump valve {})\n",
         "overpressure trips",

@@ -64,10 +64,11 @@ pub enum CostError {
     Config(#[from] ConfigError),
 }
 
-/// Targets of the model-crate issue.
+/// Targets of the model-crate issue, the code's raised to 9 KiB for the sensor-fault checks and
+/// the motor line (the team's budget).
 pub mod target {
-    /// Flash for the model code, bytes.
-    pub const FLASH_BYTES: u64 = 8 * 1024;
+    /// Flash for the model's per-step code on the Cortex-M4, bytes.
+    pub const FLASH_BYTES: u64 = 9 * 1024;
     /// Estimator + scheduler state, bytes.
     pub const STATE_BYTES: usize = 1024;
 }

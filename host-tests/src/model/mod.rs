@@ -21,6 +21,7 @@
 
 pub mod closed_loop;
 pub mod cost;
+pub mod faults;
 pub mod golden;
 pub mod reference;
 pub mod sensors;

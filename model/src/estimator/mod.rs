@@ -47,7 +47,8 @@ pub mod fault {
     pub const INNOVATION_RESET: u16 = 1 << 5;
     /// P2 (estimated or measured) above the trip pressure.
     pub const OVERPRESSURE: u16 = 1 << 6;
-    /// Encoder static for 2 s while the HP reading rises by more than 1 bar: shaft moving.
+    /// Encoder static for 2 s while the HP reading rises by more than 1 bar, or while the HP
+    /// shadow check disagrees (`estimator::residual`): shaft moving.
     pub const ENCODER_STUCK: u16 = 1 << 7;
     /// Configuration index out of range (step ignored the duty mask).
     pub const BAD_CONFIG: u16 = 1 << 8;
@@ -56,6 +57,15 @@ pub mod fault {
     /// the valve could not pass at the modelled aperture with P2 at the relief (P2 is then not
     /// moved by it).
     pub const MOTOR_IMPLAUSIBLE: u16 = 1 << 9;
+    /// The HP reading disagrees with the model over a 4 s window (`estimator::residual`: it
+    /// did not change as the model's flows say P2 did): stuck, drifting, or a jump the gate
+    /// took in. Raised while the encoder moves (still, the encoder is suspect instead).
+    pub const HP_DISAGREES: u16 = 1 << 10;
+    /// The measured motor speed has disagreed with the model's (from P2 and the aperture) for
+    /// 2 s: the motor pickup, or the P2 it is modelled from.
+    pub const MOTOR_DISAGREES: u16 = 1 << 11;
+    /// The LP reading has been more than 2 bar from the model's LP for 1 s.
+    pub const LP_DISAGREES: u16 = 1 << 12;
 }
 
 /// Sensor readings of one step. `None` = missing (the firmware also maps out-of-range raw
@@ -251,6 +261,8 @@ pub struct State {
     pub cyl: [CylState; 4],
     /// The motor reading, used without the HP transducer (`motor`).
     pub reading: ReadingState,
+    /// The sensors' residuals against the model (`residual`).
+    pub resid: ResidualState,
 }
 
 impl State {
@@ -287,6 +299,7 @@ mod cylinder;
 mod fine;
 mod motor;
 mod observer;
+mod residual;
 #[cfg(test)]
 mod tests;
 mod tracker;
@@ -298,6 +311,7 @@ use motor::*;
 pub use motor::{BranchState, ReadingState};
 pub use observer::NodeState;
 use observer::*;
+pub use residual::{MOTOR_SHIFT, PRESSURE_SHIFT, ResidualState, SHADOW_STEPS};
 pub use tracker::TrackerState;
 use tracker::*;
 
@@ -337,6 +351,7 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     // --- Valve, relief, motor.
     let br = branch(&k.branch, &mut s.branch, s.node.p2, s.node.lp, first);
     // --- Predict.
+    let p2_before = s.node.p2;
     predict(
         &k.observer,
         dtl,
@@ -359,10 +374,19 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         &mut s.branch,
         cmd,
         motor,
+        br.motor_rpm,
         &mut faults,
     );
+    // The predictions before any reading corrects them: what the residuals judge.
+    let (p2_pred, lp_pred) = (s.node.p2, s.node.lp);
+    if let Some(m) = motor
+        && residual::motor(&mut s.resid, m.0, br.motor_rpm)
+    {
+        faults |= fault::MOTOR_DISAGREES;
+    }
     match hp {
         Some(z) => {
+            residual::mean(&mut s.resid.hp, z.saturating_sub(p2_pred), PRESSURE_SHIFT);
             // The motor reading restarts when the transducer goes missing again.
             (s.reading.live, s.reading.wait) = (false, 0);
             kalman(&k.observer, &mut s.node, z, &mut faults);
@@ -389,7 +413,30 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
             model_only_floor(&k.observer, &mut s.node);
         }
     }
+    let judged = p2_pred >= k.residual_p2_range.0 && p2_pred <= k.residual_p2_range.1;
+    if residual::shadow(
+        &mut s.resid,
+        p2_pred.saturating_sub(p2_before),
+        s.node.p2,
+        hp,
+        judged,
+    ) {
+        // Isolation: the shadow's flows come from the encoder as much as from P2. While the
+        // encoder moves, the HP reading is what disagrees; once it has stood still as long as
+        // the encoder check waits, with the model still disagreeing, the encoder is (a lever
+        // truly at rest pumps nothing: no overpressure to miss meanwhile).
+        if s.tracker.still_steps < residual::SHADOW_ENCODER_STILL_STEPS {
+            faults |= fault::HP_DISAGREES;
+        } else if s.tracker.still_steps >= k.tracker.stuck_steps {
+            faults |= fault::ENCODER_STUCK;
+        }
+    }
     // --- Correct LP with a fixed gain.
+    if let Some(z) = inp.lp.map(|p| p.0)
+        && residual::lp(&mut s.resid, z, lp_pred)
+    {
+        faults |= fault::LP_DISAGREES;
+    }
     correct_lp(&k.observer, &mut s.node, inp.lp, &mut faults);
     if motor.is_none() {
         faults |= fault::MOTOR_SENSOR;

@@ -283,7 +283,11 @@ pub(super) fn branch(k: &BranchCoeffs, b: &mut BranchState, p2: Fx, lp: Fx, firs
 
 /// The valve closed, commanded (`cmd`, %) or modelled: the branch's flow then says nothing of
 /// P2, and once the rotor has had the time to spin down a turning motor (`motor`, rpm, if read)
-/// contradicts the model ([`fault::MOTOR_IMPLAUSIBLE`]). Inlined into the step, its only caller.
+/// contradicts the model ([`fault::MOTOR_IMPLAUSIBLE`]) — if it turns faster than the model's
+/// own rotor (`model_rpm`) by more than the reading's least speed: "closed" here is below the
+/// motor reading's least aperture, where a valve under 1 % open still turns the motor at
+/// 8–15 rpm (a hold-pressure start flagged that for ≈ 30–450 steps). Inlined into the step,
+/// its only caller.
 #[inline(always)]
 pub(super) fn valve_closed(
     k: &ReadingCoeffs,
@@ -291,12 +295,15 @@ pub(super) fn valve_closed(
     b: &mut BranchState,
     cmd: Fx,
     motor: Option<Rpm>,
+    model_rpm: Fx,
     faults: &mut u16,
 ) -> bool {
     let closed = cmd < k.min_aperture || b.aperture < k.min_aperture;
     if closed {
         b.closed_steps = b.closed_steps.saturating_add(1);
-        if b.closed_steps >= kb.spin_down_steps && motor.is_some_and(|m| m.0 > k.min_rpm) {
+        if b.closed_steps >= kb.spin_down_steps
+            && motor.is_some_and(|m| m.0.saturating_sub(model_rpm) > k.min_rpm)
+        {
             *faults |= fault::MOTOR_IMPLAUSIBLE;
         }
     } else {

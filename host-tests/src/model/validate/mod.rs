@@ -114,6 +114,21 @@ pub struct Row {
     /// The f64 reference's P2 entered the capacitance table's cell at the HP precharge (there
     /// the node's dynamics are locally unstable and trajectories separate).
     pub crosses_precharge_cell: bool,
+    /// The HP shadow check's largest excess at a judged step (the reading against the model
+    /// alone since its window began, less a quarter of the model's own change), bar: what its fixed
+    /// allowance (`estimator::residual`, 0.25 bar) must cover.
+    pub resid_hp_max_bar: f64,
+    /// The largest motor residual (measured − modelled speed, 0.25 s mean) beyond 1/16 of the
+    /// modelled speed, rpm (its fixed allowance is 5 rpm, for 1 s).
+    pub resid_motor_max_rpm: f64,
+    /// The largest LP residual (1 s mean), bar.
+    pub resid_lp_max_bar: f64,
+    /// Steps with a sensor-fault flag raised in this fault-free run (false alarms), by flag:
+    /// HP, motor, LP, encoder stuck (target: none).
+    pub false_alarms: [u64; 4],
+    /// The longest the motor residual stayed beyond its allowance, steps (it flags at
+    /// `estimator::MOTOR_PERSIST_STEPS`).
+    pub motor_over_max: u16,
     /// The targets missed, each named with its figure (empty: every target met).
     pub missed: Vec<String>,
     /// Every target met.
@@ -129,6 +144,11 @@ pub struct Report {
     pub sea_family: Option<Spread>,
     /// Closed loop.
     pub closed_loop: Vec<LoopRow>,
+    /// Sensor faults in closed loop with the firmware's controller (with the closed loop):
+    /// each case's detection, the sensor named, the safe state.
+    pub sensor_faults: Vec<crate::model::faults::Detection>,
+    /// Steps with a sensor fault held in the fault-free closed loops (with the closed loop).
+    pub loop_false_alarms: usize,
     /// Failed runs, each error with its causes.
     pub errors: Vec<String>,
     /// Every target met.
@@ -182,6 +202,8 @@ fn validate_scenario(
     let cell = (pre_model - h, pre_model + h);
     let in_cell = |p: f64| p >= cell.0 && p <= cell.1;
     let mut crosses_cell = false;
+    let (mut r_hp, mut r_m, mut r_lp) = (0.0f64, 0.0f64, 0.0f64);
+    let (mut fa, mut mo_max) = ([0u64; 4], 0u16);
     for i in 0..n {
         let t = i as f64 * dt;
         let truth = truth_at(tr, t);
@@ -198,6 +220,20 @@ fn validate_scenario(
             f64::from(e.motor_rpm.to_f32()),
         );
         d_p2 = d_p2.max((p2 - r.p2_bar).abs());
+        if st.resid.hp_last_judged {
+            r_hp = r_hp.max(st.resid.hp_excess.to_num::<f64>());
+        }
+        use pto_model::estimator::fault;
+        fa[0] += u64::from(e.faults & fault::HP_DISAGREES != 0);
+        fa[1] += u64::from(e.faults & fault::MOTOR_DISAGREES != 0);
+        fa[2] += u64::from(e.faults & fault::LP_DISAGREES != 0);
+        fa[3] += u64::from(e.faults & fault::ENCODER_STUCK != 0);
+        mo_max = mo_max.max(st.resid.motor_over);
+        if t >= 1.0 {
+            let m = st.resid.motor.to_num::<f64>().abs() - 0.0625 * w.abs();
+            r_m = r_m.max(m);
+            r_lp = r_lp.max(st.resid.lp.to_num::<f64>().abs());
+        }
         d_tq = d_tq.max((tq - r.torque_nm).abs());
         se_d_tq += (tq - r.torque_nm).powi(2);
         // Judge after the first wave period's start-up transient of the tracker (1 s).
@@ -282,6 +318,11 @@ fn validate_scenario(
         empty_flag_delay_ms: empty_flag_delay_ms.map(|d| d * 1e3),
         empty_flag_early,
         crosses_precharge_cell: crosses_cell,
+        resid_hp_max_bar: r_hp,
+        resid_motor_max_rpm: r_m,
+        resid_lp_max_bar: r_lp,
+        false_alarms: fa,
+        motor_over_max: mo_max,
         missed: Vec::new(),
         pass: false,
     };
@@ -319,6 +360,16 @@ impl Row {
                 ),
             );
         }
+        miss(
+            self.false_alarms.iter().all(|&n| n == 0),
+            format!(
+                "false sensor-fault alarms (steps: HP {}, motor {}, LP {}, encoder {})",
+                self.false_alarms[0],
+                self.false_alarms[1],
+                self.false_alarms[2],
+                self.false_alarms[3]
+            ),
+        );
         if let Some(d) = self.empty_flag_delay_ms {
             miss(
                 d <= target::EMPTY_FLAG_MS,
@@ -503,6 +554,8 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
                 rows: vec![],
                 sea_family: None,
                 closed_loop: vec![],
+                sensor_faults: vec![],
+                loop_false_alarms: 0,
                 errors: vec![crate::error_chain(&e)],
                 pass: false,
             };
@@ -517,6 +570,11 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
         closed_loop_rows(bench)
     } else {
         vec![]
+    };
+    let (detections, loop_fa) = if with_loop {
+        sensor_fault_rows(bench)
+    } else {
+        (vec![], vec![])
     };
     let mut rows = Vec::new();
     let mut errors = Vec::new();
@@ -533,7 +591,25 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
             Err(e) => errors.push(crate::error_chain(&e)),
         }
     }
-    let pass = errors.is_empty() && rows.iter().all(|r| r.pass) && closed.iter().all(|r| r.pass);
+    let mut sensor_faults = Vec::new();
+    for d in detections {
+        match d {
+            Ok(d) => sensor_faults.push(d),
+            Err(e) => errors.push(crate::error_chain(&e)),
+        }
+    }
+    let mut loop_false_alarms = 0;
+    for n in loop_fa {
+        match n {
+            Ok(n) => loop_false_alarms += n,
+            Err(e) => errors.push(crate::error_chain(&e)),
+        }
+    }
+    let pass = errors.is_empty()
+        && rows.iter().all(|r| r.pass)
+        && closed.iter().all(|r| r.pass)
+        && sensor_faults.iter().all(|d| d.pass)
+        && loop_false_alarms == 0;
     let in_family = |name: &str| {
         scenarios
             .iter()
@@ -545,7 +621,29 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
         sea_family,
         rows,
         closed_loop: closed,
+        sensor_faults,
+        loop_false_alarms,
         errors,
         pass,
     }
+}
+
+/// The sensor-fault cases and the fault-free closed loops (`model::faults`), in parallel.
+#[allow(clippy::type_complexity)]
+fn sensor_fault_rows(
+    bench: &Bench,
+) -> (
+    Vec<Result<crate::model::faults::Detection, crate::model::faults::FaultRunError>>,
+    Vec<Result<usize, crate::model::faults::FaultRunError>>,
+) {
+    use crate::model::faults;
+    let d = faults::cases()
+        .par_iter()
+        .map(|c| faults::detect(bench, c, 11))
+        .collect();
+    let fa = faults::fault_free_loops()
+        .par_iter()
+        .map(|(m, p0)| faults::false_alarms(bench, *m, *p0, 12))
+        .collect();
+    (d, fa)
 }

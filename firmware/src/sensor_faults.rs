@@ -1,0 +1,141 @@
+//! The sensor-fault latch: a sensor the estimator's residuals name (`pto_model::estimator`:
+//! [`fault::HP_DISAGREES`], [`fault::MOTOR_DISAGREES`], [`fault::LP_DISAGREES`],
+//! [`fault::ENCODER_STUCK`]) is held
+//! faulted, its readings are no longer given to the estimator, and the controller goes to its
+//! safe state, until the host clears it while the sensor agrees with the model again.
+//!
+//! Isolation, two residuals against one: the HP shadow check compares the HP reading with the
+//! model alone (the pump's flow from the encoder, the valve's from P2 and the aperture); the
+//! motor check compares the measured speed with the model's from P2. A stuck, drifting or
+//! scaled HP reading trips the first (and may trip the second later); a faulty motor pickup
+//! trips only the second. So the HP check names the HP transducer; the motor check names the
+//! motor pickup only while the HP reading is trusted — and then says that the two disagree
+//! (a scale error of the HP transducer at a steady P2 looks the same: the reaction is the same
+//! safe state).
+
+use pto_model::estimator::{Inputs, fault};
+
+/// Bits of the latched faults (`Status::sensor_faults`).
+pub mod bit {
+    /// The HP transducer.
+    pub const HP: u8 = 1 << 0;
+    /// The LP transducer.
+    pub const LP: u8 = 1 << 1;
+    /// The motor speed pickup.
+    pub const MOTOR: u8 = 1 << 2;
+    /// The shaft encoder.
+    pub const ENCODER: u8 = 1 << 3;
+}
+
+/// The latch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct SensorFaults {
+    latched: u8,
+    /// The encoder count when its fault latched (it must move to clear).
+    encoder_at_fault: i32,
+}
+
+impl SensorFaults {
+    /// The latched sensors.
+    pub fn latched(&self) -> u8 {
+        self.latched
+    }
+
+    /// Takes a step's estimator flags (the encoder count it saw): latches what they name;
+    /// returns the sensors newly latched.
+    pub fn take(&mut self, faults: u16, encoder: Option<i32>) -> u8 {
+        let mut new = 0;
+        if faults & fault::HP_DISAGREES != 0 {
+            new |= bit::HP;
+        } else if faults & fault::MOTOR_DISAGREES != 0 && self.latched & bit::HP == 0 {
+            new |= bit::MOTOR;
+        }
+        if faults & fault::LP_DISAGREES != 0 {
+            new |= bit::LP;
+        }
+        if faults & fault::ENCODER_STUCK != 0 {
+            new |= bit::ENCODER;
+            self.encoder_at_fault = encoder.unwrap_or(0);
+        }
+        let fresh = new & !self.latched;
+        self.latched |= new;
+        fresh
+    }
+
+    /// The estimator's inputs without the latched sensors' readings.
+    pub fn mask(&self, inp: &mut Inputs) {
+        if self.latched & bit::HP != 0 {
+            inp.hp = None;
+        }
+        if self.latched & bit::LP != 0 {
+            inp.lp = None;
+        }
+        if self.latched & bit::MOTOR != 0 {
+            inp.motor = None;
+        }
+        if self.latched & bit::ENCODER != 0 {
+            inp.encoder = None;
+        }
+    }
+
+    /// Clears the latched sensors in `agree` (the ones that agree with the model now); the
+    /// encoder only once its count has moved since its fault. Returns the sensors still held.
+    pub fn clear(&mut self, agree: u8, encoder: Option<i32>) -> u8 {
+        let mut ok = agree;
+        if encoder.is_none_or(|e| e.wrapping_sub(self.encoder_at_fault).unsigned_abs() < 50) {
+            ok &= !bit::ENCODER;
+        }
+        self.latched &= !ok;
+        self.latched
+    }
+}
+
+/// The latched sensors by name, for logs and the host (`HP, motor`).
+pub fn names(bits: u8) -> impl Iterator<Item = &'static str> {
+    [
+        (bit::HP, "HP"),
+        (bit::LP, "LP"),
+        (bit::MOTOR, "motor"),
+        (bit::ENCODER, "encoder"),
+    ]
+    .into_iter()
+    .filter(move |(b, _)| bits & b != 0)
+    .map(|(_, n)| n)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_hp_check_names_hp_and_the_motor_check_names_the_motor_only_behind_a_trusted_hp() {
+        let mut f = SensorFaults::default();
+        assert_eq!(
+            f.take(fault::MOTOR_DISAGREES | fault::HP_DISAGREES, Some(0)),
+            bit::HP
+        );
+        assert_eq!(
+            f.take(fault::MOTOR_DISAGREES, Some(0)),
+            0,
+            "HP already held"
+        );
+        let mut inp = Inputs {
+            hp: Some(pto_model::fx::Pressure::from_num(80.0)),
+            motor: Some(pto_model::fx::Rpm::from_num(200.0)),
+            encoder: Some(5),
+            ..Default::default()
+        };
+        f.mask(&mut inp);
+        assert!(inp.hp.is_none() && inp.motor.is_some());
+        let mut g = SensorFaults::default();
+        assert_eq!(g.take(fault::MOTOR_DISAGREES, Some(0)), bit::MOTOR);
+        assert_eq!(g.take(fault::ENCODER_STUCK, Some(100)), bit::ENCODER);
+        // The encoder clears only once it moved; a sensor that does not agree stays.
+        assert_eq!(g.clear(bit::ENCODER | bit::MOTOR, Some(120)), bit::ENCODER);
+        assert_eq!(g.clear(bit::ENCODER, Some(400)), 0);
+        assert_eq!(
+            names(bit::HP | bit::MOTOR).collect::<Vec<_>>(),
+            ["HP", "motor"]
+        );
+    }
+}
