@@ -505,6 +505,15 @@ async fn control_task(
     if crate::trip_memory::remembered() {
         ctl.boot_tripped();
     }
+    let held = crate::trip_memory::remembered_sensor_faults();
+    if held != 0 {
+        ctl.boot_sensor_faults(held);
+        defmt::warn!(
+            "sensor faults held at the reset kept (bits {=u8:#06b}: 1 HP, 2 LP, 4 motor, 8 \
+             encoder): clear them with the host once the sensor agrees",
+            held
+        );
+    }
     defmt::info!(
         "board: clock {}; last reset: {}; brown-out reset {}",
         info.clock,
@@ -545,6 +554,8 @@ async fn control_task(
     };
     let mut faults_prev = 0u16;
     let mut tripped_prev = ctl.status.tripped;
+    // Written in the first step: a memory that held nothing valid then holds "none".
+    let mut held_sensors_prev = u8::MAX;
     let selftest_ends = |ctl: &Controller, why: &str| {
         if ctl.selftest_active() {
             defmt::warn!("self-test ended by {=str}", why);
@@ -577,6 +588,12 @@ async fn control_task(
                 let tripped = ctl.status.tripped;
                 if tripped != tripped_prev {
                     crate::trip_memory::remember(tripped);
+                }
+                // The held sensors survive a reset too (a reboot does not clear them).
+                let held_sensors = ctl.sensor_faults();
+                if held_sensors != held_sensors_prev {
+                    crate::trip_memory::remember_sensor_faults(held_sensors);
+                    held_sensors_prev = held_sensors;
                 }
                 let new = o.estimate.faults & !faults_prev;
                 if new != 0 {

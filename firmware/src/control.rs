@@ -412,6 +412,13 @@ impl Controller {
         self.status.aperture = Aperture(self.applied);
     }
 
+    /// Starts with sensors held faulted: those held when the controller reset (the firmware
+    /// remembers them across a reset, as the trip). They clear like any other.
+    pub fn boot_sensor_faults(&mut self, bits: u8) {
+        self.sensor_faults.restore(bits);
+        self.status.sensor_faults = self.sensor_faults.latched();
+    }
+
     /// Restarts the estimator from known pressures and clears the scheduler. While the trip
     /// latch holds, refused unless its release condition held in the last step (a valid HP
     /// reading the estimator's gate took and the estimate both below the release pressure),
@@ -635,7 +642,11 @@ impl Controller {
         // Trip latch (`crate::trip`): any reading in the loop window counts toward a trip,
         // whether or not the estimator took it; only a valid one the gate took counts toward a
         // release.
-        let accepted = in_range && e.faults & (fault::INNOVATION | fault::INNOVATION_RESET) == 0;
+        // A reading of an HP transducer held faulted is not taken by anything: it can trip but
+        // never release the trip, nor confirm a host's reset.
+        let accepted = in_range
+            && held_faults & bit::HP == 0
+            && e.faults & (fault::INNOVATION | fault::INNOVATION_RESET) == 0;
         self.confirmed |= accepted;
         let sample = TripSample {
             reading,
@@ -741,11 +752,16 @@ impl Controller {
             _ => None,
         };
         let p2 = self.st.node.p2;
-        // 3σ from the variance without a square root: (z − P2)² ≤ 9·var, or ≤ (2 bar)².
+        // 3σ from the variance without a square root: (z − P2)² ≤ 9·var, or ≤ (2 bar)²; the σ
+        // counted at most 1 bar: an estimate that has run on the model alone for long knows P2
+        // too loosely to vouch for a reading (its σ grows without bound without the motor), and
+        // the transducer stays held until the model knows P2 again (the valve open, the motor
+        // read).
         if let Some(z) = pressure {
             let d = z.0.saturating_sub(p2);
             let d2 = d.saturating_mul(d);
-            if d2 <= self.st.node.var.saturating_mul(Fx::from_num(9)) || d2 <= Fx::from_num(4) {
+            let var = self.st.node.var.min(Fx::ONE);
+            if d2 <= var.saturating_mul(Fx::from_num(9)) || d2 <= Fx::from_num(4) {
                 agree |= bit::HP;
             }
         }
@@ -837,6 +853,59 @@ mod tests {
         }
         assert!(n > 0 && c.status.trips == 1 && !c.status.tripped);
         assert_ne!(c.sensor_faults(), 0);
+    }
+
+    /// A reading of an HP transducer held faulted trips but never releases the trip, nor lets
+    /// the host reset while tripped; an estimate run on the model alone for long does not
+    /// vouch for a reading when the host clears; the held sensors come back after a reset.
+    #[test]
+    fn a_held_hp_transducer_never_releases_the_trip_nor_clears_on_a_loose_estimate() {
+        let mut c = ctl();
+        c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0))
+            .unwrap();
+        c.set_mode(Mode::Fixed(Aperture::from_num(5.0)));
+        for i in 0..20 {
+            c.sample(&frame(i, 100.0), &mut NoClock);
+        }
+        c.sensor_faults.take(fault::HP_DISAGREES, Some(0));
+        let trip = c.trip().to_f32();
+        let o = c.sample(&frame(20, trip + 1.0), &mut NoClock);
+        assert!(o.dump, "a held transducer's reading still trips");
+        // Far below the release for long: the reading is never taken, the trip holds.
+        for i in 21..3000 {
+            let o = c.sample(&frame(i, 60.0), &mut NoClock);
+            assert!(o.dump && c.status.tripped, "released at step {i}");
+            assert!(!c.last.unwrap().accepted);
+        }
+        assert!(
+            c.reset(Pressure::from_num(60.0), Pressure::from_num(8.0))
+                .is_err(),
+            "a reset on a held transducer's word"
+        );
+        // The estimate's σ grown beyond a bar in 40 s on the model (no motor reading to bound
+        // it; 1.27 bar here): a reading 3.5 bar off the estimate, within its 3σ, does not clear
+        // (the σ counted is at most 1 bar), one within 2 bar does.
+        let mut g = ctl();
+        g.reset(Pressure::from_num(80.0), Pressure::from_num(8.0))
+            .unwrap();
+        g.sensor_faults.take(fault::HP_DISAGREES, Some(0));
+        let mut f = frame(0, 80.0);
+        f.motor = None;
+        for i in 0..40_000 {
+            f.tick = i;
+            g.sample(&f, &mut NoClock);
+        }
+        assert!(g.st.node.var > Fx::from_num(1.5), "σ² {}", g.st.node.var);
+        let p2 = g.st.node.p2.to_num::<f32>();
+        g.last_frame = Some(frame(40_000, p2 + 3.5));
+        assert_eq!(g.clear_sensor_faults(), bit::HP, "a loose estimate vouched");
+        g.last_frame = Some(frame(40_000, p2 + 1.0));
+        assert_eq!(g.clear_sensor_faults(), 0);
+        // Across a reset.
+        let mut h = ctl();
+        h.boot_sensor_faults(bit::HP | bit::ENCODER);
+        assert_eq!(h.sensor_faults(), bit::HP | bit::ENCODER);
+        assert_eq!(h.status.sensor_faults, bit::HP | bit::ENCODER);
     }
 
     #[test]

@@ -33,6 +33,8 @@ pub struct SensorFaults {
     latched: u8,
     /// The encoder count when its fault latched (it must move to clear).
     encoder_at_fault: i32,
+    /// The encoder's count at its fault is not known (restored across a reset).
+    encoder_unknown: bool,
 }
 
 impl SensorFaults {
@@ -55,11 +57,23 @@ impl SensorFaults {
         }
         if faults & fault::ENCODER_STUCK != 0 {
             new |= bit::ENCODER;
-            self.encoder_at_fault = encoder.unwrap_or(0);
         }
         let fresh = new & !self.latched;
+        // The count where the encoder stuck, taken once (a held encoder is masked: later
+        // steps see no count).
+        if fresh & bit::ENCODER != 0 {
+            self.encoder_at_fault = encoder.unwrap_or(0);
+        }
         self.latched |= new;
         fresh
+    }
+
+    /// Holds `bits` (sensors remembered across a reset); the encoder's count at its fault is
+    /// unknown then, so it clears only once it has moved from wherever it is at the first
+    /// clearing attempt.
+    pub fn restore(&mut self, bits: u8) {
+        self.latched |= bits & (bit::HP | bit::LP | bit::MOTOR | bit::ENCODER);
+        self.encoder_unknown = self.latched & bit::ENCODER != 0;
     }
 
     /// The estimator's inputs without the latched sensors' readings.
@@ -81,6 +95,10 @@ impl SensorFaults {
     /// Clears the latched sensors in `agree` (the ones that agree with the model now); the
     /// encoder only once its count has moved since its fault. Returns the sensors still held.
     pub fn clear(&mut self, agree: u8, encoder: Option<i32>) -> u8 {
+        if self.encoder_unknown {
+            self.encoder_at_fault = encoder.unwrap_or(0);
+            self.encoder_unknown = false;
+        }
         let mut ok = agree;
         if encoder.is_none_or(|e| e.wrapping_sub(self.encoder_at_fault).unsigned_abs() < 50) {
             ok &= !bit::ENCODER;
@@ -137,5 +155,28 @@ mod tests {
             names(bit::HP | bit::MOTOR).collect::<Vec<_>>(),
             ["HP", "motor"]
         );
+    }
+
+    /// The encoder's count at its fault is taken once: a held encoder is masked, so later steps
+    /// (the check still firing) see no count and must not move it to 0, where any count 50 away
+    /// from zero would clear a stuck encoder. Restored across a reset, it must move from where
+    /// it is at the first clearing.
+    #[test]
+    fn a_stuck_encoder_clears_only_once_it_moved_from_where_it_stuck() {
+        let mut f = SensorFaults::default();
+        assert_eq!(f.take(fault::ENCODER_STUCK, Some(700)), bit::ENCODER);
+        assert_eq!(f.take(fault::ENCODER_STUCK, None), 0);
+        assert_eq!(
+            f.clear(bit::ENCODER, Some(700)),
+            bit::ENCODER,
+            "still stuck"
+        );
+        assert_eq!(f.clear(bit::ENCODER, Some(760)), 0);
+        let mut r = SensorFaults::default();
+        r.restore(bit::ENCODER | 0x80);
+        assert_eq!(r.latched(), bit::ENCODER);
+        assert_eq!(r.clear(bit::ENCODER, Some(5000)), bit::ENCODER);
+        assert_eq!(r.clear(bit::ENCODER, Some(5010)), bit::ENCODER);
+        assert_eq!(r.clear(bit::ENCODER, Some(5080)), 0);
     }
 }

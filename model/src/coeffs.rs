@@ -307,6 +307,12 @@ pub struct Coefficients {
     /// a small flow error moves P2 by bars) to 2 bar below the relief (whose reduced law the
     /// filter corrects from the transducer).
     pub residual_p2_range: (Fx, Fx),
+    /// The net inflow into HP, L/min·s, that a reading below the shadow check's range
+    /// (`residual_p2_range.0`) cannot stay there through (`estimator::residual::stuck_low`):
+    /// the oil the accumulator holds at that pressure plus 2 % of its volume (0.54 + 0.2 L on
+    /// the reference bench: P2 then ≈ 1 bar above the range), so that the two checks leave no
+    /// band between them.
+    pub stuck_low_inflow: Fx,
 }
 
 /// An f32 coefficient in Q16.16, saturated. Out of line: the conversion is ≈ 100 bytes of
@@ -708,6 +714,11 @@ impl ModelConfig {
                 fx(self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar + 2.0),
                 fx(self.relief_setting_bar - 2.0),
             ),
+            stuck_low_inflow: fx(60.0
+                * (acc_fluid(
+                    &self.hp_accumulator,
+                    self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar + 2.0,
+                ) + 0.02 * self.hp_accumulator.volume_l)),
         })
     }
 }

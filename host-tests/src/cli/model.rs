@@ -160,7 +160,7 @@ pub(crate) fn validate_cmd(
     }
     if with_loop {
         println!(
-            "sensor faults in closed loop with the firmware's controller (fault from {} s):",
+            "sensor faults in closed loop with the firmware's controller (fault from {} s unless named):",
             pto_host::model::faults::FAULT_FROM_S
         );
         println!(
@@ -197,10 +197,12 @@ pub(crate) fn validate_cmd(
             rep.rows.iter().map(f).fold(0.0, f64::max)
         };
         println!(
-            "  the checks' margins over them: HP shadow excess {:.3} bar (allowed 0.25), motor \
-             {:.1} rpm beyond 1/16 of the speed (allowed 5, for 1 s; longest beyond: {} steps of \
-             1024), LP {:.2} bar (allowed 2)",
+            "  the checks' margins over them: HP shadow excess {:.3} bar (allowed 0.25); oil \
+             into HP under a reading below the range {:.3} L (allowed what the accumulator \
+             holds there + 2 % of it); motor {:.1} rpm beyond 1/16 of the speed (allowed 5, for 1 s; \
+             longest beyond: {} steps of 1024); LP {:.2} bar (allowed 2)",
             most(|r| r.resid_hp_max_bar),
+            most(|r| r.resid_low_inflow_max_l),
             most(|r| r.resid_motor_max_rpm),
             rep.rows.iter().map(|r| r.motor_over_max).max().unwrap_or(0),
             most(|r| r.resid_lp_max_bar),

@@ -62,7 +62,7 @@ pub mod fault {
     /// took in. Raised while the encoder moves (still, the encoder is suspect instead).
     pub const HP_DISAGREES: u16 = 1 << 10;
     /// The measured motor speed has disagreed with the model's (from P2 and the aperture) for
-    /// 2 s: the motor pickup, or the P2 it is modelled from.
+    /// 1 s: the motor pickup, or the P2 it is modelled from.
     pub const MOTOR_DISAGREES: u16 = 1 << 11;
     /// The LP reading has been more than 2 bar from the model's LP for 1 s.
     pub const LP_DISAGREES: u16 = 1 << 12;
@@ -414,6 +414,20 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         }
     }
     let judged = p2_pred >= k.residual_p2_range.0 && p2_pred <= k.residual_p2_range.1;
+    if let Some(z) = hp
+        && residual::stuck_low(
+            &mut s.resid,
+            q_pump
+                .saturating_sub(br.q_valve)
+                .saturating_sub(br.q_relief),
+            z,
+            k.residual_p2_range.0,
+            k.stuck_low_inflow,
+            k.dt_log2,
+        )
+    {
+        faults |= fault::HP_DISAGREES;
+    }
     if residual::shadow(
         &mut s.resid,
         p2_pred.saturating_sub(p2_before),
@@ -422,12 +436,17 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         judged,
     ) {
         // Isolation: the shadow's flows come from the encoder as much as from P2. While the
-        // encoder moves, the HP reading is what disagrees; once it has stood still as long as
-        // the encoder check waits, with the model still disagreeing, the encoder is (a lever
-        // truly at rest pumps nothing: no overpressure to miss meanwhile).
-        if s.tracker.still_steps < residual::SHADOW_ENCODER_STILL_STEPS {
+        // encoder moves, the HP reading is what disagrees. Once it has stood still as long as
+        // the encoder check waits, the motor decides, two against one: a speed that disagrees
+        // with P2 as read says the reading is wrong (a lever at rest, the valve open, P2
+        // falling under a stuck reading); one that agrees, or none to tell (the valve closed:
+        // a lever truly at rest then changes nothing the shadow could miss), the encoder.
+        let still = s.tracker.still_steps;
+        if still < residual::SHADOW_ENCODER_STILL_STEPS
+            || (still >= k.tracker.stuck_steps && s.resid.motor_over > 0)
+        {
             faults |= fault::HP_DISAGREES;
-        } else if s.tracker.still_steps >= k.tracker.stuck_steps {
+        } else if still >= k.tracker.stuck_steps {
             faults |= fault::ENCODER_STUCK;
         }
     }

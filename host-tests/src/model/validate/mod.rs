@@ -118,6 +118,10 @@ pub struct Row {
     /// alone since its window began, less a quarter of the model's own change), bar: what its fixed
     /// allowance (`estimator::residual`, 0.25 bar) must cover.
     pub resid_hp_max_bar: f64,
+    /// The largest net inflow into HP the model counted while the HP reading stayed below the
+    /// shadow check's range, L (the stuck-low check's limit: what the accumulator holds at the
+    /// range's bottom, + 2 % of its volume).
+    pub resid_low_inflow_max_l: f64,
     /// The largest motor residual (measured − modelled speed, 0.25 s mean) beyond 1/16 of the
     /// modelled speed, rpm (its fixed allowance is 5 rpm, for 1 s).
     pub resid_motor_max_rpm: f64,
@@ -202,7 +206,7 @@ fn validate_scenario(
     let cell = (pre_model - h, pre_model + h);
     let in_cell = |p: f64| p >= cell.0 && p <= cell.1;
     let mut crosses_cell = false;
-    let (mut r_hp, mut r_m, mut r_lp) = (0.0f64, 0.0f64, 0.0f64);
+    let (mut r_hp, mut r_low, mut r_m, mut r_lp) = (0.0f64, 0.0f64, 0.0f64, 0.0f64);
     let (mut fa, mut mo_max) = ([0u64; 4], 0u16);
     for i in 0..n {
         let t = i as f64 * dt;
@@ -223,6 +227,7 @@ fn validate_scenario(
         if st.resid.hp_last_judged {
             r_hp = r_hp.max(st.resid.hp_excess.to_num::<f64>());
         }
+        r_low = r_low.max(st.resid.low_inflow.to_num::<f64>() / 60.0);
         use pto_model::estimator::fault;
         fa[0] += u64::from(e.faults & fault::HP_DISAGREES != 0);
         fa[1] += u64::from(e.faults & fault::MOTOR_DISAGREES != 0);
@@ -319,6 +324,7 @@ fn validate_scenario(
         empty_flag_early,
         crosses_precharge_cell: crosses_cell,
         resid_hp_max_bar: r_hp,
+        resid_low_inflow_max_l: r_low,
         resid_motor_max_rpm: r_m,
         resid_lp_max_bar: r_lp,
         false_alarms: fa,
