@@ -505,9 +505,9 @@ async fn control_task(
     if crate::trip_memory::remembered() {
         ctl.boot_tripped();
     }
-    let held = crate::trip_memory::remembered_sensor_faults();
+    ctl.boot_sensor_faults(crate::trip_memory::remembered_sensor_faults());
+    let held = ctl.sensor_faults();
     if held != 0 {
-        ctl.boot_sensor_faults(held);
         defmt::warn!(
             "sensor faults held at the reset kept (bits {=u8:#06b}: 1 HP, 2 LP, 4 motor, 8 \
              encoder): clear them with the host once the sensor agrees",

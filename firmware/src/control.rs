@@ -607,9 +607,10 @@ impl Controller {
         }
         let (lo, hi) = self.k.observer.hp_range_bar;
         let in_range = reading.is_some_and(|p| p.0 >= lo && p.0 <= hi);
-        if !self.confirmed && !in_range && self.st.node.var < self.boot_var {
+        let hp_held = self.sensor_faults.latched() & bit::HP != 0;
+        if !self.confirmed && (!in_range || hp_held) && self.st.node.var < self.boot_var {
             // Not yet confirmed by a reading (since boot or the host's reset): as unknown as
-            // at boot while there is none.
+            // at boot while there is none (a held transducer's is none).
             (self.st.node.var, self.st.node.var_lo) = (self.boot_var, 0);
         }
         let inp = Inputs {
@@ -636,6 +637,12 @@ impl Controller {
             self.lp_known = true;
         }
         self.sensor_faults.mask(&mut inp);
+        if self.status.dump_valve {
+            // The model knows no dump valve: with it open (a trip, P2 unbounded, a self-test
+            // drive) its flows say nothing of P2, and its residual checks stand down, to start
+            // afresh once it closes.
+            self.st.resid.stand_down();
+        }
         let (e, c) = self.model_step(&inp, clock);
         let newly = self.sensor_faults.take(e.faults, inp.encoder);
         let held_faults = self.sensor_faults.latched();
@@ -732,10 +739,10 @@ impl Controller {
     }
 
     /// The host's clear of the held sensor faults: each is released only if its last reading
-    /// agrees with the model now (HP: within 3σ of the estimate, at least 2 bar; LP: within
-    /// 2 bar of the estimate; motor: within
-    /// the motor check's allowance of the modelled speed; encoder: it moved since its fault).
-    /// Returns the sensors still held (0: all cleared).
+    /// agrees with the model now (HP: within 3σ of the estimate, at least 2 bar, and only from
+    /// an estimate with σ ≤ 1 bar and the dump valve closed; LP: within 2 bar of the estimate;
+    /// motor: within the motor check's allowance of the modelled speed; encoder: it moved 50
+    /// counts from where it stuck). Returns the sensors still held (0: all cleared).
     pub fn clear_sensor_faults(&mut self) -> u8 {
         let Some(f) = self.last_frame else {
             return self.sensor_faults.latched();
@@ -752,16 +759,18 @@ impl Controller {
             _ => None,
         };
         let p2 = self.st.node.p2;
-        // 3σ from the variance without a square root: (z − P2)² ≤ 9·var, or ≤ (2 bar)²; the σ
-        // counted at most 1 bar: an estimate that has run on the model alone for long knows P2
-        // too loosely to vouch for a reading (its σ grows without bound without the motor), and
-        // the transducer stays held until the model knows P2 again (the valve open, the motor
-        // read).
-        if let Some(z) = pressure {
+        // 3σ from the variance without a square root: (z − P2)² ≤ 9·var, or ≤ (2 bar)² — and
+        // only from an estimate that knows P2 (σ ≤ 1 bar) with the dump valve closed (the model
+        // knows no dump): one that has run on the model alone for long, or was reset by the host
+        // and not yet confirmed, cannot vouch for a reading. The transducer then stays held
+        // until the model knows P2 again (the valve open and the motor read).
+        if let Some(z) = pressure
+            && self.st.node.var <= Fx::ONE
+            && !self.status.dump_valve
+        {
             let d = z.0.saturating_sub(p2);
             let d2 = d.saturating_mul(d);
-            let var = self.st.node.var.min(Fx::ONE);
-            if d2 <= var.saturating_mul(Fx::from_num(9)) || d2 <= Fx::from_num(4) {
+            if d2 <= self.st.node.var.saturating_mul(Fx::from_num(9)) || d2 <= Fx::from_num(4) {
                 agree |= bit::HP;
             }
         }
@@ -856,8 +865,9 @@ mod tests {
     }
 
     /// A reading of an HP transducer held faulted trips but never releases the trip, nor lets
-    /// the host reset while tripped; an estimate run on the model alone for long does not
-    /// vouch for a reading when the host clears; the held sensors come back after a reset.
+    /// the host reset while tripped; an estimate run on the model alone for long, or with the
+    /// dump open, does not vouch for a reading when the host clears; the held sensors come back
+    /// after a reset.
     #[test]
     fn a_held_hp_transducer_never_releases_the_trip_nor_clears_on_a_loose_estimate() {
         let mut c = ctl();
@@ -883,8 +893,9 @@ mod tests {
             "a reset on a held transducer's word"
         );
         // The estimate's σ grown beyond a bar in 40 s on the model (no motor reading to bound
-        // it; 1.27 bar here): a reading 3.5 bar off the estimate, within its 3σ, does not clear
-        // (the σ counted is at most 1 bar), one within 2 bar does.
+        // it; 1.27 bar here): no reading clears, not even one on the estimate (the transducer
+        // stays held until the model knows P2 again). With σ under a bar one within 2 bar
+        // does — but not with the dump valve open (the model knows no dump).
         let mut g = ctl();
         g.reset(Pressure::from_num(80.0), Pressure::from_num(8.0))
             .unwrap();
@@ -897,15 +908,51 @@ mod tests {
         }
         assert!(g.st.node.var > Fx::from_num(1.5), "σ² {}", g.st.node.var);
         let p2 = g.st.node.p2.to_num::<f32>();
-        g.last_frame = Some(frame(40_000, p2 + 3.5));
-        assert_eq!(g.clear_sensor_faults(), bit::HP, "a loose estimate vouched");
+        for off in [3.5, 0.0] {
+            g.last_frame = Some(frame(40_000, p2 + off));
+            assert_eq!(g.clear_sensor_faults(), bit::HP, "a loose estimate vouched");
+        }
+        g.st.node.var = Fx::from_num(0.5);
+        g.status.dump_valve = true;
         g.last_frame = Some(frame(40_000, p2 + 1.0));
+        assert_eq!(g.clear_sensor_faults(), bit::HP, "with the dump open");
+        g.status.dump_valve = false;
         assert_eq!(g.clear_sensor_faults(), 0);
         // Across a reset.
         let mut h = ctl();
         h.boot_sensor_faults(bit::HP | bit::ENCODER);
         assert_eq!(h.sensor_faults(), bit::HP | bit::ENCODER);
         assert_eq!(h.status.sensor_faults, bit::HP | bit::ENCODER);
+    }
+
+    /// Tripped with the lever still pumping: the dump valve (which the model does not know)
+    /// takes P2 down to a few bar while the model counts the pumps' oil into HP. The residual
+    /// checks stand down while the dump is open: no sensor is named for it.
+    #[test]
+    fn the_dump_valve_open_names_no_sensor() {
+        let mut c = ctl();
+        c.reset(Pressure::from_num(100.0), Pressure::from_num(8.0))
+            .unwrap();
+        c.set_duty(0b1111, 0);
+        c.set_mode(Mode::Fixed(Aperture::from_num(5.0)));
+        // The lever at ±20° and 0.2 Hz: 16 384 counts a turn.
+        let enc = |i: u32| {
+            let t = f64::from(i) / 1024.0;
+            (20.0 / 360.0 * 16384.0 * (2.0 * core::f64::consts::PI * 0.2 * t).sin()) as i32
+        };
+        let trip = c.trip().to_f32();
+        // (No motor reading: its check is not what this is about.)
+        let mut f = frame(0, trip + 1.0);
+        (f.encoder, f.motor) = (enc(0), None);
+        assert!(c.sample(&f, &mut NoClock).dump);
+        for i in 1..90_000 {
+            let p = (trip - 1.0 - i as f32 * 0.01).max(3.0);
+            let mut f = frame(i, p);
+            (f.encoder, f.motor) = (enc(i), None);
+            let o = c.sample(&f, &mut NoClock);
+            assert!(o.dump, "step {i}");
+            assert_eq!(c.sensor_faults(), 0, "named at step {i}, P2 {p}");
+        }
     }
 
     #[test]

@@ -440,12 +440,12 @@ fn sensors_failing_at_plausible_values_are_caught_named_and_made_safe() {
         .map(|c| faults::detect(&bench, c, 11).unwrap())
         .collect();
     println!(
-        "{:<48} {:>6} {:>9} {:>9} {:<8} {:>9} {:>15} safe",
-        "case", "from", "after s", "bound s", "held", "P2 then", "P2 after"
+        "{:<48} {:>6} {:>9} {:>9} {:<8} {:>9} {:>15} {:>7} safe",
+        "case", "from", "after s", "bound s", "held", "P2 then", "P2 after", "silent"
     );
     for d in &rows {
         println!(
-            "{:<48} {:>6.1} {:>9} {:>9.1} {:<8} {:>9} {:>6.1}–{:<6.1} {}",
+            "{:<48} {:>6.1} {:>9} {:>9.1} {:<8} {:>9} {:>6.1}–{:<6.1} {:>7.1} {}",
             d.case.name,
             d.case.fault.from_s,
             d.after_s.map_or("never".into(), |t| format!("{t:.2}")),
@@ -455,6 +455,7 @@ fn sensors_failing_at_plausible_values_are_caught_named_and_made_safe() {
                 .map_or("-".into(), |p| format!("{p:.1}")),
             d.p2_after_bar.0,
             d.p2_after_bar.1,
+            d.p2_silent_bar,
             d.safe_after
         );
     }

@@ -164,12 +164,12 @@ pub(crate) fn validate_cmd(
             pto_host::model::faults::FAULT_FROM_S
         );
         println!(
-            "  {:<48} {:>9} {:>8} {:<8} {:>8} {:>13}  verdict",
-            "case", "flagged", "bound", "held", "P2 then", "P2 after"
+            "  {:<48} {:>9} {:>8} {:<8} {:>8} {:>13} {:>7}  verdict",
+            "case", "flagged", "bound", "held", "P2 then", "P2 after", "silent"
         );
         for d in &rep.sensor_faults {
             println!(
-                "  {:<48} {:>9} {:>8} {:<8} {:>8} {:>13}  {}",
+                "  {:<48} {:>9} {:>8} {:<8} {:>8} {:>13} {:>7}  {}",
                 d.case.name,
                 d.after_s.map_or("never".into(), |t| format!("{t:.2} s")),
                 format!("{:.1} s", d.bound_s),
@@ -177,6 +177,7 @@ pub(crate) fn validate_cmd(
                 d.p2_at_detection_bar
                     .map_or("-".into(), |p| format!("{p:.1}")),
                 format!("{:.1}–{:.1}", d.p2_after_bar.0, d.p2_after_bar.1),
+                format!("{:.1}", d.p2_silent_bar),
                 if d.pass {
                     "met".to_string()
                 } else {
@@ -199,7 +200,7 @@ pub(crate) fn validate_cmd(
         println!(
             "  the checks' margins over them: HP shadow excess {:.3} bar (allowed 0.25); oil \
              into HP under a reading below the range {:.3} L (allowed what the accumulator \
-             holds there + 2 % of it); motor {:.1} rpm beyond 1/16 of the speed (allowed 5, for 1 s; \
+             holds there + 1 % of it); motor {:.1} rpm beyond 1/16 of the speed (allowed 5, for 1 s; \
              longest beyond: {} steps of 1024); LP {:.2} bar (allowed 2)",
             most(|r| r.resid_hp_max_bar),
             most(|r| r.resid_low_inflow_max_l),

@@ -607,8 +607,9 @@ pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
     ))
 }
 
-/// A sensor failing at a plausible value under QEMU: the HP transducer stuck at its reading 5 s
-/// into a hold of P2 at 100 bar from 60 bar (P2 rising). See [`check_fault`].
+/// A sensor failing at a plausible value under QEMU: the HP transducer stuck at its reading 10 s
+/// into a hold of P2 at 100 bar from 60 bar (P2 rising; the checks judge from 9 s after a
+/// start). See [`check_fault`].
 pub fn check_sensor_fault(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
     use crate::model::faults::{Fault, FaultKind, Sensor};
     check_fault(
@@ -617,14 +618,14 @@ pub fn check_sensor_fault(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilEr
         Fault {
             sensor: Sensor::Hp,
             kind: FaultKind::StuckAtReading,
-            from_s: 5.0,
+            from_s: 10.0,
         },
     )
 }
 
 /// A sensor fault injected into the firmware's readings under QEMU (`pto pil --fault`), in the
 /// mode [`Fault::mode`] picks, from 60 bar (100 bar for a motor fault): the firmware must hold
-/// that sensor — and only it — faulted within the fault's bound ([`Fault::bound`]: 5 s; a
+/// that sensor — and only it, to the end — faulted within the fault's bound ([`Fault::bound`]: 5 s; a
 /// drift, the time to drift 5 units more; a motor reading stuck, 5 s after the speed left it)
 /// and keep its valve at the sensor-fault aperture (or the dump open) from then to the end.
 /// The run lasts until 10 s past the bound (120 s at most for a stuck motor reading).
@@ -730,7 +731,8 @@ pub fn check_fault(
                 first.map(|_| after),
                 bound_s,
                 safe,
-            ) && st.sensor_faults == latch.latched(),
+            ) && st.sensor_faults == latch.latched()
+                && (first.is_none() || st.sensor_faults == want),
         },
     ))
 }

@@ -452,7 +452,7 @@ pub enum Bound {
     MotorLeaves,
     /// A reading stuck low, below where the shadow judges (27.1 bar on the reference bench):
     /// the stuck-low check names it once the model has counted more oil pumped in under it than
-    /// the accumulator holds there (+ 2 % of its volume), i.e. once the plant's P2 is about a
+    /// the accumulator holds there (+ 1 % of its volume), i.e. once the plant's P2 is about a
     /// bar above that; within [`DETECT_WITHIN_S`] of the plant's P2 first exceeding this, bar.
     P2Above(f64),
 }
@@ -484,25 +484,29 @@ pub fn cases() -> Vec<Case> {
     let closed = Mode::Fixed(Aperture::ZERO);
     use FaultKind::*;
     use Sensor::*;
+    // (name, mode, sensor, kind, the plant's P2 at the start: 100 bar, the setpoint, where the
+    // controller regulates when the fault comes; 60 bar for a charge)
     #[rustfmt::skip]
     let table = [
-        ("HP stuck at its reading, hold P2 100 bar", hold, Hp, StuckAtReading),
-        ("HP stuck at 60 bar, hold P2 100 bar", hold, Hp, StuckAt(60.0)),
-        ("HP drifting +0.5 bar/s, hold P2 100 bar", hold, Hp, Drift(0.5)),
-        ("HP stuck at 72 bar, valve closed", closed, Hp, StuckAt(72.0)),
-        ("HP reading 0.9 × P2, hold P2 100 bar", hold, Hp, Gain(0.9)),
-        ("motor stuck at 245 rpm, hold speed 250 rpm", speed, Motor, StuckAt(245.0)),
-        ("motor stuck at its reading, hold speed 250 rpm", speed, Motor, StuckAtReading),
-        ("motor reading 1.2 × speed, hold speed 250 rpm", speed, Motor, Gain(1.2)),
-        ("LP stuck at 3 bar, hold P2 100 bar", hold, Lp, StuckAt(3.0)),
-        ("LP drifting +0.5 bar/s, hold P2 100 bar", hold, Lp, Drift(0.5)),
-        ("encoder stuck, hold P2 100 bar", hold, Encoder, StuckAtReading),
-        ("HP drifting −0.2 bar/s through a charge, hold P2 100 bar", hold, Hp, Drift(-0.2)),
-        ("HP drifting −0.05 bar/s, valve closed", closed, Hp, Drift(-0.05)),
+        ("HP stuck at its reading, hold P2 100 bar", hold, Hp, StuckAtReading, 100.0),
+        ("HP stuck at 60 bar, hold P2 100 bar", hold, Hp, StuckAt(60.0), 100.0),
+        ("HP drifting +0.5 bar/s, hold P2 100 bar", hold, Hp, Drift(0.5), 100.0),
+        ("HP stuck at 72 bar, valve closed", closed, Hp, StuckAt(72.0), 60.0),
+        ("HP reading 0.9 × P2, hold P2 100 bar", hold, Hp, Gain(0.9), 100.0),
+        ("motor stuck at 245 rpm, hold speed 250 rpm", speed, Motor, StuckAt(245.0), 60.0),
+        ("motor stuck at its reading, hold speed 250 rpm", speed, Motor, StuckAtReading, 60.0),
+        ("motor reading 1.2 × speed, hold speed 250 rpm", speed, Motor, Gain(1.2), 60.0),
+        ("LP stuck at 3 bar, hold P2 100 bar", hold, Lp, StuckAt(3.0), 100.0),
+        ("LP drifting +0.5 bar/s, hold P2 100 bar", hold, Lp, Drift(0.5), 100.0),
+        ("encoder stuck, hold P2 100 bar", hold, Encoder, StuckAtReading, 100.0),
+        ("HP drifting −0.2 bar/s, hold P2 100 bar", hold, Hp, Drift(-0.2), 100.0),
+        ("HP drifting −0.2 bar/s through a charge, hold P2 100 bar", hold, Hp, Drift(-0.2), 60.0),
+        ("HP drifting −0.05 bar/s, hold P2 100 bar", hold, Hp, Drift(-0.05), 100.0),
+        ("HP drifting −0.05 bar/s, valve closed", closed, Hp, Drift(-0.05), 60.0),
     ];
     let mut v: Vec<Case> = table
         .into_iter()
-        .map(|(name, mode, sensor, kind)| {
+        .map(|(name, mode, sensor, kind, start_bar)| {
             let fault = Fault {
                 sensor,
                 kind,
@@ -514,7 +518,7 @@ pub fn cases() -> Vec<Case> {
                 fault,
                 named: sensor,
                 bound: fault.bound(),
-                start_bar: 60.0,
+                start_bar,
             }
         })
         .collect();
@@ -549,14 +553,26 @@ pub struct Detection {
     pub bound_s: f64,
     /// The plant's P2 then, bar.
     pub p2_at_detection_bar: Option<f64>,
-    /// The plant's P2 over the rest of the run, bar (min, max).
+    /// The plant's P2 from the fault's start to the end of the run, bar (min, max).
     pub p2_after_bar: (f64, f64),
+    /// How far the fault moved the plant's P2 before it was flagged (to the run's end if
+    /// never): the largest |P2 − P2 of the same run without the fault| from the fault's start,
+    /// bar. "Never drifting silently": at most [`SILENT_DRIFT_BAR`].
+    pub p2_silent_bar: f64,
+    /// The plant's highest P2 from the detection on, bar (below the trip: the safe state holds
+    /// P2 down, not only the relief).
+    pub p2_max_after_detection_bar: Option<f64>,
     /// The controller stayed in its safe state from the detection to the end (the valve at the
     /// sensor-fault aperture, or tripped, or the dump valve open).
     pub safe_after: bool,
-    /// Named the right sensor, within its bound, and stayed safe.
+    /// Named the right sensor, within its bound, stayed safe, P2 not moved more than
+    /// [`SILENT_DRIFT_BAR`] before and below the trip after.
     pub pass: bool,
 }
+
+/// The most a fault may move the plant's P2 before it is flagged, bar (the acceptance's
+/// "within ± 10 bar … never drifting silently").
+pub const SILENT_DRIFT_BAR: f64 = 10.0;
 
 /// The latch's bit of a sensor (`pto_firmware::sensor_faults::bit`).
 pub fn sensor_bit(s: Sensor) -> u8 {
@@ -573,6 +589,8 @@ pub fn sensor_bit(s: Sensor) -> u8 {
 pub fn detect(bench: &Bench, c: &Case, seed: u64) -> Result<Detection, FaultRunError> {
     let (sched, _) = controller_config(bench);
     let l = fault_run(bench, c.mode, c.start_bar, RUN_S, Some(c.fault), seed)?;
+    // The same run without the fault (same noise): what the fault did to the plant.
+    let free = fault_run(bench, c.mode, c.start_bar, RUN_S, None, seed)?;
     let from = c.fault.from_s;
     let first = l.rows.iter().find(|r| r.sensor_faults != 0);
     let bound_s = match c.bound {
@@ -601,7 +619,24 @@ pub fn detect(bench: &Bench, c: &Case, seed: u64) -> Result<Detection, FaultRunE
             .all(|r| r.out.dump || (f64::from(r.out.applied.to_f32()) - safe_op).abs() < 1e-3)
     });
     let held = first.map_or(0, |r| r.sensor_faults);
+    let held_at_end = l.rows.last().map_or(0, |r| r.sensor_faults);
     let after_s = first.map(|r| r.t - from);
+    let until = first.map_or(f64::INFINITY, |r| r.t);
+    let p2_silent_bar = l
+        .rows
+        .iter()
+        .zip(&free.rows)
+        .filter(|(r, _)| r.t >= from && r.t <= until)
+        .map(|(r, g)| (r.p2_bar - g.p2_bar).abs())
+        .fold(0.0, f64::max);
+    let p2_max_after_detection_bar = first.map(|f0| {
+        l.rows
+            .iter()
+            .filter(|r| r.t >= f0.t)
+            .map(|r| r.p2_bar)
+            .fold(f64::NEG_INFINITY, f64::max)
+    });
+    let trip_bar = f64::from(model_config(bench)?.trip_bar);
     Ok(Detection {
         case: *c,
         after_s,
@@ -609,8 +644,13 @@ pub fn detect(bench: &Bench, c: &Case, seed: u64) -> Result<Detection, FaultRunE
         bound_s,
         p2_at_detection_bar: first.map(|r| r.p2_bar),
         p2_after_bar: (lo, hi),
+        p2_silent_bar,
+        p2_max_after_detection_bar,
         safe_after,
-        pass: judge(held, sensor_bit(c.named), after_s, bound_s, safe_after),
+        pass: judge(held, sensor_bit(c.named), after_s, bound_s, safe_after)
+            && (after_s.is_none() || held_at_end == held)
+            && p2_silent_bar <= SILENT_DRIFT_BAR
+            && p2_max_after_detection_bar.is_none_or(|p| p < trip_bar),
     })
 }
 

@@ -414,7 +414,10 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         }
     }
     let judged = p2_pred >= k.residual_p2_range.0 && p2_pred <= k.residual_p2_range.1;
-    if let Some(z) = hp
+    // Both HP checks weigh the pump's flow, from the encoder: without its reading they say
+    // nothing, and start afresh when it comes back (as without the HP reading).
+    let hp_judged = hp.filter(|_| inp.encoder.is_some());
+    if let Some(z) = hp_judged
         && residual::stuck_low(
             &mut s.resid,
             q_pump
@@ -432,22 +435,28 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
         &mut s.resid,
         p2_pred.saturating_sub(p2_before),
         s.node.p2,
-        hp,
+        hp_judged,
         judged,
     ) {
+        s.resid.hp_flag_steps = s.resid.hp_flag_steps.saturating_add(1);
+    } else {
+        s.resid.hp_flag_steps = 0;
+    }
+    if s.resid.hp_flag_steps >= residual::SHADOW_PERSIST_STEPS {
         // Isolation: the shadow's flows come from the encoder as much as from P2. While the
         // encoder moves, the HP reading is what disagrees. Once it has stood still as long as
-        // the encoder check waits, the motor decides, two against one: a speed that disagrees
-        // with P2 as read says the reading is wrong (a lever at rest, the valve open, P2
-        // falling under a stuck reading); one that agrees, or none to tell (the valve closed:
-        // a lever truly at rest then changes nothing the shadow could miss), the encoder.
+        // the encoder check waits, the encoder is suspect if nothing says P2 is not as read:
+        // the valve closed (a lever truly at rest then changes nothing the shadow could
+        // miss), or the motor read and agreeing with P2. A speed that disagrees, or none read
+        // with the valve open (a lever at rest, P2 falling under a stuck reading: the safer
+        // call, HP held and no motor to bound P2 opens the dump), names the reading.
         let still = s.tracker.still_steps;
-        if still < residual::SHADOW_ENCODER_STILL_STEPS
-            || (still >= k.tracker.stuck_steps && s.resid.motor_over > 0)
-        {
-            faults |= fault::HP_DISAGREES;
-        } else if still >= k.tracker.stuck_steps {
+        let encoder_suspect = still >= k.tracker.stuck_steps
+            && (closed || (motor.is_some() && s.resid.motor_over == 0));
+        if encoder_suspect {
             faults |= fault::ENCODER_STUCK;
+        } else if still < residual::SHADOW_ENCODER_STILL_STEPS || still >= k.tracker.stuck_steps {
+            faults |= fault::HP_DISAGREES;
         }
     }
     // --- Correct LP with a fixed gain.

@@ -120,7 +120,7 @@ pub struct Row {
     pub resid_hp_max_bar: f64,
     /// The largest net inflow into HP the model counted while the HP reading stayed below the
     /// shadow check's range, L (the stuck-low check's limit: what the accumulator holds at the
-    /// range's bottom, + 2 % of its volume).
+    /// range's bottom, + 1 % of its volume).
     pub resid_low_inflow_max_l: f64,
     /// The largest motor residual (measured − modelled speed, 0.25 s mean) beyond 1/16 of the
     /// modelled speed, rpm (its fixed allowance is 5 rpm, for 1 s).
