@@ -121,6 +121,27 @@ pub fn names(bits: u8) -> impl Iterator<Item = &'static str> {
     .map(|(_, n)| n)
 }
 
+/// Why each sensor is held, for people: the check that names it (one per sensor).
+pub fn why(bit: u8) -> &'static str {
+    match bit {
+        bit::HP => "its reading disagrees with the model's P2 (the pumps' and the valve's flows)",
+        bit::LP => "its reading disagrees with the model's LP",
+        bit::MOTOR => "its speed disagrees with the model's from P2 and the aperture",
+        bit::ENCODER => "it stood still while the pumps acted on P2",
+        _ => "",
+    }
+}
+
+/// The latched sensors by name with why, for the host's status, monitor and clearing
+/// (`HP: its reading disagrees with …`).
+pub fn described(bits: u8) -> impl Iterator<Item = (&'static str, &'static str)> {
+    [bit::HP, bit::LP, bit::MOTOR, bit::ENCODER]
+        .into_iter()
+        .filter(move |b| bits & b != 0)
+        .zip(names(bits))
+        .map(|(b, n)| (n, why(b)))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -154,6 +175,13 @@ mod tests {
         assert_eq!(
             names(bit::HP | bit::MOTOR).collect::<Vec<_>>(),
             ["HP", "motor"]
+        );
+        let d: Vec<_> = described(bit::LP | bit::ENCODER).collect();
+        assert_eq!(d.len(), 2);
+        assert_eq!(d[0].0, "LP");
+        assert!(
+            d[0].1.contains("model's LP") && d[1].0 == "encoder",
+            "{d:?}"
         );
     }
 

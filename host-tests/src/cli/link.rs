@@ -335,7 +335,8 @@ pub(crate) fn monitor_cmd(
                 } else {
                     format!(
                         " SENSOR FAULT: {}",
-                        pto_firmware::sensor_faults::names(tel.sensor_faults)
+                        pto_firmware::sensor_faults::described(tel.sensor_faults)
+                            .map(|(n, why)| format!("{n} ({why})"))
                             .collect::<Vec<_>>()
                             .join(", ")
                     )
@@ -505,10 +506,20 @@ pub(crate) fn clear_faults_cmd(t: &Target, json: bool) -> Result<bool> {
         }
         if held != 0 {
             println!(
-                "still held: {} — the reading still disagrees with the model (check the sensor; \
-                 `pto link … status`, `monitor`)",
-                names(held).join(", ")
+                "still held: {} — check the sensor; `pto link … status`, `monitor`",
+                pto_firmware::sensor_faults::described(held)
+                    .map(|(n, why)| format!("{n}: {why}"))
+                    .collect::<Vec<_>>()
+                    .join("; ")
             );
+            if held & pto_firmware::sensor_faults::bit::HP != 0 {
+                println!(
+                    "  HP clears only against an estimate that knows P2 (σ ≤ 1 bar, the dump valve \
+                     closed): open the valve with the motor read (the model then reads P2 off the \
+                     motor), or power the controller off and on (a power cycle forgets held \
+                     sensors, as it forgets the trip)"
+                );
+            }
         }
     }
     Ok(held == 0)

@@ -450,7 +450,9 @@ pub fn status_table(st: &Status, host: &LinkCounts) -> String {
         "supply faults", st.supply_faults
     );
     s += &format!("{:<28} {:>#10x}\n", "fault flags seen", st.faults_seen);
-    let held: Vec<&str> = pto_firmware::sensor_faults::names(st.sensor_faults).collect();
+    let held: Vec<String> = pto_firmware::sensor_faults::described(st.sensor_faults)
+        .map(|(n, why)| format!("{n}: {why}"))
+        .collect();
     s += &format!(
         "{:<28} {:>10}\n",
         "sensor faults held",
@@ -459,7 +461,7 @@ pub fn status_table(st: &Status, host: &LinkCounts) -> String {
         } else {
             format!(
                 "{} (valve at the sensor-fault aperture; `clear-faults` once they agree)",
-                held.join(", ")
+                held.join("; ")
             )
         }
     );
