@@ -750,7 +750,7 @@ impl Controller {
         let mut agree = 0;
         if let LoopReading::Counts(n) = self.lp_supply.correct(f.lp_adc)
             && let Some(z) = self.lp.pressure(n)
-            && z.0.saturating_sub(self.st.node.lp).abs() <= Fx::from_num(2)
+            && z.0.saturating_sub(self.st.node.lp).abs() <= estimator::LP_ALLOW_BAR
         {
             agree |= bit::LP;
         }
@@ -780,8 +780,7 @@ impl Controller {
                 .branch
                 .q_motor
                 .saturating_mul(self.k.branch.rpm_per_lpm);
-            let allow = Fx::from_num(5).saturating_add(model.abs() / 16);
-            if m.0.saturating_sub(model).abs() <= allow {
+            if m.0.saturating_sub(model).abs() <= estimator::motor_allowance(model) {
                 agree |= bit::MOTOR;
             }
         }

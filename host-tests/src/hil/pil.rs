@@ -685,7 +685,7 @@ pub fn check_fault(
         .find(|r| r.t >= from)
         .and_then(|r| r.frame.motor)
         .map(|m| f64::from(m.to_f32()));
-    let bound_s = fault.bound_s(bound, stuck, rows.iter().map(|r| (r.t, r.rpm)));
+    let bound_s = fault.bound_s(bound, stuck, rows.iter().map(|r| (r.t, r.rpm, r.p2_bar)));
     let safe_op = f64::from(
         crate::model::controller_config(bench)
             .0

@@ -236,20 +236,22 @@ impl Fault {
         }
     }
 
-    /// The bound in s after the fault's start: for [`Bound::MotorLeaves`], from the true motor
-    /// speed over the run (`(t s, rpm)`) and the reading it stuck at (`stuck_reading`, for
-    /// [`FaultKind::StuckAtReading`]); infinite when the speed never left it.
+    /// The bound in s after the fault's start: for [`Bound::MotorLeaves`] and
+    /// [`Bound::P2Above`], from the plant over the run (`(t s, motor rpm, P2 bar)`) and the
+    /// reading it stuck at (`stuck_reading`, for [`FaultKind::StuckAtReading`]); infinite when
+    /// the speed never left it, or P2 never passed the level.
     pub fn bound_s(
         &self,
         bound: Bound,
         stuck_reading: Option<f64>,
-        speed: impl Iterator<Item = (f64, f64)>,
+        mut plant: impl Iterator<Item = (f64, f64, f64)>,
     ) -> f64 {
         DETECT_WITHIN_S
             + match bound {
                 Bound::Onset => 0.0,
-                // Needs the plant's P2: `detect` works it out.
-                Bound::P2Above(_) => f64::INFINITY,
+                Bound::P2Above(x) => plant
+                    .find(|&(t, _, p2)| t >= self.from_s && p2 > x)
+                    .map_or(f64::INFINITY, |(t, _, _)| t - self.from_s),
                 Bound::DriftTo(d) => match self.kind {
                     FaultKind::Drift(r) => d / r.abs(),
                     _ => 0.0,
@@ -259,7 +261,7 @@ impl Fault {
                         FaultKind::StuckAt(v) => Some(v),
                         _ => stuck_reading,
                     };
-                    reading.map_or(f64::INFINITY, |v| self.motor_leaves(v, speed))
+                    reading.map_or(f64::INFINITY, |v| self.motor_leaves(v, plant))
                 }
             }
     }
@@ -268,9 +270,9 @@ impl Fault {
     /// outside what the motor check can tell from the stuck reading `v`: its allowance (5 rpm +
     /// 1/16 of the speed) plus the model's own speed error (3 % of the speed, the validated
     /// RMS bound: the check compares with the model's speed, not the truth).
-    fn motor_leaves(&self, v: f64, speed: impl Iterator<Item = (f64, f64)>) -> f64 {
+    fn motor_leaves(&self, v: f64, plant: impl Iterator<Item = (f64, f64, f64)>) -> f64 {
         let mut since = None;
-        for (t, rpm) in speed.filter(|(t, _)| *t >= self.from_s) {
+        for (t, rpm, _) in plant.filter(|(t, _, _)| *t >= self.from_s) {
             let out = (rpm - v).abs() > 5.0 + rpm.abs() * (1.0 / 16.0 + 0.03);
             match (out, since) {
                 (true, None) => since = Some(t),
@@ -593,18 +595,11 @@ pub fn detect(bench: &Bench, c: &Case, seed: u64) -> Result<Detection, FaultRunE
     let free = fault_run(bench, c.mode, c.start_bar, RUN_S, None, seed)?;
     let from = c.fault.from_s;
     let first = l.rows.iter().find(|r| r.sensor_faults != 0);
-    let bound_s = match c.bound {
-        Bound::P2Above(x) => {
-            l.rows
-                .iter()
-                .find(|r| r.t >= c.fault.from_s && r.p2_bar > x)
-                .map_or(f64::INFINITY, |r| r.t - c.fault.from_s)
-                + DETECT_WITHIN_S
-        }
-        b => c
-            .fault
-            .bound_s(b, l.start, l.rows.iter().map(|r| (r.t, r.rpm))),
-    };
+    let bound_s = c.fault.bound_s(
+        c.bound,
+        l.start,
+        l.rows.iter().map(|r| (r.t, r.rpm, r.p2_bar)),
+    );
     let after: Vec<&FaultRow> = l.rows.iter().filter(|r| r.t >= from).collect();
     let (lo, hi) = after
         .iter()
@@ -758,14 +753,14 @@ mod tests {
         let speed = || {
             (0..4000).map(|k| {
                 let t = f64::from(k) * 0.01;
-                (t, if t < 22.0 { 250.0 } else { 300.0 })
+                (t, if t < 22.0 { 250.0 } else { 300.0 }, 100.0)
             })
         };
         let m: Fault = "motor:stuck=245".parse().unwrap();
         let b = m.bound_s(m.bound(), None, speed());
         assert!((b - 8.0).abs() < 0.02, "{b}");
         let r: Fault = "motor:stuck".parse().unwrap();
-        let flat = (0..4000).map(|k| (f64::from(k) * 0.01, 250.0));
+        let flat = (0..4000).map(|k| (f64::from(k) * 0.01, 250.0, 100.0));
         let inf = r.bound_s(r.bound(), Some(252.0), flat);
         assert!(inf.is_infinite());
         assert!(judge(0, 4, None, inf, false));

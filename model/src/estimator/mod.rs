@@ -311,7 +311,9 @@ use motor::*;
 pub use motor::{BranchState, ReadingState};
 pub use observer::NodeState;
 use observer::*;
-pub use residual::{MOTOR_SHIFT, PRESSURE_SHIFT, ResidualState, SHADOW_STEPS};
+pub use residual::{
+    LP_ALLOW_BAR, MOTOR_SHIFT, PRESSURE_SHIFT, ResidualState, SHADOW_STEPS, motor_allowance,
+};
 pub use tracker::TrackerState;
 use tracker::*;
 

@@ -203,14 +203,19 @@ fn restart(r: &mut ResidualState, p2: Fx) {
     (r.hp_change, r.hp_judged) = (ZERO, true);
 }
 
+/// The motor check's allowance around the modelled speed `model`, rpm: 5 rpm +
+/// 1/16 of it (also what the firmware's clearing asks of a held motor pickup).
+#[inline(always)]
+pub fn motor_allowance(model: Fx) -> Fx {
+    MOTOR_ALLOW_RPM.saturating_add(Fx::from_bits(model.abs().to_bits() >> MOTOR_ALLOW_SHIFT))
+}
+
 /// One step of the motor check: `m` the measured speed, `model` the modelled one (rpm).
 /// Returns whether the residual has been beyond its allowance for [`MOTOR_PERSIST_STEPS`].
 #[inline(always)]
 pub(super) fn motor(r: &mut ResidualState, m: Fx, model: Fx) -> bool {
     mean(&mut r.motor, m.saturating_sub(model), MOTOR_SHIFT);
-    let allow =
-        MOTOR_ALLOW_RPM.saturating_add(Fx::from_bits(model.abs().to_bits() >> MOTOR_ALLOW_SHIFT));
-    if r.motor.abs() > allow {
+    if r.motor.abs() > motor_allowance(model) {
         r.motor_over = r.motor_over.saturating_add(1);
     } else {
         r.motor_over = 0;
