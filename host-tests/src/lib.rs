@@ -23,6 +23,7 @@ pub mod model;
 pub mod output;
 pub mod paper;
 pub mod perf;
+pub mod plan;
 pub mod plot;
 pub mod runner;
 pub mod sim;

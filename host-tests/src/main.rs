@@ -126,8 +126,11 @@ enum Cmd {
         #[arg(long = "set", value_name = "NAME=VALUE")]
         set: Vec<String>,
         /// Built-in scenarios to log (default: the seven experimental runs).
-        #[arg(long, value_delimiter = ',')]
+        #[arg(long, value_delimiter = ',', conflicts_with = "campaign")]
         runs: Vec<String>,
+        /// A campaign file (`pto plan`): one log per segment, at the segment's rate.
+        #[arg(long)]
+        campaign: Option<PathBuf>,
         /// Sample rate, 0.1 to 1000 Hz.
         #[arg(long, allow_hyphen_values = true, default_value_t = 10.0, value_parser = finite_in(0.1, 1000.0, "Hz"))]
         rate: f64,
@@ -163,9 +166,11 @@ enum Cmd {
             default_value = "trapped_air,cd,precharge"
         )]
         params: Vec<String>,
-        /// Residual samples every this many seconds of each log, 0.01 to 60 s.
-        #[arg(long, allow_hyphen_values = true, default_value_t = 0.5, value_parser = finite_in(0.01, 60.0, "s"))]
-        spacing: f64,
+        /// Residual samples every this many seconds of each log, 0 (every sample) to 60 s
+        /// (default: 0.5 s, and every sample of a campaign's log: one with a complete
+        /// `.segment.toml` sidecar).
+        #[arg(long, allow_hyphen_values = true, value_parser = finite_in(0.0, 60.0, "s"))]
+        spacing: Option<f64>,
         /// Iteration limit (Levenberg–Marquardt patience, × parameters + 1 evaluations), 1 to
         /// 10 000.
         #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=10_000))]
@@ -201,6 +206,51 @@ enum Cmd {
         /// line then says which); without it they are written only when every check passed.
         #[arg(long)]
         write_anyway: bool,
+        /// Machine-readable output.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Plan the experiments that determine the fit's parameters: for candidate segments a
+    /// bench can run (charges with the lever moving, discharges with it blocked, fixed
+    /// apertures), the Fisher information from the fit's own residuals on noise-free logs of
+    /// the full simulation at the bench's values; the shortest campaign whose predicted 3σ
+    /// meets every precision, written as a campaign file.
+    #[command(
+        after_help = "Examples:\n  pto plan --params trapped_air,cd,precharge,leakage --out campaign.toml\n  pto plan --bench my-bench.toml --params trapped_air,cd --budget-min 10 --rate 128 --out c.toml\n  pto plan --params trapped_air,cd,precharge --noise-from run1.csv --out c.toml --json\n\nExit status:\n  0 the campaign meets every precision within the budget\n  1 none does (the parameter, what blocks it and what would help are named)\n  2 bad input\n  130 interrupted"
+    )]
+    Plan {
+        /// Bench parameter file: the current best guess (default: the reference bench).
+        #[arg(long)]
+        bench: Option<PathBuf>,
+        /// Override a bench value (as `pto simulate --set`).
+        #[arg(long = "set", value_name = "NAME=VALUE")]
+        set: Vec<String>,
+        /// Parameters to determine (the fit's names).
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "trapped_air,cd,precharge,leakage"
+        )]
+        params: Vec<String>,
+        /// Precision a parameter needs, in its unit (repeatable; as `pto fit --precision`).
+        #[arg(long, value_name = "NAME=VALUE", value_parser = name_value)]
+        precision: Vec<(String, f64)>,
+        /// Bench time the campaign may take, 1 to 1440 min.
+        #[arg(long, default_value_t = 45.0, value_parser = finite_in(1.0, 1440.0, "min"))]
+        budget_min: f64,
+        /// Log rate of the segments, 1 to 128 Hz (the link's telemetry).
+        #[arg(long, default_value_t = 64.0, value_parser = finite_in(1.0, 128.0, "Hz"))]
+        rate: f64,
+        /// Geometries the candidates use (1 to 4).
+        #[arg(long, value_delimiter = ',', default_value = "1", value_parser = clap::value_parser!(u8).range(1..=4))]
+        configs: Vec<u8>,
+        /// Bench logs to estimate the sensors' noise from (default: the sensor model's, HP 0.5
+        /// bar, motor 2 rpm, LP 0.2 bar).
+        #[arg(long, value_name = "FILE")]
+        noise_from: Vec<PathBuf>,
+        /// The campaign file to write.
+        #[arg(long)]
+        out: PathBuf,
         /// Machine-readable output.
         #[arg(long)]
         json: bool,
@@ -617,11 +667,44 @@ fn main() -> ExitCode {
             bench,
             set,
             runs,
+            campaign,
             rate,
             seed,
             out,
             json,
-        } => synth_logs_cmd(bench.as_ref(), &set, &runs, rate, seed, &out, json),
+        } => synth_logs_cmd(
+            bench.as_ref(),
+            &set,
+            &runs,
+            campaign.as_deref(),
+            rate,
+            seed,
+            &out,
+            json,
+        ),
+        Cmd::Plan {
+            bench,
+            set,
+            params,
+            precision,
+            budget_min,
+            rate,
+            configs,
+            noise_from,
+            out,
+            json,
+        } => cli::plan::plan_cmd(&cli::plan::PlanArgs {
+            bench: bench.as_ref(),
+            set: &set,
+            params: &params,
+            precision: &precision,
+            budget_min,
+            rate,
+            configs: &configs,
+            noise_from: &noise_from,
+            out: &out,
+            json,
+        }),
         Cmd::Fit {
             logs,
             bench,
@@ -642,7 +725,12 @@ fn main() -> ExitCode {
             bench.as_ref(),
             pto_host::fit::FitOptions {
                 params,
-                spacing_s: spacing,
+                spacing_s: spacing.unwrap_or(0.5),
+                dense_logs: if spacing.is_some() {
+                    pto_host::fit::DenseLogs::None
+                } else {
+                    pto_host::fit::DenseLogs::Campaign
+                },
                 max_iter: max_iter as usize,
                 max_simulations: max_simulations as usize,
                 noise_p2_bar: noise_p2,

@@ -674,3 +674,133 @@ fn a_fit_out_of_budget_in_an_early_stage_fails_cleanly() {
     assert!(v["termination"].as_str().unwrap().contains("budget"), "{v}");
     let _ = std::fs::remove_dir_all(&base);
 }
+
+/// `pto plan`, `synth-logs --campaign` and a campaign's logs in `pto fit`: bad input is exit 2
+/// naming the file, the field, the value and what is allowed, before any simulation; a log
+/// whose sidecar marks it unfinished is refused, with the way out.
+#[test]
+fn campaign_inputs_are_checked_and_named() {
+    let dir = tmp("campaign");
+    let good = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml"),
+    )
+    .unwrap();
+    let bad_rate = dir.join("rate.toml");
+    std::fs::write(
+        &bad_rate,
+        good.replacen("rate_hz = 64.0", "rate_hz = 500.0", 1),
+    )
+    .unwrap();
+    let bad_cyl = dir.join("cyl.toml");
+    std::fs::write(
+        &bad_cyl,
+        good.replacen(
+            "cylinders = [\"HC3.1\", \"HC3.3\"]",
+            "cylinders = [\"HC9\"]",
+            1,
+        ),
+    )
+    .unwrap();
+    let unknown = dir.join("unknown.toml");
+    std::fs::write(&unknown, format!("{good}\nbudget = 3\n")).unwrap();
+    let out_dir = dir.join("logs");
+    let s = |p: &std::path::Path| p.display().to_string();
+    for (args, want) in [
+        (
+            vec!["plan", "--params", "trapped_air,cdd", "--out", "x.toml"],
+            "cdd".to_string(),
+        ),
+        (
+            vec!["plan", "--precision", "hp_volume=0.1", "--out", "x.toml"],
+            "--precision hp_volume=0.1: `hp_volume` is not among --params".into(),
+        ),
+        (
+            vec!["plan", "--precision", "cd=-1", "--out", "x.toml"],
+            "'--precision <NAME=VALUE>': \"cd=-1\": the value must be a positive number".into(),
+        ),
+        (
+            vec!["plan", "--budget-min", "0", "--out", "x.toml"],
+            "0 outside [1e0, 1.44e3] min".into(),
+        ),
+        (
+            vec!["plan", "--rate", "500", "--out", "x.toml"],
+            "500 outside [1e0, 1.28e2] Hz".into(),
+        ),
+        (
+            vec![
+                "synth-logs",
+                "--campaign",
+                &s(&bad_rate),
+                "--out",
+                &s(&out_dir),
+            ],
+            format!("{}: segment[0].rate_hz = 500: 1 to 128 Hz", s(&bad_rate)),
+        ),
+        (
+            vec![
+                "synth-logs",
+                "--campaign",
+                &s(&bad_cyl),
+                "--out",
+                &s(&out_dir),
+            ],
+            format!("{}: segment[0].run:", s(&bad_cyl)),
+        ),
+        (
+            vec![
+                "synth-logs",
+                "--campaign",
+                &s(&unknown),
+                "--out",
+                &s(&out_dir),
+            ],
+            "unknown field `budget`".into(),
+        ),
+    ] {
+        let out = pto().args(&args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(&want), "{args:?}: {err}");
+    }
+    assert!(!out_dir.exists(), "nothing written on bad input");
+    // A segment's log marked unfinished is not fitted.
+    let bench = pto_host::sim::bench::Bench::reference();
+    let c = pto_host::plan::Campaign::load(
+        &std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml"),
+        &bench,
+    )
+    .unwrap();
+    let mut short = c.segment[0].run.clone();
+    short.duration_s = 10.0;
+    let log = pto_host::fit::synth_scenario_log(
+        &bench,
+        &short,
+        16.0,
+        pto_host::model::sensors::SensorSpec::default(),
+        1,
+        &dir,
+    )
+    .unwrap();
+    log.write().unwrap();
+    pto_host::plan::Record {
+        campaign: "c.toml".into(),
+        index: 0,
+        status: pto_host::plan::Status::Unfinished,
+        note: "interrupted at 10 s of 120".into(),
+        segment: c.segment[0].clone(),
+    }
+    .write_for(&log.path)
+    .unwrap();
+    let out = pto()
+        .args(["fit", &s(&log.path), "--out", &s(&dir.join("fit"))])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("segment 0 of c.toml is marked unfinished (interrupted at 10 s of 120)")
+            && err.contains("rerun that segment"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}

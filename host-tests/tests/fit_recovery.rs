@@ -7,10 +7,15 @@
 //! random (trapped air 0.02–0.10, Cd 0.12–0.20, HP precharge 15–60 bar, η_v 0.85–0.95), the
 //! four fitted together from the seven experimental runs at 10 Hz; each fit either recovers all
 //! four (trapped air ± 0.005, Cd ± 3 %, precharge ± 2 bar, η_v ± 0.01, the truth inside 3σ) or
-//! fails a named check. Two benches in `cargo test`; `PTO_FIT_BENCHES=8` runs the full set of
-//! `docs/fit.md` and prints its table.
+//! fails a named check. One bench in `cargo test`; `PTO_FIT_BENCHES=8` runs the full set of
+//! `docs/fit.md` and prints its table. `randomised_benches_from_a_planned_campaign_are_recovered`:
+//! the same draws from the campaign `pto plan` gives for the reference bench
+//! (`data/campaign-four.toml`), each also fitted from its truth (the χ²ᵣ the fit should end
+//! at); `PTO_FIT_CAMPAIGN_BENCHES=8` for the full set. `a_plant_the_model_does_not_match_…`:
+//! check valves cracking 2 bar above the bench file's — within tolerance or refused.
 
 use pto_host::fit;
+use pto_host::plan::{self, Campaign};
 use pto_host::sim::bench::{Bench, BenchFile, apply_override};
 use pto_host::sim::benchlog::BenchLog;
 use rand::{Rng, SeedableRng};
@@ -142,6 +147,8 @@ struct Outcome {
     failed: Vec<&'static str>,
     recovered: bool,
     chi2: f64,
+    /// χ²ᵣ of the same fit started from the truth.
+    chi2_truth: Option<f64>,
     wall_s: f64,
 }
 
@@ -151,7 +158,15 @@ fn tolerance(k: usize, truth: f64) -> f64 {
     [0.005, 0.03 * truth, 2.0, 0.01][k]
 }
 
-fn recover(k: u64, rng: &mut impl Rng) -> Outcome {
+/// The logs a randomised bench is fitted from.
+enum Source<'a> {
+    /// The paper's seven experimental runs at 10 Hz, a residual every 0.5 s.
+    Paper,
+    /// A campaign's segments at their rates (written with their sidecars: every sample).
+    Campaign(&'a Campaign),
+}
+
+fn recover(k: u64, rng: &mut impl Rng, source: &Source) -> Outcome {
     let truth = [
         rng.random_range(0.02..0.10),
         rng.random_range(0.12..0.20),
@@ -163,15 +178,35 @@ fn recover(k: u64, rng: &mut impl Rng) -> Outcome {
         .zip(truth)
         .map(|(n, v)| format!("{n}={v}"))
         .collect();
-    let dir = tmp(&format!("random-{k}"));
-    let logs = logs_of(
-        &bench_with(&sets),
-        &fit::EXPERIMENTAL_RUNS,
-        10.0,
-        100 * k,
-        &dir,
-    );
+    // Apart per source: the two randomised tests run at once, and a campaign's sidecars are
+    // read at fit time.
+    let dir = tmp(&format!(
+        "random-{}-{k}",
+        match source {
+            Source::Paper => "paper",
+            Source::Campaign(_) => "campaign",
+        }
+    ));
+    let truth_bench = bench_with(&sets);
+    let logs = match source {
+        Source::Paper => logs_of(&truth_bench, &fit::EXPERIMENTAL_RUNS, 10.0, 100 * k, &dir),
+        Source::Campaign(c) => campaign_logs(&truth_bench, c, 100 * k, &dir),
+    };
     let start: BenchFile = Bench::reference().file;
+    // Where the data say the fit should end: the same fit started from the truth.
+    let chi2_truth = match source {
+        Source::Paper => None,
+        Source::Campaign(_) => Some(
+            fit::fit(
+                &truth_bench.file,
+                logs.clone(),
+                &fit::FitOptions::new(&NAMES),
+            )
+            .unwrap()
+            .report
+            .chi2_reduced,
+        ),
+    };
     let o = fit::fit(&start, logs, &fit::FitOptions::new(&NAMES)).unwrap();
     let _ = std::fs::remove_dir_all(&dir);
     let r = o.report;
@@ -197,16 +232,98 @@ fn recover(k: u64, rng: &mut impl Rng) -> Outcome {
             .collect(),
         recovered,
         chi2: r.chi2_reduced,
+        chi2_truth,
         wall_s: r.wall_s,
     }
 }
 
+/// A campaign's logs from `truth`, written with their sidecars and read back as `pto
+/// synth-logs --campaign` writes them.
+fn campaign_logs(truth: &Bench, c: &Campaign, seed: u64, dir: &Path) -> Vec<BenchLog> {
+    std::fs::create_dir_all(dir).unwrap();
+    c.segment
+        .iter()
+        .enumerate()
+        .map(|(i, s)| {
+            plan::synth_segment_log(truth, "planned", i, s, seed + i as u64, dir).unwrap()
+        })
+        .collect()
+}
+
+/// The paper's seven runs: each bench recovered or refused, never a silent miss (with four
+/// parameters, refused on precision: docs/fit.md).
 #[test]
 fn randomised_benches_are_recovered_or_refused() {
-    let n: u64 = std::env::var("PTO_FIT_BENCHES")
+    let n = benches("PTO_FIT_BENCHES", 1);
+    let table = randomised(n, &Source::Paper);
+    if n >= 8 {
+        // The full set runs alone: its wall times are the fit's own.
+        assert!(
+            table.worst_wall <= 60.0,
+            "a full fit takes ≤ 60 s on 2 cores"
+        );
+    }
+}
+
+/// The campaign `pto plan` gives from the reference bench (the four parameters at their
+/// default precisions, 45 min; `host-tests/data/campaign-four.toml`): the drawn bench's logs of it, the four fitted from the
+/// reference bench. On ≥ 7 of 8 every check holds with each value within its tolerance; no
+/// silent miss on any.
+#[test]
+fn randomised_benches_from_a_planned_campaign_are_recovered() {
+    let n = benches("PTO_FIT_CAMPAIGN_BENCHES", 1);
+    // `pto plan`'s campaign from the reference bench, as committed (tests/plan.rs checks that
+    // the plan still gives it).
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
+    let c = Campaign::load(&path, &Bench::reference()).unwrap();
+    println!(
+        "campaign: {} ({:.0} min of bench time)",
+        c.segment
+            .iter()
+            .map(|s| s.run.name.as_str())
+            .collect::<Vec<_>>()
+            .join(", "),
+        c.minutes()
+    );
+    assert!(c.minutes() <= 45.0, "the campaign takes ≤ 45 min");
+    let table = randomised(n, &Source::Campaign(&c));
+    assert!(
+        table.short_of_truth <= 0.1,
+        "a fit ends where the data say: χ²ᵣ within 0.1 of the fit from the truth"
+    );
+    if n >= 8 {
+        assert!(
+            table.passed_recovered >= 7,
+            "{} of {n} recovered with every check holding",
+            table.passed_recovered
+        );
+        assert!(table.worst_wall <= 90.0, "each fit ≤ 90 s on 2 cores");
+    } else {
+        assert_eq!(
+            table.passed_recovered, n as usize,
+            "every bench of the short set recovered"
+        );
+    }
+}
+
+fn benches(var: &str, default: u64) -> u64 {
+    std::env::var(var)
         .ok()
         .and_then(|v| v.parse().ok())
-        .unwrap_or(2);
+        .unwrap_or(default)
+}
+
+/// What a randomised set came to.
+struct Table {
+    passed_recovered: usize,
+    worst_wall: f64,
+    /// The largest amount a passing fit's χ²ᵣ exceeds that of the fit from the truth.
+    short_of_truth: f64,
+}
+
+/// `n` benches drawn (seeded) and fitted from `source`: prints the table, asserts no silent
+/// miss and that a failed fit names its check.
+fn randomised(n: u64, source: &Source) -> Table {
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2026);
     println!(
         "| # | trapped air true → fitted ± σ | Cd | precharge (bar) | η_v | χ² | verdict | s |"
@@ -214,8 +331,10 @@ fn randomised_benches_are_recovered_or_refused() {
     println!("|---|---|---|---|---|---|---|---|");
     let mut silent = Vec::new();
     let mut worst_wall: f64 = 0.0;
+    let mut passed_recovered = 0;
+    let mut short_of_truth: f64 = f64::NEG_INFINITY;
     for k in 1..=n {
-        let o = recover(k, &mut rng);
+        let o = recover(k, &mut rng, source);
         let cell = |j: usize, d: usize| {
             format!(
                 "{:.d$} → {:.d$} ± {:.d$}",
@@ -235,16 +354,25 @@ fn randomised_benches_are_recovered_or_refused() {
                 }
             ),
         };
+        let chi2 = match o.chi2_truth {
+            Some(t) => format!("{:.2} (from the truth {t:.2})", o.chi2),
+            None => format!("{:.2}", o.chi2),
+        };
         println!(
-            "| {k} | {} | {} | {} | {} | {:.2} | {verdict} | {:.0} |",
+            "| {k} | {} | {} | {} | {} | {chi2} | {verdict} | {:.0} |",
             cell(0, 4),
             cell(1, 4),
             cell(2, 2),
             cell(3, 4),
-            o.chi2,
             o.wall_s
         );
+        if let Some(t) = o.chi2_truth
+            && o.passed
+        {
+            short_of_truth = short_of_truth.max(o.chi2 - t);
+        }
         worst_wall = worst_wall.max(o.wall_s);
+        passed_recovered += usize::from(o.passed && o.recovered);
         if o.passed && !o.recovered {
             silent.push(k);
         }
@@ -252,10 +380,84 @@ fn randomised_benches_are_recovered_or_refused() {
             assert!(!o.failed.is_empty(), "a failed fit names its check");
         }
     }
-    println!("slowest fit {worst_wall:.1} s");
-    assert!(silent.is_empty(), "silent misses: benches {silent:?}");
-    if n >= 8 {
-        // The full set runs alone: its wall times are the fit's own.
-        assert!(worst_wall <= 60.0, "a full fit takes ≤ 60 s on 2 cores");
+    println!("slowest fit {worst_wall:.1} s; {passed_recovered} of {n} passed and recovered");
+    if short_of_truth.is_finite() {
+        println!(
+            "a passing fit's χ²ᵣ above the fit from the truth's by at most {short_of_truth:.3}"
+        );
     }
+    assert!(silent.is_empty(), "silent misses: benches {silent:?}");
+    Table {
+        passed_recovered,
+        worst_wall,
+        short_of_truth,
+    }
+}
+
+/// A plant the model does not match stays honest: the planned campaign's logs from a bench
+/// whose check valves crack 2 bar above the bench file's (an effect the fit does not carry,
+/// the four parameters changed too), fitted from the reference bench: either every value
+/// within its tolerance, or a failed check named — never exit 0 out of tolerance.
+///
+/// Fails today (a defect this test found): the fit passes at χ²ᵣ 1.29 with trapped air 0.0564
+/// for 0.04 (27σ, three times the tolerance) — trapped air takes up the check valves' extra
+/// cracking pressure and the goodness check (χ²ᵣ ≤ 2) lets it through. Ignored in `cargo test`
+/// until the verdict catches model error; run it with `-- --ignored`.
+#[test]
+#[ignore = "known defect (docs/fit.md): a plant with check valves cracking 2 bar high passes \
+            out of tolerance"]
+fn a_plant_the_model_does_not_match_is_fitted_within_tolerance_or_refused() {
+    let truth = [0.04, 0.17, 40.0, 0.90];
+    let mut sets: Vec<String> = NAMES
+        .iter()
+        .zip(truth)
+        .map(|(n, v)| format!("{n}={v}"))
+        .collect();
+    sets.push("check_valve.cracking_bar=2.5".into());
+    sets.push("check_valve.full_open_bar=3.5".into());
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
+    let c = Campaign::load(&path, &Bench::reference()).unwrap();
+    let dir = tmp("mismatch");
+    let logs = campaign_logs(&bench_with(&sets), &c, 7, &dir);
+    let o = fit::fit(
+        &Bench::reference().file,
+        logs,
+        &fit::FitOptions::new(&NAMES),
+    )
+    .unwrap();
+    let _ = std::fs::remove_dir_all(&dir);
+    let r = &o.report;
+    let mut within = true;
+    for (j, p) in r.params.iter().enumerate() {
+        let err = (p.value - truth[j]).abs();
+        println!(
+            "{:<12} true {:.4} fitted {:.4} ± {:.4}: off by {err:.4} (tolerance {:.4})",
+            p.name,
+            truth[j],
+            p.value,
+            p.sigma.unwrap_or(f64::NAN),
+            tolerance(j, truth[j])
+        );
+        within &= err <= tolerance(j, truth[j]);
+    }
+    for c in &r.checks {
+        println!(
+            "{} {}: {}",
+            if c.passed { "ok  " } else { "FAIL" },
+            c.name,
+            c.detail
+        );
+    }
+    println!(
+        "χ²ᵣ {:.2}, passed {}, every value within tolerance {within}, {:.0} s",
+        r.chi2_reduced, r.passed, r.wall_s
+    );
+    assert!(
+        !r.passed || within,
+        "a fit that passed with a value out of tolerance: a silent miss"
+    );
+    assert!(
+        r.passed || r.checks.iter().any(|c| !c.passed),
+        "a failure is named"
+    );
 }

@@ -7,37 +7,78 @@ use pto_host::sim::bench::Bench;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn synth_logs_cmd(
     bench: Option<&PathBuf>,
     set: &[String],
     runs: &[String],
+    campaign: Option<&Path>,
     rate: f64,
     seed: u64,
     out: &Path,
     json: bool,
 ) -> Result<bool> {
     use pto_host::fit;
+    use pto_host::sim::scenario::{Scenario, builtin_named};
     let b = load_bench_with(bench, set)?;
-    let names: Vec<String> = if runs.is_empty() {
-        fit::EXPERIMENTAL_RUNS
-            .iter()
-            .map(|s| s.to_string())
-            .collect()
-    } else {
-        runs.to_vec()
+    // (run, its rate)
+    let segments = campaign
+        .map(|c| pto_host::plan::Campaign::load(c, &b))
+        .transpose()?
+        .map(|c| c.segment);
+    let jobs: Vec<(Scenario, f64)> = match &segments {
+        Some(segs) => segs.iter().map(|s| (s.run.clone(), s.rate_hz)).collect(),
+        None => {
+            let names: Vec<String> = if runs.is_empty() {
+                fit::EXPERIMENTAL_RUNS
+                    .iter()
+                    .map(|s| s.to_string())
+                    .collect()
+            } else {
+                runs.to_vec()
+            };
+            names
+                .iter()
+                .map(|n| {
+                    builtin_named(n)
+                        .map(|s| (s, rate))
+                        .ok_or_else(|| fit::FitError::UnknownScenario(n.clone()))
+                })
+                .collect::<Result<_, _>>()?
+        }
     };
     // Written into a staging folder swapped in when every log is written (an interrupted run
     // leaves the previous logs whole).
     let stage = pto_host::output::StagedDir::new(out)?;
     let staged = stage.path().to_path_buf();
-    let pb = count_bar(names.len() as u64, "logs");
-    let logs: Vec<Result<pto_host::sim::benchlog::BenchLog, fit::FitError>> = {
+    let pb = count_bar(jobs.len() as u64, "logs");
+    // Each log written as it is made (a campaign's with its sidecar), in the staging folder.
+    let campaign_name = campaign.map(|c| c.display().to_string());
+    let logs: Vec<Result<pto_host::sim::benchlog::BenchLog>> = {
         use rayon::prelude::*;
-        names
-            .par_iter()
+        jobs.par_iter()
             .enumerate()
-            .map(|(i, n)| {
-                let r = fit::synth_log(&b, n, rate, seed + i as u64, &staged);
+            .map(|(i, (s, hz))| {
+                let seed = seed + i as u64;
+                let r = match (&campaign_name, &segments) {
+                    (Some(c), Some(segs)) => {
+                        pto_host::plan::synth_segment_log(&b, c, i, &segs[i], seed, &staged)
+                            .map_err(|e| anyhow::anyhow!(e))
+                    }
+                    _ => fit::synth_scenario_log(
+                        &b,
+                        s,
+                        *hz,
+                        pto_host::model::sensors::SensorSpec::default(),
+                        seed,
+                        &staged,
+                    )
+                    .map_err(anyhow::Error::from)
+                    .and_then(|l| {
+                        l.write()?;
+                        Ok(l)
+                    }),
+                };
                 pb.inc(1);
                 r
             })
@@ -47,20 +88,21 @@ pub(crate) fn synth_logs_cmd(
     let mut written = Vec::new();
     for l in logs {
         let l = l?;
-        l.write()?;
         let name = l.path.file_name().map(PathBuf::from).unwrap_or_default();
-        written.push((out.join(name), l.t.len()));
+        let hz = ((l.t.len() as f64 - 1.0) / (l.t[l.t.len() - 1] - l.t[0]).max(1e-9) * 1e4).round()
+            / 1e4;
+        written.push((out.join(name), l.t.len(), hz));
     }
     stage.commit()?;
     if json {
         let v: Vec<_> = written
             .iter()
-            .map(|(p, n)| serde_json::json!({"file": p, "samples": n}))
+            .map(|(p, n, hz)| serde_json::json!({"file": p, "samples": n, "rate_hz": hz}))
             .collect();
         println!("{}", serde_json::to_string_pretty(&v)?);
     } else {
-        for (p, n) in &written {
-            println!("{} ({n} samples at {rate} Hz)", p.display());
+        for (p, n, hz) in &written {
+            println!("{} ({n} samples at {hz} Hz)", p.display());
         }
     }
     Ok(true)
@@ -86,6 +128,13 @@ pub(crate) fn fit_cmd(
         .map(|p| BenchLog::read(p))
         .collect::<Result<_, _>>()?;
     for l in &logs {
+        // A campaign's log marked unfinished or off its plan is rerun, not fitted (said
+        // before the minute of fitting; `fit` refuses it too).
+        if let Some(r) = pto_host::plan::Record::read_for(&l.path)?
+            && r.status != pto_host::plan::Status::Complete
+        {
+            return Err(fit::FitError::Segment(Box::new(r), l.path.clone()).into());
+        }
         if l.config > bench.configs.len() {
             bail!(
                 "{}: config {} but the bench has {} configurations",

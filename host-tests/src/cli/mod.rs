@@ -4,6 +4,7 @@ pub(crate) mod firmware;
 pub(crate) mod fit;
 pub(crate) mod link;
 pub(crate) mod model;
+pub(crate) mod plan;
 pub(crate) mod sim;
 pub(crate) mod sweep;
 

@@ -12,15 +12,29 @@ pub fn synth_log(
     seed: u64,
     out: &Path,
 ) -> Result<BenchLog, FitError> {
-    let mut s = crate::sim::scenario::builtin_named(scenario)
+    let s = crate::sim::scenario::builtin_named(scenario)
         .ok_or_else(|| FitError::UnknownScenario(scenario.into()))?;
+    synth_scenario_log(bench, &s, rate_hz, SensorSpec::default(), seed, out)
+}
+
+/// Makes a bench log of any scenario (a campaign's segment: `pto plan`) with the sensors of
+/// `spec` (a spec without noise gives the noise-free log the plan's sensitivities start from),
+/// sampled at `rate_hz`, named `<scenario>.csv` in `out`.
+pub fn synth_scenario_log(
+    bench: &Bench,
+    scenario: &Scenario,
+    rate_hz: f64,
+    spec: SensorSpec,
+    seed: u64,
+    out: &Path,
+) -> Result<BenchLog, FitError> {
+    let mut s = scenario.clone();
     s.sample_interval_s = (0.5 / rate_hz).min(s.sample_interval_s);
     let (prep, res) = s.simulate(bench, Path::new("."), SolverOptions::default(), None)?;
-    let mut synth = SensorSynth::new(SensorSpec::default(), seed);
+    let mut synth = SensorSynth::new(spec, seed);
     let n = (s.duration_s * rate_hz).floor() as usize + 1;
-    let spec = SensorSpec::default();
     let mut log = BenchLog {
-        path: out.join(format!("{scenario}.csv")),
+        path: out.join(format!("{}.csv", s.name)),
         t: Vec::with_capacity(n),
         theta_deg: Vec::with_capacity(n),
         p2_bar: Vec::with_capacity(n),

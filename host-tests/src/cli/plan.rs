@@ -1,0 +1,196 @@
+//! `pto plan`: the campaign that determines the fit's parameters.
+
+use super::{count_bar, load_bench_with, write_atomic};
+use anyhow::{Result, bail};
+use pto_host::fit;
+use pto_host::plan::{self, Goal, Menu};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// `pto plan`'s arguments.
+pub(crate) struct PlanArgs<'a> {
+    pub bench: Option<&'a PathBuf>,
+    pub set: &'a [String],
+    pub params: &'a [String],
+    pub precision: &'a [(String, f64)],
+    pub budget_min: f64,
+    pub rate: f64,
+    pub configs: &'a [u8],
+    pub noise_from: &'a [PathBuf],
+    pub out: &'a Path,
+    pub json: bool,
+}
+
+pub(crate) fn plan_cmd(a: &PlanArgs) -> Result<bool> {
+    let t0 = std::time::Instant::now();
+    let bench = load_bench_with(a.bench, a.set)?;
+    let start = bench.file.clone();
+    let params = fit::params(a.params, &start)?;
+    for (n, v) in a.precision {
+        if !params.iter().any(|p| p.name == *n) {
+            bail!(
+                "--precision {n}={v}: `{n}` is not among --params ({})",
+                a.params.join(",")
+            );
+        }
+        if !(v.is_finite() && *v > 0.0) {
+            bail!("--precision {n}={v}: a precision above 0, in the parameter's unit");
+        }
+    }
+    let needed: Vec<f64> = params
+        .iter()
+        .map(|p| {
+            a.precision
+                .iter()
+                .find(|(n, _)| *n == p.name)
+                .map_or_else(|| p.needed.at((p.get)(&start)), |(_, v)| *v)
+        })
+        .collect();
+    let noise = if a.noise_from.is_empty() {
+        fit::sensor_noise()
+    } else {
+        let logs = a
+            .noise_from
+            .iter()
+            .map(|p| pto_host::sim::benchlog::BenchLog::read(p))
+            .collect::<Result<Vec<_>, _>>()?;
+        fit::noise_of(&logs, None, None, None)
+    };
+    let mut configs: Vec<usize> = a.configs.iter().map(|&c| usize::from(c)).collect();
+    configs.sort_unstable();
+    configs.dedup();
+    if let Some(c) = configs.iter().find(|&&c| c > bench.configs.len()) {
+        bail!(
+            "--configs {c}: the bench has {} geometries",
+            bench.configs.len()
+        );
+    }
+    let menu = Menu {
+        rate_hz: a.rate,
+        configs,
+    };
+    let cands = plan::candidates(&bench, &menu);
+    let n_sims = cands.len() * plan::simulations_per_candidate(params.len());
+    eprintln!(
+        "scoring {} candidate segments ({n_sims} simulations)…",
+        cands.len()
+    );
+    let pb = count_bar(n_sims as u64, "simulations");
+    let tick: fit::Tick = {
+        let pb = pb.clone();
+        Arc::new(move || pb.inc(1))
+    };
+    let scored = plan::score(&start, &params, &noise, cands, Some(tick))?;
+    pb.finish_and_clear();
+    let goal = Goal {
+        needed,
+        budget_min: a.budget_min,
+    };
+    let p = plan::plan(&scored, &params, &start, &noise, &goal);
+    let header = format!(
+        "pto plan: {} from {}, budget {} min, {} Hz; predicted {}",
+        a.params.join(", "),
+        a.bench
+            .map_or("the reference bench".into(), |b| b.display().to_string()),
+        a.budget_min,
+        a.rate,
+        if p.met {
+            "to meet every precision"
+        } else {
+            "NOT to meet every precision"
+        }
+    );
+    if p.campaign.segment.is_empty() {
+        let shortest = scored
+            .iter()
+            .map(|s| s.segment.minutes())
+            .fold(f64::INFINITY, f64::min);
+        eprintln!(
+            "no segment fits within --budget-min {} (the shortest takes {shortest:.1} min): \
+             nothing written",
+            a.budget_min
+        );
+        return Ok(false);
+    }
+    p.campaign.validate(&a.out.display().to_string(), &bench)?;
+    let text = p.campaign.to_toml(&header)?;
+    write_atomic(a.out, text.as_bytes())?;
+    if a.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "out": a.out,
+                "plan": p,
+                "wall_s": t0.elapsed().as_secs_f64(),
+            }))?
+        );
+        return Ok(p.met);
+    }
+    println!(
+        "{} segments, {:.0} min of bench time, {} set-ups by the operator ({} candidates, {:.0} s)",
+        p.campaign.segment.len(),
+        p.minutes,
+        p.interventions,
+        p.candidates,
+        t0.elapsed().as_secs_f64()
+    );
+    let names: Vec<&str> = params.iter().map(|x| x.name.as_str()).collect();
+    println!(
+        "{:<44} {:>5} {:>4}  what it adds (each σ without it → with it)",
+        "segment", "min", "Hz"
+    );
+    for (s, without) in p.campaign.segment.iter().zip(&p.without) {
+        let adds: Vec<String> = names
+            .iter()
+            .zip(without.iter().zip(&p.campaign.predicted))
+            .filter(|(_, (w, q))| **w > q.sigma * 1.05)
+            .map(|(n, (w, q))| format!("{n} {w:.3e} → {:.3e}", q.sigma))
+            .collect();
+        println!(
+            "{:<44} {:>5.1} {:>4}  {}",
+            s.run.name,
+            s.minutes(),
+            s.rate_hz,
+            if adds.is_empty() {
+                "little alone (together with the others)".into()
+            } else {
+                adds.join(", ")
+            }
+        );
+    }
+    println!(
+        "\n{:<12} {:>12} {:>12} {:>12}  verdict",
+        "parameter", "value", "3σ", "needed"
+    );
+    for q in &p.campaign.predicted {
+        println!(
+            "{:<12} {:>12.5} {:>12.5} {:>12.5}  {}",
+            q.name,
+            q.value,
+            3.0 * q.sigma,
+            q.needed,
+            if q.met() { "met" } else { "MISSED" }
+        );
+    }
+    println!("correlations:");
+    for (i, row) in p.correlations.iter().enumerate() {
+        let cells: Vec<String> = row.iter().map(|c| format!("{c:+.3}")).collect();
+        println!("  {:<12} {}", names[i], cells.join(" "));
+    }
+    for s in &p.short {
+        println!(
+            "not determined: {} (3σ {:.3e} against {:.3e}){}; {}",
+            s.name,
+            s.three_sigma,
+            s.needed,
+            s.blocked_by
+                .as_ref()
+                .map_or(String::new(), |(n, r)| format!(
+                    ", correlated {r:+.3} with {n}"
+                )),
+            s.help
+        );
+    }
+    println!("campaign written to {}", a.out.display());
+    Ok(p.met)
+}
