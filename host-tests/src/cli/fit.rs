@@ -128,13 +128,6 @@ pub(crate) fn fit_cmd(
         .map(|p| BenchLog::read(p))
         .collect::<Result<_, _>>()?;
     for l in &logs {
-        // A campaign's log marked unfinished or off its plan is rerun, not fitted (said
-        // before the minute of fitting; `fit` refuses it too).
-        if let Some(r) = pto_host::plan::Record::read_for(&l.path)?
-            && r.status != pto_host::plan::Status::Complete
-        {
-            return Err(fit::FitError::Segment(Box::new(r), l.path.clone()).into());
-        }
         if l.config > bench.configs.len() {
             bail!(
                 "{}: config {} but the bench has {} configurations",

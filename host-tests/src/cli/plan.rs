@@ -39,12 +39,7 @@ pub(crate) fn plan_cmd(a: &PlanArgs) -> Result<bool> {
     }
     let needed: Vec<f64> = params
         .iter()
-        .map(|p| {
-            a.precision
-                .iter()
-                .find(|(n, _)| *n == p.name)
-                .map_or_else(|| p.needed.at((p.get)(&start)), |(_, v)| *v)
-        })
+        .map(|p| p.needed_at((p.get)(&start), a.precision))
         .collect();
     let noise = if a.noise_from.is_empty() {
         fit::sensor_noise()

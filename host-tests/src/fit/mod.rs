@@ -665,11 +665,7 @@ pub fn fit(
             value,
             sigma: determined[j].then(|| sigma_scale * var.sqrt() * dx_dz(p, z[j])),
             bounds: (p.lo, p.hi),
-            needed: opts
-                .precision
-                .iter()
-                .find(|(n, _)| *n == p.name)
-                .map_or_else(|| p.needed.at(value), |(_, x)| *x),
+            needed: p.needed_at(value, &opts.precision),
         });
     }
     let correlations: Vec<Vec<f64>> = (0..np)

@@ -24,6 +24,17 @@ pub struct Param {
     pub needed: Precision,
 }
 
+impl Param {
+    /// The precision this parameter needs at `value`, in its unit: the one stated in
+    /// `precision` (`--precision NAME=VALUE`), else its default.
+    pub fn needed_at(&self, value: f64, precision: &[(String, f64)]) -> f64 {
+        precision
+            .iter()
+            .find(|(n, _)| *n == self.name)
+            .map_or_else(|| self.needed.at(value), |(_, x)| *x)
+    }
+}
+
 /// How precisely a parameter must be known for the fitted bench to be worth using (the
 /// `precision` check: 3σ within it). The defaults are what moves the bench's behaviour by
 /// about its sensors' noise: trapped air ± 0.005, Cd ± 3 %, precharge ± 2 bar, η_v ± 0.01.

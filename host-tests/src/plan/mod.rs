@@ -618,6 +618,16 @@ fn shortfall(sigma: &[f64], needed: &[f64]) -> f64 {
         .sum()
 }
 
+/// The information of the segments `set` of `scored` together (independent noise, per-log
+/// start corrections: the sum).
+fn info_of(scored: &[Scored], set: impl IntoIterator<Item = usize>, n: usize) -> DMatrix<f64> {
+    let mut f = DMatrix::zeros(n, n);
+    for k in set {
+        f += &scored[k].info;
+    }
+    f
+}
+
 fn sigma_of(info: &DMatrix<f64>, params: &[Param]) -> Vec<f64> {
     fit::covariance_of(info, params).0
 }
@@ -650,11 +660,10 @@ fn greedy(scored: &[Scored], params: &[Param], needed: &[f64], budget_min: f64) 
     }
     // Drop what the rest can do without (longest first).
     let met = |set: &[usize]| {
-        let mut f = DMatrix::zeros(n, n);
-        for &k in set {
-            f += &scored[k].info;
-        }
-        shortfall(&sigma_of(&f, params), needed) == 0.0
+        shortfall(
+            &sigma_of(&info_of(scored, set.iter().copied(), n), params),
+            needed,
+        ) == 0.0
     };
     if met(&chosen) {
         let mut by_len = chosen.clone();
@@ -693,20 +702,13 @@ pub fn plan(
             format!("{:?}", s.setup()),
         )
     });
-    let sum = |set: &mut dyn Iterator<Item = usize>| {
-        let mut f = DMatrix::zeros(n, n);
-        for k in set {
-            f += &scored[k].info;
-        }
-        f
-    };
-    let info = sum(&mut chosen.iter().copied());
+    let info = info_of(scored, chosen.iter().copied(), n);
     let (sigma, correlations) = fit::covariance_of(&info, params);
     let without = chosen
         .iter()
         .map(|&k| {
             sigma_of(
-                &sum(&mut chosen.iter().copied().filter(|&j| j != k)),
+                &info_of(scored, chosen.iter().copied().filter(|&j| j != k), n),
                 params,
             )
         })
@@ -735,7 +737,7 @@ pub fn plan(
     } else {
         // Budget aside: the campaign that would meet every precision, if any does.
         let unbounded = greedy(scored, params, &goal.needed, f64::INFINITY);
-        let unbounded_sigma = sigma_of(&sum(&mut unbounded.iter().copied()), params);
+        let unbounded_sigma = sigma_of(&info_of(scored, unbounded.iter().copied(), n), params);
         let would = (shortfall(&unbounded_sigma, &goal.needed) == 0.0).then(|| {
             unbounded
                 .iter()
