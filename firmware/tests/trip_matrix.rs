@@ -671,3 +671,44 @@ fn after_a_reset_nothing_is_energised_until_the_host_asks() {
     assert!(out.iter().all(|o| o.dump && o.on_duty == 0));
     assert_eq!(out.last().unwrap().outputs(), Outputs::DE_ENERGISED);
 }
+
+/// A controller just booted (no host reset: P2 unknown, outputs held) on a bench at rest — the
+/// lever still at count 0, HP steady at 60 bar with the transducer's noise (σ 0.5 bar), the
+/// motor stopped — holds no sensor faulted, over 20 boots of 10 s with different noise: a
+/// still lever with a steady P2 is what a calm bench looks like, and the encoder check must
+/// not take one reading's noise against another's for a rise in P2 (it latched the encoder
+/// within 2 s of every such boot on the twin).
+#[test]
+fn a_booted_controller_at_rest_holds_no_sensor_faulted() {
+    let mut latched = Vec::new();
+    for seed in 1..=20u64 {
+        let mut b = Bench::new(60.0, 0.0);
+        b.c = Controller::new(
+            &ModelConfig::reference(),
+            &SchedulerConfig::default(),
+            &ControlConfig::default(),
+        )
+        .unwrap();
+        // The transducer's noise, σ 0.5 bar (the sensor model's): Box–Muller on a xorshift.
+        let mut x = 0x9e37_79b9_7f4a_7c15u64 ^ seed.wrapping_mul(0x2545_f491_4f6c_dd1d);
+        let mut uniform = move || {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            ((x >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let noise: Vec<f32> = (0..10 * HZ)
+            .map(|_| {
+                let (u, v) = (uniform(), uniform());
+                (0.5 * (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()) as f32
+            })
+            .collect();
+        let outs = b.run(10 * HZ, |i| rest(Some(60.0 + noise[i as usize])));
+        let seen = outs.iter().fold(0u16, |a, o| a | o.estimate.faults);
+        if b.c.status.sensor_faults != 0 {
+            latched.push((seed, seen, b.c.status.sensor_faults));
+        }
+    }
+    println!("20 boots of 10 s at rest: sensors latched in {latched:?}");
+    assert!(latched.is_empty(), "{latched:?}");
+}

@@ -315,7 +315,7 @@ enum Cmd {
     /// hardware port (USART1) while the bench link (USART2) is a pseudo-terminal for
     /// `pto link`. A Test III-like run (HC3.1 + HC3.4, ±40 mm at 0.1 Hz) at a fixed aperture.
     #[command(
-        after_help = "Examples:\n  pto twin --duration 120 --start-after 5 &\n  pto link --port /dev/pts/3 monitor --log twin.csv\n  pto twin --set trapped_air=0.09 --p2-start 40 --aperture 4\n\nExit status:\n  0 the run finished\n  2 bad input, QEMU or the build missing, or the run failed\n  130 interrupted"
+        after_help = "Examples:\n  pto twin --duration 120 --start-after 5 &\n  pto link --port /dev/pts/3 monitor --log twin.csv\n  pto twin --set trapped_air=0.09 --p2-start 40 --aperture 4\n  pto twin --set trapped_air=0.09 --campaign day.toml &\n  pto link --port /dev/pts/3 campaign run day.toml --log-dir day --yes\n\nExit status:\n  0 the run finished\n  2 bad input, QEMU or the build missing, or the run failed\n  130 interrupted"
     )]
     Twin {
         /// The plant's bench file (default: the reference bench).
@@ -324,9 +324,9 @@ enum Cmd {
         /// Override a value of the plant's bench (as for `pto simulate`).
         #[arg(long = "set", value_name = "FIELD=VALUE")]
         set: Vec<String>,
-        /// P2 at the start, bar.
-        #[arg(long, default_value_t = 60.0, value_parser = finite_in(10.0, 125.0, "bar"))]
-        p2_start: f64,
+        /// P2 at the start, bar (default 60; with `--campaign`, its first segment's start).
+        #[arg(long, value_parser = finite_in(10.0, 125.0, "bar"))]
+        p2_start: Option<f64>,
         /// Valve aperture, % (the firmware's mode `fixed`).
         #[arg(long, default_value_t = 10.0, value_parser = finite_in(0.0, 100.0, "%"))]
         aperture: f64,
@@ -337,6 +337,12 @@ enum Cmd {
         /// start `pto link … monitor`).
         #[arg(long, default_value_t = 3.0, value_parser = finite_in(0.0, 600.0, "s"))]
         start_after: f64,
+        /// Follow a campaign instead (`pto link … campaign run` drives the firmware): the lever
+        /// held between segments, each segment's motion and cylinders from when the controller
+        /// energises them until it de-energises them. `--aperture` and `--duration` are then
+        /// the campaign's.
+        #[arg(long)]
+        campaign: Option<PathBuf>,
     },
     /// Firmware cost: instructions per estimator + scheduler step (QEMU, -icount shift=0,
     /// TIM2), flash and static RAM of the bench and QEMU builds.
@@ -528,6 +534,48 @@ enum LinkCmd {
         /// Checks to skip (each is reported as skipped, and the run does not pass).
         #[arg(long, value_enum, value_delimiter = ',')]
         skip: Vec<pto_host::hil::selftest::Skippable>,
+    },
+    /// A planned campaign (`pto plan`): each segment's cylinders, mode and log, the lever set
+    /// by the operator.
+    Campaign {
+        #[command(subcommand)]
+        cmd: CampaignCmd,
+    },
+}
+
+#[derive(Subcommand)]
+enum CampaignCmd {
+    /// Runs the campaign's segments in order: the cylinders de-energised and the valve closed
+    /// while you change the set-up and stop the lever; the estimator restarted from the
+    /// readings; HP let down to the segment's start through the valve (mode hold-pressure; HP
+    /// below it is named and the segment skipped); the segment's aperture reached; then the
+    /// cylinders energised and the log started together while you start the lever, which must
+    /// show the planned motion (amplitude and period within 10 %) within max(4 periods, 20 s).
+    /// One bench log per segment (the monitor's, at the segment's rate, its planned length)
+    /// with a sidecar saying how it came out: complete, unfinished or mismatch (motion off,
+    /// frames lost, a trip, a restart, a sensor held faulted, the start not reached). Running
+    /// it again skips the complete segments. `pto fit DIR/*.csv` takes the folder as it is.
+    #[command(
+        after_help = "Examples:\n  pto plan --params trapped_air,cd,precharge,leakage --out day.toml\n  pto link --port /dev/ttyUSB0 campaign run day.toml --log-dir day\n  pto fit day/*.csv --params trapped_air,cd,precharge,leakage --out day-fit\n\nCtrl-C keeps the finished segments' logs, marks the one under way unfinished and leaves the\ncontroller in its safe state (cylinders de-energised, valve closed); running the command again\nresumes at the first segment not complete. Under the twin: `pto twin --campaign day.toml`.\n\nExit status:\n  0 every segment complete\n  1 a segment marked mismatch or unfinished (named)\n  2 bad input, no answer, or a protocol mismatch\n  130 interrupted"
+    )]
+    Run {
+        /// The campaign file (`pto plan --out`).
+        file: PathBuf,
+        /// Folder of the segments' logs and sidecars (made if missing).
+        #[arg(long)]
+        log_dir: PathBuf,
+        /// The bench file the campaign was planned for (its geometry gives the lever angles
+        /// the encoder must show; default: the reference bench).
+        #[arg(long)]
+        bench: Option<PathBuf>,
+        /// Unattended: no questions (instructions on stderr, a mismatched segment is not
+        /// rerun). Needed when stdin is not a terminal.
+        #[arg(long)]
+        yes: bool,
+        /// Wall-clock seconds to wait, per segment, for HP to come down to the segment's
+        /// start (the lever gets max(4 periods, 20 s) of the log to show its motion).
+        #[arg(long, default_value_t = 300.0, value_parser = finite_in(1.0, 3600.0, "s"))]
+        prepare_wait: f64,
     },
 }
 
@@ -777,6 +825,24 @@ fn main() -> ExitCode {
                     duration,
                 } => monitor_cmd(&t, log.as_ref(), rate, duration, json),
                 LinkCmd::ClearFaults => clear_faults_cmd(&t, json),
+                LinkCmd::Campaign {
+                    cmd:
+                        CampaignCmd::Run {
+                            file,
+                            log_dir,
+                            bench,
+                            yes,
+                            prepare_wait,
+                        },
+                } => cli::link::campaign_run_cmd(
+                    &t,
+                    &file,
+                    &log_dir,
+                    bench.as_ref(),
+                    yes,
+                    prepare_wait,
+                    json,
+                ),
                 LinkCmd::Selftest {
                     yes,
                     window,
@@ -793,6 +859,7 @@ fn main() -> ExitCode {
             aperture,
             duration,
             start_after,
+            campaign,
         } => cli::firmware::twin_cmd(
             bench.as_ref(),
             &set,
@@ -800,6 +867,7 @@ fn main() -> ExitCode {
             aperture,
             duration,
             start_after,
+            campaign.as_ref(),
         ),
     };
     match result {

@@ -6,6 +6,9 @@
 //! host copy of the controller that went through the same session, and its model-only P2 error
 //! against the plant (HP transducer wire break) drops.
 
+mod common;
+
+use common::{Reaped, field, pto, run};
 use pto_firmware::control::{ControlConfig, Controller, NoClock};
 use pto_host::fit;
 use pto_host::hil::build::{self, Build};
@@ -17,8 +20,8 @@ use pto_model::fx::{Aperture, Pressure};
 use pto_model::scheduler::{Mode, SchedulerConfig};
 use pto_model::{Estimate, ModelConfig};
 use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
+use std::path::Path;
+use std::process::Stdio;
 use std::time::{Duration, Instant};
 
 const TRUE_TRAPPED_AIR: f64 = 0.09;
@@ -31,64 +34,14 @@ const RECORD_S: f64 = 60.0;
 const CHECK_S: f64 = 25.0;
 const WIRE_BREAK_S: f64 = 3.0;
 
-/// A child process ended and reaped whatever happens.
-struct Reaped(Child);
-
-impl Drop for Reaped {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
-
-fn pto() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_pto"))
-}
-
-fn run(cmd: &mut Command) -> String {
-    let out = cmd.output().expect("pto runs");
-    let text = String::from_utf8_lossy(&out.stdout).into_owned();
-    assert!(
-        out.status.success(),
-        "{cmd:?} failed ({}):\n{text}\n{}",
-        out.status,
-        String::from_utf8_lossy(&out.stderr)
-    );
-    text
-}
-
-fn wire_break(t: f64) -> Injection {
-    if t >= WIRE_BREAK_S {
-        Injection::HpWireBreak
-    } else {
-        Injection::None
-    }
-}
-
 /// The check run: the charge, the HP transducer's wire breaking at 3 s.
 fn check_run(q: Qemu, plant: &Bench) -> (Qemu, Vec<PilRow>) {
-    let (q, _, rows) = pil::closed_loop(
-        q,
-        plant,
-        pil::fixed(0.0),
-        P2_START_BAR,
-        CHECK_S,
-        SensorSpec::default(),
-        Box::new(wire_break),
-    )
-    .expect("check run");
-    (q, rows)
+    common::check_run(q, plant, P2_START_BAR, CHECK_S, WIRE_BREAK_S)
 }
 
 /// RMS of the firmware's P2 estimate against the plant while the estimate runs on the model.
 fn model_only_rms_bar(rows: &[PilRow]) -> f64 {
-    let e: Vec<f64> = rows
-        .iter()
-        .filter(|r| r.t >= WIRE_BREAK_S)
-        .filter_map(|r| r.estimate.map(|e| f64::from(e.p2.to_f32()) - r.p2_bar))
-        .collect();
-    assert!(e.len() > 10_000, "{} model-only steps", e.len());
-    (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt()
+    common::model_only_rms_bar(rows, WIRE_BREAK_S)
 }
 
 /// A host copy of the firmware's controller follows one closed-loop run as the firmware did
@@ -132,11 +85,6 @@ fn wait_line(
         }
     }
     panic!("no {what:?} within {timeout:?}; saw {seen:?}");
-}
-
-fn field(json: &str, pointer: &str) -> serde_json::Value {
-    let v: serde_json::Value = serde_json::from_str(json).expect("json");
-    v.pointer(pointer).cloned().unwrap_or_default()
 }
 
 #[test]
@@ -249,18 +197,8 @@ fn a_fitted_configuration_goes_from_the_bench_log_to_the_twin() {
         (fitted - TRUE_TRAPPED_AIR).abs() <= 0.005,
         "fitted trapped air {fitted}"
     );
-    let model_file: PathBuf = field(&out, "/model_file")
-        .as_str()
-        .map(PathBuf::from)
-        .expect("the fit writes the model configuration");
-
     // The upload over the pseudo-terminal, then its read-back.
-    let up = run(pto()
-        .args(["link", "--port"])
-        .arg(&pty)
-        .args(["--json", "config", "upload"])
-        .arg(&model_file));
-    println!("upload: {up}");
+    let (model_file, up) = common::upload_fitted(&out, &pty);
     let fitted_cfg = load_model(&model_file);
     assert!((f64::from(fitted_cfg.trapped_air_fraction) - fitted).abs() < 1e-6);
     let shown = run(pto()

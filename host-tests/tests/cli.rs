@@ -703,6 +703,16 @@ fn campaign_inputs_are_checked_and_named() {
     .unwrap();
     let unknown = dir.join("unknown.toml");
     std::fs::write(&unknown, format!("{good}\nbudget = 3\n")).unwrap();
+    let table = dir.join("table.toml");
+    std::fs::write(
+        &table,
+        good.replacen(
+            "kind = \"constant\"\naperture_pct = 9.0",
+            "kind = \"table\"\ntime_s = [0.0]\naperture_pct = [9.0]",
+            1,
+        ),
+    )
+    .unwrap();
     let out_dir = dir.join("logs");
     let s = |p: &std::path::Path| p.display().to_string();
     for (args, want) in [
@@ -755,6 +765,64 @@ fn campaign_inputs_are_checked_and_named() {
                 &s(&out_dir),
             ],
             "unknown field `budget`".into(),
+        ),
+        // The runner refuses what the controller cannot do by itself, before any port.
+        (
+            vec![
+                "link",
+                "--port",
+                "/dev/pto-no-such-port",
+                "campaign",
+                "run",
+                &s(&table),
+                "--log-dir",
+                &s(&out_dir),
+                "--yes",
+            ],
+            "segment[0] (moving-cfg1-9pct-from100): valve: the runner sets one fixed aperture"
+                .to_string(),
+        ),
+        (
+            vec![
+                "link",
+                "--port",
+                "/dev/pto-no-such-port",
+                "campaign",
+                "run",
+                &s(&bad_rate),
+                "--log-dir",
+                &s(&out_dir),
+                "--yes",
+            ],
+            format!("{}: segment[0].rate_hz = 500", s(&bad_rate)),
+        ),
+        (
+            vec![
+                "link",
+                "--port",
+                "x",
+                "campaign",
+                "run",
+                "c.toml",
+                "--log-dir",
+                &s(&out_dir),
+                "--prepare-wait",
+                "0",
+            ],
+            "0 outside [1e0, 3.6e3] s".into(),
+        ),
+        (
+            vec![
+                "link",
+                "--port",
+                "x",
+                "campaign",
+                "run",
+                "c.toml",
+                "--log-dir",
+                &s(&out_dir),
+            ],
+            "stdin is not a terminal".into(),
         ),
     ] {
         let out = pto().args(&args).output().unwrap();

@@ -266,7 +266,13 @@ pub fn step(
     let refresh = est.background_units == 0;
     // (feed-forward, error, kp, ki)
     let (ff, err, kp, ki) = match mode {
-        Mode::Fixed(a) => (a.0, ZERO, ZERO, ZERO),
+        Mode::Fixed(a) => {
+            // A fixed aperture is the aperture asked: no integral carried over from a mode
+            // that ran before (a hold's wound-up term held the valve 15 % open on the twin),
+            // and a regulating mode that follows starts its integral afresh.
+            st.integ = ZERO;
+            (a.0, ZERO, ZERO, ZERO)
+        }
         Mode::HoldPressure(p) => (
             feed_forward(k, st, refresh, dp, est.q_pump_mean.0),
             est.p2.0.saturating_sub(p.0),

@@ -182,3 +182,51 @@ fn feed_forward_is_held_while_a_reversal_is_worked_on() {
     assert_eq!(a_held, a_old);
     assert!(a_new > a_old);
 }
+
+/// A fixed aperture is the aperture asked, whatever mode ran before: after holding a pressure
+/// above its set-point (the integral term wound up), `Fixed(0)` closes the valve within the
+/// rate limit's time (it held 15 % on the twin: the hold's integral carried over).
+#[test]
+fn a_fixed_aperture_after_a_hold_is_the_aperture_asked() {
+    use pto_model::estimator::Estimate;
+    use pto_model::fx::{Aperture, Flow};
+    let k = coeffs();
+    let cfg = SchedulerConfig::default();
+    let sc = cfg.coefficients(k).unwrap();
+    let est = Estimate {
+        p2: Pressure::from_num(70.0),
+        lp: Pressure::from_num(8.0),
+        q_pump_mean: Flow::from_num(3.0),
+        ..Default::default()
+    };
+    let mut st = SchedulerState::default();
+    let hold = Mode::HoldPressure(Pressure::from_num(60.0));
+    for _ in 0..20_000 {
+        scheduler::step(k, &sc, &mut st, hold, &est, None);
+    }
+    let held = st;
+    let steps_per_s = 1u32 << k.dt_log2;
+    let mut a = Aperture::ZERO;
+    // The slew from 100 % at the rate limit, and a step more.
+    let n = (100.0 / cfg.rate_limit_pct_per_s * steps_per_s as f32) as u32 + 2;
+    for _ in 0..n {
+        a = scheduler::step(k, &sc, &mut st, Mode::Fixed(Aperture::ZERO), &est, None).aperture;
+    }
+    println!(
+        "aperture after holding 60 bar at 70: {} %; {n} steps of fixed 0 %: {} %",
+        scheduler::step(k, &sc, &mut held.clone(), hold, &est, None)
+            .aperture
+            .to_f32(),
+        a.to_f32()
+    );
+    assert_eq!(a, Aperture::ZERO);
+    let b = scheduler::step(
+        k,
+        &sc,
+        &mut st,
+        Mode::Fixed(Aperture::from_num(12.0)),
+        &est,
+        None,
+    );
+    assert!(b.aperture <= Aperture::from_num(12.0));
+}

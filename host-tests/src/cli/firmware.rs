@@ -188,16 +188,32 @@ pub(crate) fn fw_cost_cmd(json: bool, trace: Option<&Path>) -> Result<bool> {
 pub(crate) fn twin_cmd(
     bench: Option<&PathBuf>,
     set: &[String],
-    p2_start: f64,
+    p2_start: Option<f64>,
     aperture: f64,
     duration: f64,
     start_after: f64,
+    campaign: Option<&PathBuf>,
 ) -> Result<bool> {
     use pto_host::hil::build::{self, Build};
     use pto_host::hil::pil;
     use pto_host::hil::qemu::Qemu;
     use pto_host::model::sensors::SensorSpec;
     let plant = super::load_bench_with(bench, set)?;
+    let campaign = campaign
+        .map(|p| {
+            let c = pto_host::plan::Campaign::load(p, &plant)?;
+            pto_host::hil::campaign::check_runnable(&c)?;
+            anyhow::Ok(c)
+        })
+        .transpose()?;
+    let p2_start = p2_start
+        .or_else(|| {
+            campaign
+                .as_ref()
+                .and_then(|c| c.segment.first())
+                .and_then(|s| s.run.initial_hp_bar)
+        })
+        .unwrap_or(60.0);
     eprintln!("building the QEMU firmware…");
     let elf = build::build(Build::Qemu)?;
     let q = Qemu::boot_twin(&elf, false)?;
@@ -213,6 +229,32 @@ pub(crate) fn twin_cmd(
     use std::io::Write as _;
     let _ = std::io::stdout().flush();
     std::thread::sleep(std::time::Duration::from_secs_f64(start_after));
+    if let Some(c) = campaign {
+        eprintln!(
+            "plant: {} from P2 {p2_start} bar, following {} segments ({:.1} min of bench time)",
+            plant.source,
+            c.segment.len(),
+            c.minutes()
+        );
+        let t0 = std::time::Instant::now();
+        let (q, phases) = pto_host::hil::twin::run_campaign(
+            q,
+            &plant,
+            &c,
+            p2_start,
+            SensorSpec::default(),
+            |m| eprintln!("{m}"),
+        )?;
+        let simulated: f64 = phases.iter().map(|p| p.duration_s).sum();
+        println!(
+            "campaign done: {} segments, {simulated:.0} s simulated in {:.0} s wall; plant P2 at the end {:.1} bar",
+            c.segment.len(),
+            t0.elapsed().as_secs_f64(),
+            phases.last().map_or(p2_start, |p| p.p2_end_bar)
+        );
+        drop(q);
+        return Ok(true);
+    }
     eprintln!(
         "plant: {} from P2 {p2_start} bar, valve fixed {aperture} %, {duration} s",
         plant.source

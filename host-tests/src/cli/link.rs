@@ -429,6 +429,19 @@ pub(crate) fn monitor_cmd(
     Ok(frames > 0 && lost == 0 && bad == 0 && not_sent == Some(0) && restarts == 0)
 }
 
+/// The operator of a guided command: at the terminal, or unattended with `--yes` (needed when
+/// stdin is not a terminal).
+fn operator(yes: bool) -> Result<Box<dyn pto_host::hil::selftest::Operator>> {
+    use pto_host::hil::selftest::{AtTerminal, Unattended};
+    if yes {
+        Ok(Box::new(Unattended))
+    } else if std::io::stdin().is_terminal() {
+        Ok(Box::new(AtTerminal))
+    } else {
+        bail!("stdin is not a terminal: answer the questions at one, or run unattended with --yes")
+    }
+}
+
 pub(crate) fn selftest_cmd(
     t: &Target,
     yes: bool,
@@ -438,15 +451,13 @@ pub(crate) fn selftest_cmd(
     skip: Vec<pto_host::hil::selftest::Skippable>,
     json: bool,
 ) -> Result<bool> {
-    use pto_host::hil::selftest::{self as st, AtTerminal, Operator, Unattended};
+    use pto_host::hil::selftest as st;
     for (name, v, hi) in [("--window", window_s, 600.0), ("--hold", hold_s, 60.0)] {
         if !(v.is_finite() && v > 0.0 && v <= hi) {
             bail!("{name} {v}: outside (0, {hi}] s");
         }
     }
-    if !yes && !std::io::stdin().is_terminal() {
-        bail!("stdin is not a terminal: answer the questions at one, or run unattended with --yes");
-    }
+    let mut op = operator(yes)?;
     let opts = st::Options {
         window: Duration::from_secs_f64(window_s),
         hold: Duration::from_secs_f64(hold_s),
@@ -455,11 +466,6 @@ pub(crate) fn selftest_cmd(
     };
     let (mut l, h) = connect(t)?;
     pto_host::output::stop_on_interrupt();
-    let mut op: Box<dyn Operator> = if yes {
-        Box::new(Unattended)
-    } else {
-        Box::new(AtTerminal)
-    };
     let r = st::run(&mut l, &opts, op.as_mut())?;
     if json {
         println!(
@@ -523,4 +529,110 @@ pub(crate) fn clear_faults_cmd(t: &Target, json: bool) -> Result<bool> {
         }
     }
     Ok(held == 0)
+}
+
+pub(crate) fn campaign_run_cmd(
+    t: &Target,
+    file: &Path,
+    log_dir: &Path,
+    bench: Option<&PathBuf>,
+    yes: bool,
+    prepare_wait_s: f64,
+    json: bool,
+) -> Result<bool> {
+    use pto_host::hil::campaign::{self, Waits};
+    use pto_host::plan::{Campaign, Status};
+    let mut op = operator(yes)?;
+    let b = super::load_bench_with(bench, &[])?;
+    let c = Campaign::load(file, &b)?;
+    campaign::check_runnable(&c)?;
+    let (mut l, h) = connect(t)?;
+    pto_host::output::stop_on_interrupt();
+    let waits = Waits {
+        prepare: Duration::from_secs_f64(prepare_wait_s),
+        ..Waits::default()
+    };
+    let r = campaign::run(
+        &mut l,
+        h.dt_log2,
+        &b,
+        &c,
+        &file.display().to_string(),
+        log_dir,
+        waits,
+        op.as_mut(),
+    )?;
+    let complete = r.complete(c.segment.len());
+    if json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&serde_json::json!({
+                "campaign": file.display().to_string(),
+                "log_dir": log_dir.display().to_string(),
+                "segments": r.segments,
+                "interrupted": r.interrupted,
+                "complete": complete,
+            }))?
+        );
+    } else {
+        println!(
+            "{:<44} {:<10} {:>7} {:>5}  {:<26} note",
+            "segment", "status", "rows", "lost", "lever seen (planned)"
+        );
+        for o in &r.segments {
+            let lever = match (o.motion, o.planned) {
+                (Some(m), Some(p)) => format!(
+                    "±{:.1}° {} (±{:.1}° {})",
+                    m.amplitude_deg,
+                    m.period_s.map_or("—".into(), |x| format!("{x:.2} s")),
+                    p.amplitude_deg,
+                    p.period_s.map_or("held".into(), |x| format!("{x:.2} s")),
+                ),
+                _ => String::new(),
+            };
+            println!(
+                "{:<44} {:<10} {:>7} {:>5}  {:<26} {}",
+                o.name,
+                match (o.status, o.skipped) {
+                    (Status::Complete, true) => "done",
+                    (Status::Complete, false) => "complete",
+                    (Status::Mismatch, _) => "MISMATCH",
+                    (Status::Unfinished, _) => "UNFINISHED",
+                },
+                o.rows,
+                o.lost,
+                lever,
+                o.note
+            );
+        }
+        let not: Vec<&str> = c
+            .segment
+            .iter()
+            .map(|s| s.run.name.as_str())
+            .filter(|n| {
+                !r.segments
+                    .iter()
+                    .any(|o| o.name == *n && o.status == Status::Complete)
+            })
+            .collect();
+        if not.is_empty() {
+            println!(
+                "{} of {} segments complete; not complete: {} — run the same command again to \
+                 run them",
+                c.segment.len() - not.len(),
+                c.segment.len(),
+                not.join(", ")
+            );
+        } else {
+            println!(
+                "every segment complete; next: pto fit {}/*.csv --params {} --out FIT",
+                log_dir.display(),
+                c.params.join(",")
+            );
+        }
+    }
+    if r.interrupted {
+        std::process::exit(130);
+    }
+    Ok(complete)
 }

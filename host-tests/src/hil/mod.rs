@@ -5,9 +5,11 @@
 //! freshly flashed controller ([`selftest`]).
 
 pub mod build;
+pub mod campaign;
 pub mod client;
 pub mod fw_cost;
 pub mod link;
 pub mod pil;
 pub mod qemu;
 pub mod selftest;
+pub mod twin;

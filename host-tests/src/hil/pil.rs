@@ -219,8 +219,13 @@ pub struct FirmwareController {
     inject: Box<dyn Fn(f64) -> Injection>,
     /// The faulty sensor's reading when its [`Injection::Sensor`] began.
     fault_start: Option<f64>,
-    /// Every step.
+    /// Every step (none kept after [`FirmwareController::keep_rows`]`(false)`).
     pub rows: Vec<PilRow>,
+    keep_rows: bool,
+    /// The solenoids the firmware energised at its last output (bit i = HC3.(i+1)).
+    pub on_duty: u8,
+    /// Ends the run (before its duration) when the firmware energises exactly these solenoids.
+    pub end_on_duty: Option<u8>,
     /// The first failed exchange (the run then holds the last command).
     pub error: Option<PilError>,
 }
@@ -247,8 +252,24 @@ impl FirmwareController {
             inject,
             fault_start: None,
             rows: Vec::new(),
+            keep_rows: true,
+            on_duty: 0,
+            end_on_duty: None,
             error: None,
         })
+    }
+
+    /// Keeps the rows of the steps (the default) or not (a campaign's hours at 1 kHz).
+    pub fn keep_rows(&mut self, keep: bool) {
+        self.keep_rows = keep;
+        if !keep {
+            self.rows = Vec::new();
+        }
+    }
+
+    /// Gives back the firmware.
+    pub fn into_qemu(self) -> Qemu {
+        self.q
     }
 
     fn frame(&mut self, theta: f64, truth: &Truth, inj: Injection) -> SensorFrame {
@@ -385,8 +406,10 @@ impl ValveController for FirmwareController {
                     command,
                     applied,
                     dump,
+                    on_duty,
                     ..
                 })) => {
+                    self.on_duty = on_duty;
                     self.applied = f64::from(applied.to_f32());
                     self.dump = dump;
                     row.estimate = Some(estimate);
@@ -410,8 +433,14 @@ impl ValveController for FirmwareController {
             }
         }
         self.tick = self.tick.wrapping_add(1);
-        self.rows.push(row);
+        if self.keep_rows {
+            self.rows.push(row);
+        }
         self.applied
+    }
+
+    fn finished(&self) -> bool {
+        self.error.is_some() || self.end_on_duty == Some(self.on_duty)
     }
 }
 

@@ -125,6 +125,13 @@ pub struct Qemu {
     stderr: Arc<Mutex<String>>,
 }
 
+impl Qemu {
+    /// QEMU's process id (a test's watchdog can end a session the host side waits on).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+}
+
 static SEQ: AtomicU32 = AtomicU32::new(0);
 
 /// Every running QEMU child (its process id, which is also its process group's, and its

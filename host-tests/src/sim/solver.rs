@@ -22,6 +22,11 @@ pub trait ValveController {
     fn period(&self) -> f64;
     /// New aperture command from the plant's values at time `t`.
     fn update(&mut self, t: f64, plant: &Eval) -> f64;
+    /// Whether the run should end here, before its duration (asked after each update; the
+    /// result then ends at the update's time).
+    fn finished(&self) -> bool {
+        false
+    }
 }
 
 /// How the control valve is driven.
@@ -516,6 +521,9 @@ pub fn simulate_with<C: ValveController + 'static>(
         fn update(&mut self, t: f64, plant: &Eval) -> f64 {
             self.0.borrow_mut().update(t, plant)
         }
+        fn finished(&self) -> bool {
+            self.0.borrow().finished()
+        }
     }
     let shared = std::rc::Rc::new(std::cell::RefCell::new(controller));
     run.valve = ValveSchedule::Controller(Box::new(Lent(shared.clone())));
@@ -646,7 +654,7 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
             message: e.to_string(),
         })?;
 
-    let t_end = run.duration;
+    let mut t_end = run.duration;
     let n_samples = (t_end / run.sample_dt + 1e-9).floor() as usize + 1;
     let mut trace = Trace::default();
     trace.push(0.0, &plant.evaluate(0.0, &y0, None, false));
@@ -737,7 +745,15 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
                 let e = plant.evaluate(t_now, &yv, None, false);
                 let cmd = match &mut run.valve {
                     ValveSchedule::Table(tab) => table_at(tab, t_now),
-                    ValveSchedule::Controller(c) => c.update(t_now, &e),
+                    ValveSchedule::Controller(c) => {
+                        let a = c.update(t_now, &e);
+                        if c.finished() {
+                            // The trace already holds every sample up to here.
+                            t_end = t_now;
+                            break;
+                        }
+                        a
+                    }
                     _ => plant.command_pct.get(),
                 }
                 .clamp(0.0, 100.0);

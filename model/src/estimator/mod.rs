@@ -31,6 +31,12 @@ use crate::fx::{
 };
 use crate::table::Table1;
 
+/// P2's variance at or below which the estimate counts as settled on the readings, bar²
+/// (σ 0.125 bar, a sixteenth of the reference HP reading's 0.25 bar²: ≈ 16 readings averaged,
+/// so the stuck-encoder check's 1 bar is 8σ of its baseline; a reset starts at σ 1 bar, boot
+/// far above; the steady σ is ≈ 0.05 bar).
+pub const SETTLED_VAR: Fx = Fx::from_bits(1 << 10);
+
 /// Fault flags (bit set).
 pub mod fault {
     /// HP transducer reading missing or outside its range (wire break reads below range).
@@ -333,7 +339,16 @@ pub fn step(k: &Coefficients, s: &mut State, inp: &Inputs) -> Estimate {
     let dtl = k.dt_log2;
     let mut faults = 0u16;
     // --- Shaft: α–β–γ tracker on the encoder angle.
-    let (theta, omega) = track(&k.tracker, dtl, &mut s.tracker, s.node.p2, inp, &mut faults);
+    let settled = s.node.var <= SETTLED_VAR;
+    let (theta, omega) = track(
+        &k.tracker,
+        dtl,
+        &mut s.tracker,
+        s.node.p2,
+        settled,
+        inp,
+        &mut faults,
+    );
     // --- Spool lag.
     let (cmd, first) = spool(&k.branch, &mut s.branch, inp.aperture_cmd.0);
     // --- Cylinders: delivered flow, suction flow, torque.

@@ -23,7 +23,10 @@ pub struct TrackerState {
     pub last_count: i32,
     /// Steps since the encoder last changed.
     pub still_steps: u16,
-    /// HP reading when the encoder last changed, bar.
+    /// P2 estimate when the encoder last changed (or, while the estimate is not settled on the
+    /// readings, at the last step), bar: the stuck-encoder check's rise is the estimate's rise
+    /// from it. The estimate, not a raw reading: one reading's noise (σ 0.5 bar on the
+    /// reference bench) against another's passed the 1 bar rise within 2 s of a lever at rest.
     pub hp_at_change: Fx,
 }
 
@@ -47,7 +50,6 @@ pub(super) fn tracker_startup(
     dtl: u8,
     theta_meas: i64,
     count: i32,
-    hp: Option<Pressure>,
     p2: Fx,
 ) {
     if t.phase == ENC_UNSEEN {
@@ -57,7 +59,7 @@ pub(super) fn tracker_startup(
         t.accel_q32 = 0;
         t.phase = c.tracker_startup_len.saturating_add(ENC_TRACKING);
         t.last_count = count;
-        t.hp_at_change = hp.map_or(p2, |p| p.0);
+        t.hp_at_change = p2;
         return;
     }
     // The prediction with the acceleration at 0, as it is all through the start-up.
@@ -91,6 +93,7 @@ pub(super) fn track(
     dtl: u8,
     t: &mut TrackerState,
     p2: Fx,
+    settled: bool,
     inp: &Inputs,
     faults: &mut u16,
 ) -> (Fx, Fx) {
@@ -124,18 +127,20 @@ pub(super) fn track(
                     + ((r * i64::from(c.gamma_over_dt2_q16) + (1 << 15)) >> 16))
                     .clamp(-ACCEL_LIM_Q32, ACCEL_LIM_Q32);
             } else {
-                tracker_startup(t, c, dtl, theta_meas, count, inp.hp, p2);
+                tracker_startup(t, c, dtl, theta_meas, count, p2);
             }
             if count != t.last_count {
                 t.last_count = count;
                 t.still_steps = 0;
-                t.hp_at_change = inp.hp.map_or(p2, |p| p.0);
+                t.hp_at_change = p2;
             } else {
                 t.still_steps = t.still_steps.saturating_add(1);
-                if t.still_steps >= c.stuck_steps
-                    && inp
-                        .hp
-                        .is_some_and(|p| p.0.saturating_sub(t.hp_at_change) > ONE)
+                if !settled {
+                    // From boot or a reset the estimate climbs to the readings: that is no rise.
+                    t.hp_at_change = p2;
+                } else if t.still_steps >= c.stuck_steps
+                    && inp.hp.is_some()
+                    && p2.saturating_sub(t.hp_at_change) > ONE
                 {
                     *faults |= fault::ENCODER_STUCK;
                 }

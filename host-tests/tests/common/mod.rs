@@ -1,0 +1,101 @@
+//! What the end-to-end tests on the QEMU twin share: the `pto` binary and its reaped children,
+//! a JSON field of its output, and the check of the firmware's model-only P2 error (the HP
+//! transducer's wire broken, the estimate on the model alone) against the plant.
+
+#![allow(dead_code)]
+
+use pto_host::hil::pil::{self, Injection, PilRow};
+use pto_host::hil::qemu::Qemu;
+use pto_host::model::sensors::SensorSpec;
+use pto_host::sim::bench::Bench;
+use std::process::{Child, Command};
+
+/// A child process ended and reaped whatever happens.
+pub struct Reaped(pub Child);
+
+impl Drop for Reaped {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// The `pto` binary.
+pub fn pto() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_pto"))
+}
+
+/// Runs `cmd`, asserting it succeeds; returns its stdout.
+pub fn run(cmd: &mut Command) -> String {
+    let out = cmd.output().expect("pto runs");
+    let text = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{cmd:?} failed ({}):\n{text}\n{}",
+        out.status,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    text
+}
+
+/// The value at `pointer` in a JSON text (null if absent).
+pub fn field(json: &str, pointer: &str) -> serde_json::Value {
+    let v: serde_json::Value = serde_json::from_str(json).expect("json");
+    v.pointer(pointer).cloned().unwrap_or_default()
+}
+
+/// The model configuration `pto fit --json` wrote (`out` its output), uploaded over the twin's
+/// pseudo-terminal `pty` with `pto link config upload`; returns the file and the upload's JSON.
+pub fn upload_fitted(out: &str, pty: &std::path::Path) -> (std::path::PathBuf, String) {
+    let model_file = field(out, "/model_file")
+        .as_str()
+        .map(std::path::PathBuf::from)
+        .expect("the fit writes the model configuration");
+    let up = run(pto()
+        .args(["link", "--port"])
+        .arg(pty)
+        .args(["--json", "config", "upload"])
+        .arg(&model_file));
+    println!("upload: {up}");
+    (model_file, up)
+}
+
+/// The model-only check: a charge with the valve closed from `p2_start` bar for `check_s`
+/// seconds, the HP transducer's wire breaking at `wire_break_s`.
+pub fn check_run(
+    q: Qemu,
+    plant: &Bench,
+    p2_start: f64,
+    check_s: f64,
+    wire_break_s: f64,
+) -> (Qemu, Vec<PilRow>) {
+    let (q, _, rows) = pil::closed_loop(
+        q,
+        plant,
+        pil::fixed(0.0),
+        p2_start,
+        check_s,
+        SensorSpec::default(),
+        Box::new(move |t| {
+            if t >= wire_break_s {
+                Injection::HpWireBreak
+            } else {
+                Injection::None
+            }
+        }),
+    )
+    .expect("check run");
+    (q, rows)
+}
+
+/// RMS of the firmware's P2 estimate against the plant from `from_s` on (while the estimate
+/// runs on the model), bar.
+pub fn model_only_rms_bar(rows: &[PilRow], from_s: f64) -> f64 {
+    let e: Vec<f64> = rows
+        .iter()
+        .filter(|r| r.t >= from_s)
+        .filter_map(|r| r.estimate.map(|e| f64::from(e.p2.to_f32()) - r.p2_bar))
+        .collect();
+    assert!(e.len() > 10_000, "{} model-only steps", e.len());
+    (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt()
+}
