@@ -1,8 +1,9 @@
 //! The firmware in the loop: its builds ([`build`]), the link to a controller over a serial
 //! port or a QEMU socket ([`link`]) and what the bench engineer does over it ([`client`]), QEMU
 //! runs of the firmware ([`qemu`]), processor-in-the-loop with the full simulation ([`pil`]),
-//! the firmware's cost per step and per build ([`fw_cost`]), and the bring-up self-test of a
-//! freshly flashed controller ([`selftest`]).
+//! the firmware's cost per step and per build ([`fw_cost`]), the bring-up self-test of a
+//! freshly flashed controller ([`selftest`]), a planned campaign run on the controller
+//! ([`campaign`]) and the twin's plant following one ([`twin`]).
 
 pub mod build;
 pub mod campaign;
