@@ -315,7 +315,7 @@ enum Cmd {
     /// hardware port (USART1) while the bench link (USART2) is a pseudo-terminal for
     /// `pto link`. A Test III-like run (HC3.1 + HC3.4, ±40 mm at 0.1 Hz) at a fixed aperture.
     #[command(
-        after_help = "Examples:\n  pto twin --duration 120 --start-after 5 &\n  pto link --port /dev/pts/3 monitor --log twin.csv\n  pto twin --set trapped_air=0.09 --p2-start 40 --aperture 4\n  pto twin --set trapped_air=0.09 --campaign day.toml &\n  pto link --port /dev/pts/3 campaign run day.toml --log-dir day --yes\n\nExit status:\n  0 the run finished\n  2 bad input, QEMU or the build missing, or the run failed\n  130 interrupted"
+        after_help = "Examples:\n  pto twin --duration 120 --start-after 5 &\n  pto link --port /dev/pts/3 monitor --log twin.csv\n  pto twin --set trapped_air=0.09 --p2-start 40 --aperture 4\n  pto twin --set trapped_air=0.09 --campaign day.toml &\n  pto link --port /dev/pts/3 campaign run day.toml --log-dir day --yes\n\nExit status:\n  0 the run finished\n  2 bad input, QEMU or the build missing, the run failed, or (with --campaign) the runner stalled\n  130 interrupted"
     )]
     Twin {
         /// The plant's bench file (default: the reference bench).

@@ -715,6 +715,8 @@ fn campaign_inputs_are_checked_and_named() {
     .unwrap();
     let out_dir = dir.join("logs");
     let s = |p: &std::path::Path| p.display().to_string();
+    let good_file =
+        s(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml"));
     for (args, want) in [
         (
             vec!["plan", "--params", "trapped_air,cdd", "--out", "x.toml"],
@@ -818,7 +820,7 @@ fn campaign_inputs_are_checked_and_named() {
                 "x",
                 "campaign",
                 "run",
-                "c.toml",
+                &good_file,
                 "--log-dir",
                 &s(&out_dir),
             ],

@@ -542,10 +542,10 @@ pub(crate) fn campaign_run_cmd(
 ) -> Result<bool> {
     use pto_host::hil::campaign::{self, Waits};
     use pto_host::plan::{Campaign, Status};
-    let mut op = operator(yes)?;
     let b = super::load_bench_with(bench, &[])?;
     let c = Campaign::load(file, &b)?;
     campaign::check_runnable(&c)?;
+    let mut op = operator(yes)?;
     let (mut l, h) = connect(t)?;
     pto_host::output::stop_on_interrupt();
     let waits = Waits {
