@@ -170,3 +170,90 @@ fn a_planned_campaign_runs_on_the_twin_and_its_fit_goes_back_to_the_firmware() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Resuming: a folder whose every segment is complete runs nothing (each skipped, exit 0); a
+/// complete log of a differently planned segment of the same name is refused before any
+/// segment runs (exit 2, the log named), the folder left as it was.
+#[test]
+fn a_campaign_resumes_past_complete_segments_and_refuses_a_foreign_log() {
+    let dir = std::env::temp_dir().join(format!("pto-campaign-resume-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let campaign = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
+    let logs = dir.join("logs");
+    run(pto()
+        .args(["synth-logs", "--campaign"])
+        .arg(&campaign)
+        .arg("--out")
+        .arg(&logs));
+    let elf = build::build(Build::Qemu).expect("QEMU build");
+    let q = Qemu::boot_twin(&elf, false).expect("twin");
+    let pty = q.pty.clone().expect("pseudo-terminal");
+    let runner = || {
+        pto()
+            .args(["link", "--port"])
+            .arg(&pty)
+            .args(["--json", "campaign", "run"])
+            .arg(&campaign)
+            .arg("--log-dir")
+            .arg(&logs)
+            .arg("--yes")
+            .output()
+            .expect("pto link campaign run")
+    };
+    let out = runner();
+    let json = String::from_utf8_lossy(&out.stdout).into_owned();
+    println!("every segment complete: {json}");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let segments = field(&json, "/segments");
+    let segments = segments.as_array().expect("segments");
+    assert_eq!(segments.len(), 2);
+    assert!(
+        segments
+            .iter()
+            .all(|s| s["skipped"] == true && s["status"] == "complete")
+    );
+
+    // The first segment left unfinished, the second's sidecar from another plan (another log
+    // rate): refused before the first is run again.
+    let first = logs.join("moving-cfg1-9pct-from100.segment.toml");
+    let unfinished = std::fs::read_to_string(&first).unwrap().replacen(
+        "status = \"complete\"",
+        "status = \"unfinished\"",
+        1,
+    );
+    std::fs::write(&first, &unfinished).unwrap();
+    let sidecar = logs.join("charge-cfg1-c1234-40mm-0.2hz-from10.segment.toml");
+    let text = std::fs::read_to_string(&sidecar).unwrap();
+    std::fs::write(
+        &sidecar,
+        text.replacen("rate_hz = 64.0", "rate_hz = 32.0", 1),
+    )
+    .unwrap();
+    let before: Vec<_> = std::fs::read_dir(&logs)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    let t0 = Instant::now();
+    let out = runner();
+    assert!(t0.elapsed().as_secs_f64() < 10.0, "refused at once");
+    assert_eq!(std::fs::read_to_string(&first).unwrap(), unfinished);
+    let err = String::from_utf8_lossy(&out.stderr);
+    println!("a foreign log: {err}");
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("charge-cfg1-c1234-40mm-0.2hz-from10.csv")
+            && err.contains("another plan's segment"),
+        "{err}"
+    );
+    let after: Vec<_> = std::fs::read_dir(&logs)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    assert_eq!(before.len(), after.len(), "nothing written");
+    drop(q);
+    let _ = std::fs::remove_dir_all(&dir);
+}
