@@ -675,48 +675,68 @@ fn a_fit_out_of_budget_in_an_early_stage_fails_cleanly() {
     let _ = std::fs::remove_dir_all(&base);
 }
 
+/// `pto link --port PORT campaign run FILE --log-dir DIR` and `extra`, as arguments.
+fn campaign_run<'a>(
+    port: &'a str,
+    file: &'a str,
+    log_dir: &'a str,
+    extra: &[&'a str],
+) -> Vec<&'a str> {
+    let mut v = vec![
+        "link",
+        "--port",
+        port,
+        "campaign",
+        "run",
+        file,
+        "--log-dir",
+        log_dir,
+    ];
+    v.extend_from_slice(extra);
+    v
+}
+
 /// `pto plan`, `synth-logs --campaign` and a campaign's logs in `pto fit`: bad input is exit 2
 /// naming the file, the field, the value and what is allowed, before any simulation; a log
 /// whose sidecar marks it unfinished is refused, with the way out.
 #[test]
 fn campaign_inputs_are_checked_and_named() {
     let dir = tmp("campaign");
-    let good = std::fs::read_to_string(
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml"),
-    )
-    .unwrap();
-    let bad_rate = dir.join("rate.toml");
-    std::fs::write(
-        &bad_rate,
+    let good_path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
+    let good = std::fs::read_to_string(&good_path).unwrap();
+    // A copy of the good campaign with one edit.
+    let variant = |name: &str, text: String| {
+        let p = dir.join(name);
+        std::fs::write(&p, text).unwrap();
+        p
+    };
+    let bad_rate = variant(
+        "rate.toml",
         good.replacen("rate_hz = 64.0", "rate_hz = 500.0", 1),
-    )
-    .unwrap();
-    let bad_cyl = dir.join("cyl.toml");
-    std::fs::write(
-        &bad_cyl,
+    );
+    let bad_cyl = variant(
+        "cyl.toml",
         good.replacen(
             "cylinders = [\"HC3.1\", \"HC3.3\"]",
             "cylinders = [\"HC9\"]",
             1,
         ),
-    )
-    .unwrap();
-    let unknown = dir.join("unknown.toml");
-    std::fs::write(&unknown, format!("{good}\nbudget = 3\n")).unwrap();
-    let table = dir.join("table.toml");
-    std::fs::write(
-        &table,
+    );
+    let unknown = variant("unknown.toml", format!("{good}\nbudget = 3\n"));
+    let table = variant(
+        "table.toml",
         good.replacen(
             "kind = \"constant\"\naperture_pct = 9.0",
             "kind = \"table\"\ntime_s = [0.0]\naperture_pct = [9.0]",
             1,
         ),
-    )
-    .unwrap();
+    );
     let out_dir = dir.join("logs");
     let s = |p: &std::path::Path| p.display().to_string();
-    let good_file =
-        s(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml"));
+    let (good_file, table_file, bad_rate_file, out) =
+        (s(&good_path), s(&table), s(&bad_rate), s(&out_dir));
+    let no_port = "/dev/pto-no-such-port";
     for (args, want) in [
         (
             vec!["plan", "--params", "trapped_air,cdd", "--out", "x.toml"],
@@ -770,60 +790,20 @@ fn campaign_inputs_are_checked_and_named() {
         ),
         // The runner refuses what the controller cannot do by itself, before any port.
         (
-            vec![
-                "link",
-                "--port",
-                "/dev/pto-no-such-port",
-                "campaign",
-                "run",
-                &s(&table),
-                "--log-dir",
-                &s(&out_dir),
-                "--yes",
-            ],
+            campaign_run(no_port, &table_file, &out, &["--yes"]),
             "segment[0] (moving-cfg1-9pct-from100): valve: the runner sets one fixed aperture"
                 .to_string(),
         ),
         (
-            vec![
-                "link",
-                "--port",
-                "/dev/pto-no-such-port",
-                "campaign",
-                "run",
-                &s(&bad_rate),
-                "--log-dir",
-                &s(&out_dir),
-                "--yes",
-            ],
-            format!("{}: segment[0].rate_hz = 500", s(&bad_rate)),
+            campaign_run(no_port, &bad_rate_file, &out, &["--yes"]),
+            format!("{bad_rate_file}: segment[0].rate_hz = 500"),
         ),
         (
-            vec![
-                "link",
-                "--port",
-                "x",
-                "campaign",
-                "run",
-                "c.toml",
-                "--log-dir",
-                &s(&out_dir),
-                "--prepare-wait",
-                "0",
-            ],
+            campaign_run("x", "c.toml", &out, &["--prepare-wait", "0"]),
             "0 outside [1e0, 3.6e3] s".into(),
         ),
         (
-            vec![
-                "link",
-                "--port",
-                "x",
-                "campaign",
-                "run",
-                &good_file,
-                "--log-dir",
-                &s(&out_dir),
-            ],
+            campaign_run("x", &good_file, &out, &[]),
             "stdin is not a terminal".into(),
         ),
     ] {

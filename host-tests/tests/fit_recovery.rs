@@ -43,17 +43,6 @@ fn logs_of(truth: &Bench, runs: &[&str], rate_hz: f64, seed: u64, dir: &Path) ->
         .collect()
 }
 
-fn print_checks(r: &fit::FitReport) {
-    for c in &r.checks {
-        println!(
-            "{} {}: {}",
-            if c.passed { "ok  " } else { "FAIL" },
-            c.name,
-            c.detail
-        );
-    }
-}
-
 fn tmp(name: &str) -> std::path::PathBuf {
     std::env::temp_dir().join(format!("pto-fit-{name}-{}", std::process::id()))
 }
@@ -82,7 +71,7 @@ fn fit_recovers_trapped_air_cd_and_precharge() {
             p.name, p.start, p.value, p.sigma
         );
     }
-    print_checks(r);
+    print!("{}", r.checks_table());
     println!(
         "residual RMS {:.2} → {:.2} ({:.1}×), {} simulations, {:.1} s",
         r.residual_rms.0, r.residual_rms.1, r.improvement, r.simulations, r.wall_s
@@ -444,7 +433,7 @@ fn a_plant_the_model_does_not_match_is_fitted_within_tolerance_or_refused() {
         );
         within &= err <= tolerance(j, truth[j]);
     }
-    print_checks(r);
+    print!("{}", r.checks_table());
     println!(
         "χ²ᵣ {:.2}, passed {}, every value within tolerance {within}, {:.0} s",
         r.chi2_reduced, r.passed, r.wall_s

@@ -293,14 +293,7 @@ fn print_report(r: &pto_host::fit::FitReport, failed: &[&str]) {
         "{} simulations in {:.1} s; Levenberg–Marquardt: {}",
         r.simulations, r.wall_s, r.termination
     );
-    for c in &r.checks {
-        println!(
-            "{:<4} {:<12} {}",
-            if c.passed { "ok" } else { "FAIL" },
-            c.name,
-            c.detail
-        );
-    }
+    print!("{}", r.checks_table());
     if r.passed {
         println!("fit passed every check");
     } else {

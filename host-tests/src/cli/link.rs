@@ -593,12 +593,7 @@ pub(crate) fn campaign_run_cmd(
             println!(
                 "{:<44} {:<10} {:>7} {:>5}  {:<26} {}",
                 o.name,
-                match (o.status, o.skipped) {
-                    (Status::Complete, true) => "done",
-                    (Status::Complete, false) => "complete",
-                    (Status::Mismatch, _) => "MISMATCH",
-                    (Status::Unfinished, _) => "UNFINISHED",
-                },
+                if o.skipped { "done" } else { o.status.label() },
                 o.rows,
                 o.lost,
                 lever,

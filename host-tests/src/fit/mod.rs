@@ -262,6 +262,23 @@ pub struct FitReport {
     pub figures: Vec<PathBuf>,
 }
 
+impl FitReport {
+    /// The checks, one line each: `ok`/`FAIL`, the check's name, what it found.
+    pub fn checks_table(&self) -> String {
+        self.checks
+            .iter()
+            .map(|c| {
+                format!(
+                    "{:<4} {:<12} {}\n",
+                    if c.passed { "ok" } else { "FAIL" },
+                    c.name,
+                    c.detail
+                )
+            })
+            .collect()
+    }
+}
+
 /// What a fit returns besides its report: the fitted bench file and the simulations before /
 /// after (for the figures).
 pub struct FitOutcome {

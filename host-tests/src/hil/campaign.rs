@@ -21,7 +21,7 @@ use crate::model::duty_mask;
 use crate::plan::{Campaign, CampaignError, Record, Segment, Status};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::motion::MotionSpec;
-use crate::sim::scenario::ValveSpec;
+use crate::sim::scenario::{Prepared, ValveSpec};
 use pto_model::fx::{Aperture, Pressure};
 use pto_model::protocol::FromFirmware;
 use pto_model::scheduler::Mode;
@@ -112,6 +112,12 @@ pub struct SeenMotion {
 }
 
 impl SeenMotion {
+    /// Of the samples at or after `from` s (times `t` increasing).
+    pub fn since(t: &[f64], a: &[f64], from: f64) -> SeenMotion {
+        let k = t.partition_point(|x| *x < from);
+        SeenMotion::of(&t[k..], &a[k..])
+    }
+
     /// Of shaft angles `a` (deg) at times `t` (s).
     pub fn of(t: &[f64], a: &[f64]) -> SeenMotion {
         let (lo, hi) = a
@@ -169,16 +175,10 @@ pub struct PlannedMotion {
 }
 
 impl PlannedMotion {
-    /// Of `seg` on `bench`: the rack's sine through the geometry's kinematics.
-    pub fn of(seg: &Segment, bench: &Bench) -> Result<PlannedMotion, CampaignError> {
-        let prep = seg
-            .run
-            .prepare(bench, Path::new("."))
-            .map_err(|e| CampaignError::File {
-                file: seg.run.name.clone(),
-                message: e.to_string(),
-            })?;
-        Ok(match seg.run.motion {
+    /// Of a segment's run prepared on its bench: the rack's sine through the geometry's
+    /// kinematics.
+    pub fn of(prep: &Prepared) -> PlannedMotion {
+        match prep.scenario.motion {
             MotionSpec::Sine { frequency_hz, .. } => {
                 let period = 1.0 / frequency_hz;
                 let (lo, hi) = (0..=400)
@@ -195,7 +195,7 @@ impl PlannedMotion {
                 amplitude_deg: 0.0,
                 period_s: None,
             },
-        })
+        }
     }
 
     /// How the seen motion differs from it, if it does (beyond [`MOTION_TOLERANCE`]).
@@ -252,6 +252,23 @@ pub struct Outcome {
     pub motion: Option<SeenMotion>,
     /// The motion planned.
     pub planned: Option<PlannedMotion>,
+}
+
+impl Outcome {
+    /// Ends the segment before its log began: the controller put in its safe state, the
+    /// outcome marked with why.
+    fn before_log(
+        mut self,
+        link: &mut Link,
+        config: u8,
+        status: Status,
+        note: impl Into<String>,
+    ) -> Result<Outcome, CampaignRunError> {
+        safe(link, config)?;
+        self.status = status;
+        self.note = note.into();
+        Ok(self)
+    }
 }
 
 /// What a campaign run did.
@@ -415,28 +432,38 @@ pub fn run(
         segments: Vec::new(),
         interrupted: false,
     };
-    // A complete log of a differently planned segment of the same name: refused before any
-    // segment runs.
-    for seg in &campaign.segment {
+    // Each segment's run prepared on the bench, its log and whether an earlier run completed
+    // it; a complete log of a differently planned segment of the same name is refused before
+    // any segment runs.
+    let mut segments = Vec::with_capacity(campaign.segment.len());
+    for (index, seg) in campaign.segment.iter().enumerate() {
+        let prep = seg
+            .run
+            .prepare(bench, Path::new("."))
+            .map_err(|source| CampaignError::Run {
+                file: campaign_file.to_string(),
+                index,
+                source,
+            })?;
         let log = dir.join(format!("{}.csv", seg.run.name));
-        if let Some(rec) = Record::read_for(&log)?
-            && rec.status == Status::Complete
-            && rec.segment != *seg
-        {
-            return Err(CampaignRunError::Foreign {
-                log,
-                name: seg.run.name.clone(),
-            });
-        }
+        let complete = match Record::read_for(&log)? {
+            Some(rec) if rec.status == Status::Complete && rec.segment != *seg => {
+                return Err(CampaignRunError::Foreign {
+                    log,
+                    name: seg.run.name.clone(),
+                });
+            }
+            Some(rec) => rec.status == Status::Complete && log.exists(),
+            None => false,
+        };
+        segments.push((prep, log, complete));
     }
     let mut last_config = None;
-    for (index, seg) in campaign.segment.iter().enumerate() {
+    for (index, (seg, (prep, log_path, complete))) in
+        campaign.segment.iter().zip(segments).enumerate()
+    {
         let name = seg.run.name.clone();
-        let log_path = dir.join(format!("{name}.csv"));
-        if let Some(rec) = Record::read_for(&log_path)?
-            && rec.status == Status::Complete
-            && log_path.exists()
-        {
+        if complete {
             op.say(&format!(
                 "segment {}/{} ({name}): complete in {} — skipped",
                 index + 1,
@@ -472,7 +499,7 @@ pub fn run(
                 link,
                 &units,
                 steps_per_s,
-                bench,
+                &prep,
                 seg,
                 (index, campaign.segment.len()),
                 &log_path,
@@ -483,16 +510,11 @@ pub fn run(
                 Ok(o) => o,
                 Err(e) => {
                     // Whatever failed, the controller is left in its safe state if it answers.
-                    let config = seg
-                        .run
-                        .prepare(bench, Path::new("."))
-                        .map_or(0, |p| p.config);
-                    let _ = safe(link, config as u8);
+                    let _ = safe(link, prep.config as u8);
                     return Err(e);
                 }
             };
-            let prep = seg.run.prepare(bench, Path::new(".")).ok();
-            last_config = prep.map(|p| p.config);
+            last_config = Some(prep.config);
             write_record(campaign_file, index, o.status, &o.note, seg, &log_path)?;
             let stop = o.status == Status::Unfinished;
             let mismatch = o.status == Status::Mismatch;
@@ -500,11 +522,7 @@ pub fn run(
                 "segment {}/{} ({name}): {}{}",
                 index + 1,
                 campaign.segment.len(),
-                match o.status {
-                    Status::Complete => "complete",
-                    Status::Mismatch => "MISMATCH",
-                    Status::Unfinished => "UNFINISHED",
-                },
+                o.status.label(),
                 if o.note.is_empty() {
                     String::new()
                 } else {
@@ -531,7 +549,7 @@ fn run_segment(
     link: &mut Link,
     units: &Units,
     steps_per_s: f64,
-    bench: &Bench,
+    prep: &Prepared,
     seg: &Segment,
     (index, of): (usize, usize),
     log_path: &Path,
@@ -540,14 +558,7 @@ fn run_segment(
     op: &mut dyn Operator,
 ) -> Result<Outcome, CampaignRunError> {
     let name = seg.run.name.clone();
-    let prep = seg
-        .run
-        .prepare(bench, Path::new("."))
-        .map_err(|e| CampaignError::File {
-            file: name.clone(),
-            message: e.to_string(),
-        })?;
-    let planned = PlannedMotion::of(seg, bench)?;
+    let planned = PlannedMotion::of(prep);
     let config = prep.config as u8;
     let mask = duty_mask(&prep.on_duty);
     let aperture = match seg.run.valve {
@@ -601,9 +612,12 @@ fn run_segment(
     let mut sum = (0.0, 0.0, 0u32);
     let first = loop {
         if op.stopped() {
-            outcome.note = "interrupted before the segment began".into();
-            safe(feed.link, config)?;
-            return Ok(outcome);
+            return outcome.before_log(
+                feed.link,
+                config,
+                Status::Unfinished,
+                "interrupted before the segment began",
+            );
         }
         if let Some(s) = feed.next()?
             && let (Some(hp), Some(lp)) = (s.hp_bar, s.lp_bar)
@@ -614,10 +628,12 @@ fn run_segment(
             }
         }
         if t_wait.elapsed() > Duration::from_secs(10) {
-            outcome.status = Status::Mismatch;
-            outcome.note = "no telemetry with both pressure readings for 10 s".into();
-            safe(feed.link, config)?;
-            return Ok(outcome);
+            return outcome.before_log(
+                feed.link,
+                config,
+                Status::Mismatch,
+                "no telemetry with both pressure readings for 10 s",
+            );
         }
     };
     client::reset(feed.link, first.0 as f32, first.1 as f32)?;
@@ -629,13 +645,11 @@ fn run_segment(
     let mut hp_now = first.0;
     if seg.run.initial_hp_bar.is_some() {
         if hp_now < start_bar - tol {
-            outcome.status = Status::Mismatch;
-            outcome.note = format!(
-                "HP {hp_now:.1} bar is below the planned start {start_bar:.1} ± {tol:.1} bar: pump it up first \
+            return outcome.before_log(feed.link, config, Status::Mismatch, format!(
+                    "HP {hp_now:.1} bar is below the planned start {start_bar:.1} ± {tol:.1} bar: pump it up first \
                  (the lever running, `pto link … duty` and `mode hold-pressure {start_bar:.0}`), then run again"
+                ),
             );
-            safe(feed.link, config)?;
-            return Ok(outcome);
         }
         if hp_now > start_bar + tol {
             op.say(&format!(
@@ -648,18 +662,19 @@ fn run_segment(
             let t_wait = Instant::now();
             while hp_now > start_bar + tol {
                 if op.stopped() {
-                    outcome.note = "interrupted before the segment's log began".into();
-                    safe(feed.link, config)?;
-                    return Ok(outcome);
+                    return outcome.before_log(
+                        feed.link,
+                        config,
+                        Status::Unfinished,
+                        "interrupted before the segment's log began",
+                    );
                 }
                 if t_wait.elapsed() > waits.prepare {
-                    outcome.status = Status::Mismatch;
-                    outcome.note = format!(
-                        "HP still {hp_now:.1} bar after {:.0} s against the planned start {start_bar:.1} ± {tol:.1} bar",
-                        waits.prepare.as_secs_f64()
+                    return outcome.before_log(feed.link, config, Status::Mismatch, format!(
+                            "HP still {hp_now:.1} bar after {:.0} s against the planned start {start_bar:.1} ± {tol:.1} bar",
+                            waits.prepare.as_secs_f64()
+                        ),
                     );
-                    safe(feed.link, config)?;
-                    return Ok(outcome);
                 }
                 if let Some(s) = feed.next()?
                     && let Some(hp) = s.hp_bar
@@ -683,19 +698,20 @@ fn run_segment(
             }
         }
         if op.stopped() {
-            outcome.note = "interrupted before the segment's log began".into();
-            safe(feed.link, config)?;
-            return Ok(outcome);
+            return outcome.before_log(
+                feed.link,
+                config,
+                Status::Unfinished,
+                "interrupted before the segment's log began",
+            );
         }
         if t_wait.elapsed() > Duration::from_secs(30) {
-            outcome.status = Status::Mismatch;
-            outcome.note = format!(
-                "the valve stayed at {} % for 30 s where the segment asks {:.1} % (a limit or a safety override: `pto link … status`)",
-                applied.map_or("—".into(), |a| format!("{:.1}", a.to_f32())),
-                aperture.to_f32()
+            return outcome.before_log(feed.link, config, Status::Mismatch, format!(
+                    "the valve stayed at {} % for 30 s where the segment asks {:.1} % (a limit or a safety override: `pto link … status`)",
+                    applied.map_or("—".into(), |a| format!("{:.1}", a.to_f32())),
+                    aperture.to_f32()
+                ),
             );
-            safe(feed.link, config)?;
-            return Ok(outcome);
         }
     }
     // 5. The cylinders energised and the log started together: the chambers start from LP
@@ -761,9 +777,8 @@ fn run_segment(
         a_log.push(s.shaft_angle_deg);
         writer.row(&s)?;
         if seen_from.is_none() && s.t_s - t0 >= window {
-            let k = t_log.partition_point(|t| *t < s.t_s - window);
             if planned
-                .differs(&SeenMotion::of(&t_log[k..], &a_log[k..]))
+                .differs(&SeenMotion::since(&t_log, &a_log, s.t_s - window))
                 .is_none()
             {
                 seen_from = Some(s.t_s - t0);
@@ -774,8 +789,7 @@ fn run_segment(
         }
         if last_print.elapsed() > Duration::from_secs(5) {
             last_print = Instant::now();
-            let k = t_log.partition_point(|t| *t < s.t_s - window);
-            let seen = SeenMotion::of(&t_log[k..], &a_log[k..]);
+            let seen = SeenMotion::since(&t_log, &a_log, s.t_s - window);
             op.say(&format!(
                 "  {:.0} of {:.0} s: lever ±{:.1}° {}, HP {}, valve {:.1} %{}{}",
                 s.t_s - t0,
@@ -814,8 +828,7 @@ fn run_segment(
     let from = t_log.first().map_or(0.0, |t0| {
         t0 + seen_from.map_or(0.0, |s: f64| (s - window).max(0.0))
     });
-    let k = t_log.partition_point(|t| *t < from);
-    let seen = SeenMotion::of(&t_log[k..], &a_log[k..]);
+    let seen = SeenMotion::since(&t_log, &a_log, from);
     outcome.motion = Some(seen);
     if seen_from.is_none() && planned.period_s.is_some() {
         why.push(format!(

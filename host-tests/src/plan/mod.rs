@@ -253,6 +253,17 @@ pub enum Status {
     Mismatch,
 }
 
+impl Status {
+    /// As the runner reports it: `complete`, or a shouted `MISMATCH` / `UNFINISHED`.
+    pub fn label(self) -> &'static str {
+        match self {
+            Status::Complete => "complete",
+            Status::Mismatch => "MISMATCH",
+            Status::Unfinished => "UNFINISHED",
+        }
+    }
+}
+
 /// The sidecar of a segment's log (`<stem>.segment.toml` (`run1.csv` → `run1.segment.toml`)): which campaign and segment it is and
 /// how it came out. `pto fit` takes a log with a complete sidecar at every sample (the rate was
 /// chosen for it) and refuses one marked unfinished or mismatched.
