@@ -11,8 +11,8 @@
 //! `docs/fit.md` and prints its table. `randomised_benches_from_a_planned_campaign_are_recovered`:
 //! the same draws from the campaign `pto plan` gives for the reference bench
 //! (`data/campaign-four.toml`), each also fitted from its truth (the χ²ᵣ the fit should end
-//! at); `PTO_FIT_CAMPAIGN_BENCHES=8` for the full set. `a_plant_the_model_does_not_match_…`:
-//! check valves cracking 2 bar above the bench file's — within tolerance or refused.
+//! at); two in `cargo test`, `PTO_FIT_CAMPAIGN_BENCHES=8` for the full set. `a_plant_the_model_does_not_match_…`:
+//! an LP precharge or a seal friction other than the bench file's — within tolerance or refused.
 
 use pto_host::fit;
 use pto_host::plan::{self, Campaign};
@@ -259,12 +259,13 @@ fn randomised_benches_are_recovered_or_refused() {
 }
 
 /// The campaign `pto plan` gives from the reference bench (the four parameters at their
-/// default precisions, 45 min; `host-tests/data/campaign-four.toml`): the drawn bench's logs of it, the four fitted from the
-/// reference bench. On ≥ 7 of 8 every check holds with each value within its tolerance; no
-/// silent miss on any.
+/// default precisions, 45 min; `host-tests/data/campaign-four.toml`): the drawn bench's logs
+/// of it, the four fitted from the reference bench. On ≥ 7 of 8 every check holds with each
+/// value within its tolerance, each fit ≤ 90 s; no silent miss on any; each passing fit's χ²ᵣ
+/// within 0.1 of the same fit's from the truth. Two benches in `cargo test`, both recovered.
 #[test]
 fn randomised_benches_from_a_planned_campaign_are_recovered() {
-    let n = benches("PTO_FIT_CAMPAIGN_BENCHES", 1);
+    let n = benches("PTO_FIT_CAMPAIGN_BENCHES", 2);
     // `pto plan`'s campaign from the reference bench, as committed (tests/plan.rs checks that
     // the plan still gives it).
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
@@ -387,20 +388,77 @@ fn randomised(n: u64, source: &Source) -> Table {
     }
 }
 
-/// A plant the model does not match stays honest: the planned campaign's logs from a bench
-/// whose check valves crack 2 bar above the bench file's (an effect the fit does not carry,
-/// the four parameters changed too), fitted from the reference bench: either every value
-/// within its tolerance, or a failed check named — never exit 0 out of tolerance.
+/// A plant the model does not match stays honest: the planned campaign's logs from benches with
+/// a field the fit holds at the bench file's value set otherwise (the four parameters changed
+/// too), fitted from the reference bench: either every value within its tolerance, or a failed
+/// check named — never exit 0 out of tolerance. LP precharge 6 bar for the file's 4 (the LP
+/// accumulator's stiffness, which the LP channel follows) and seal friction 20 times the
+/// file's (the rod's drift through the play).
 ///
-/// Fails today (a defect this test found): the fit passes at χ²ᵣ 1.29 with trapped air 0.0564
-/// for 0.04 (27σ, three times the tolerance) — trapped air takes up the check valves' extra
-/// cracking pressure and the goodness check (χ²ᵣ ≤ 2) lets it through. Ignored in `cargo test`
-/// until the verdict catches model error; run it with `-- --ignored`.
+/// Not among them: check valves cracking 2 bar above the file's. Its logs are fitted as well
+/// as by the truth (χ²ᵣ 0.964 against 0.958) with trapped air 0.056 for 0.04 — a late suction
+/// valve lets the chamber fall further below LP, where its air expands more: in P2, speed and
+/// LP it is trapped air, and no check on the residuals can tell (docs/fit.md, "A plant the
+/// model does not match"). What `pto plan` says of it instead is checked: the held fields'
+/// leverage predicts that shift of trapped air within a factor 1.5. Three fits, 3–4 min: on
+/// demand (`-- --ignored`).
 #[test]
-#[ignore = "known defect (docs/fit.md): a plant with check valves cracking 2 bar high passes \
-            out of tolerance"]
+#[ignore = "three fits, 3–4 min: cargo test -p pto-host --test fit_recovery match -- --ignored"]
 fn a_plant_the_model_does_not_match_is_fitted_within_tolerance_or_refused() {
     let truth = [0.04, 0.17, 40.0, 0.90];
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
+    let c = Campaign::load(&path, &Bench::reference()).unwrap();
+    let cases = [
+        "lp_accumulator.precharge_bar=6",
+        "cylinder_mounting.seal_friction_n_s_per_m=40000",
+    ];
+    let mut silent = Vec::new();
+    for (k, effect) in cases.into_iter().enumerate() {
+        let mut sets: Vec<String> = NAMES
+            .iter()
+            .zip(truth)
+            .map(|(n, v)| format!("{n}={v}"))
+            .collect();
+        sets.push(effect.into());
+        let dir = tmp(&format!("mismatch{k}"));
+        let logs = campaign_logs(&bench_with(&sets), &c, 7, &dir);
+        let o = fit::fit(
+            &Bench::reference().file,
+            logs,
+            &fit::FitOptions::new(&NAMES),
+        )
+        .unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+        let r = &o.report;
+        println!("plant with {effect}:");
+        let mut within = true;
+        for (j, p) in r.params.iter().enumerate() {
+            let err = (p.value - truth[j]).abs();
+            println!(
+                "  {:<12} true {:.4} fitted {:.4} ± {:.4}: off by {err:.4} (tolerance {:.4})",
+                p.name,
+                truth[j],
+                p.value,
+                p.sigma.unwrap_or(f64::NAN),
+                tolerance(j, truth[j])
+            );
+            within &= err <= tolerance(j, truth[j]);
+        }
+        print!("{}", r.checks_table());
+        println!(
+            "  χ²ᵣ {:.2}, passed {}, every value within tolerance {within}, {:.0} s",
+            r.chi2_reduced, r.passed, r.wall_s
+        );
+        if r.passed && !within {
+            silent.push(effect);
+        }
+        assert!(
+            r.passed || r.checks.iter().any(|c| !c.passed),
+            "a failure is named"
+        );
+    }
+    assert!(silent.is_empty(), "passed out of tolerance: {silent:?}");
+    // Check valves cracking 2 bar late: the shift of trapped air the plan predicts.
     let mut sets: Vec<String> = NAMES
         .iter()
         .zip(truth)
@@ -408,42 +466,27 @@ fn a_plant_the_model_does_not_match_is_fitted_within_tolerance_or_refused() {
         .collect();
     sets.push("check_valve.cracking_bar=2.5".into());
     sets.push("check_valve.full_open_bar=3.5".into());
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
-    let c = Campaign::load(&path, &Bench::reference()).unwrap();
-    let dir = tmp("mismatch");
+    let reference = Bench::reference();
+    let held = c
+        .held_leverage(&reference.file, &fit::sensor_noise())
+        .unwrap();
+    let cracking = held
+        .iter()
+        .find(|h| h.field == "check_valve.cracking_bar")
+        .unwrap();
+    let predicted = 2.0 * cracking.shift_per_unit[0];
+    let dir = tmp("mismatch-cv");
     let logs = campaign_logs(&bench_with(&sets), &c, 7, &dir);
-    let o = fit::fit(
-        &Bench::reference().file,
-        logs,
-        &fit::FitOptions::new(&NAMES),
-    )
-    .unwrap();
+    let o = fit::fit(&reference.file, logs, &fit::FitOptions::new(&NAMES)).unwrap();
     let _ = std::fs::remove_dir_all(&dir);
-    let r = &o.report;
-    let mut within = true;
-    for (j, p) in r.params.iter().enumerate() {
-        let err = (p.value - truth[j]).abs();
-        println!(
-            "{:<12} true {:.4} fitted {:.4} ± {:.4}: off by {err:.4} (tolerance {:.4})",
-            p.name,
-            truth[j],
-            p.value,
-            p.sigma.unwrap_or(f64::NAN),
-            tolerance(j, truth[j])
-        );
-        within &= err <= tolerance(j, truth[j]);
-    }
-    print!("{}", r.checks_table());
+    let shift = o.report.params[0].value - truth[0];
     println!(
-        "χ²ᵣ {:.2}, passed {}, every value within tolerance {within}, {:.0} s",
-        r.chi2_reduced, r.passed, r.wall_s
+        "check valves 2 bar late: trapped air {:.4} for {:.4} (shift {shift:+.4}; the plan's \
+         leverage predicted {predicted:+.4}), χ²ᵣ {:.3}, passed {}",
+        o.report.params[0].value, truth[0], o.report.chi2_reduced, o.report.passed
     );
     assert!(
-        !r.passed || within,
-        "a fit that passed with a value out of tolerance: a silent miss"
-    );
-    assert!(
-        r.passed || r.checks.iter().any(|c| !c.passed),
-        "a failure is named"
+        (1.0 / 1.5..=1.5).contains(&(shift / predicted)),
+        "the plan's leverage predicts the shift: {shift} against {predicted}"
     );
 }

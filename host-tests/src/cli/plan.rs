@@ -110,12 +110,33 @@ pub(crate) fn plan_cmd(a: &PlanArgs) -> Result<bool> {
     p.campaign.validate(&a.out.display().to_string(), &bench)?;
     let text = p.campaign.to_toml(&header)?;
     write_atomic(a.out, text.as_bytes())?;
+    // Advice on the campaign written: a failure here costs the advice, not the campaign.
+    let n_held = p.campaign.segment.len()
+        * plan::simulations_per_candidate(params.len() + fit::held_params(&params, &start).len());
+    eprintln!("the held fields' leverage ({n_held} simulations)…");
+    let pb = count_bar(n_held as u64, "simulations");
+    let tick: fit::Tick = {
+        let pb = pb.clone();
+        Arc::new(move || pb.inc(1))
+    };
+    let held = plan::held_leverage(
+        &start,
+        &params,
+        &noise,
+        &p.campaign.segment,
+        &goal.needed,
+        Some(tick),
+    )
+    .map_err(|e| eprintln!("warning: the held fields' leverage could not be taken: {e}"))
+    .unwrap_or_default();
+    pb.finish_and_clear();
     if a.json {
         println!(
             "{}",
             serde_json::to_string_pretty(&serde_json::json!({
                 "out": a.out,
                 "plan": p,
+                "held": held,
                 "wall_s": t0.elapsed().as_secs_f64(),
             }))?
         );
@@ -172,6 +193,39 @@ pub(crate) fn plan_cmd(a: &PlanArgs) -> Result<bool> {
         let cells: Vec<String> = row.iter().map(|c| format!("{c:+.3}")).collect();
         println!("  {:<12} {}", names[i], cells.join(" "));
     }
+    println!(
+        "held fields (the fit keeps the bench file's value; the plant's value one unit above it \
+         shifts the fitted values this much, and only what they cannot take up shows in the \
+         residuals):"
+    );
+    for h in &held {
+        let shifts: Vec<String> = names
+            .iter()
+            .zip(&h.shift_per_unit)
+            .map(|(n, d)| format!("{n} {d:+.2e}"))
+            .collect();
+        println!(
+            "  {:<42} {:>9} {:<6} 1 {} shifts {}; keep it within {}",
+            h.field,
+            sig3(h.value),
+            h.unit,
+            h.unit,
+            shifts.join(", "),
+            h.keep_within
+                .as_ref()
+                .map_or("(it moves none)".into(), |k| format!(
+                    "± {} {} ({}){}",
+                    sig3(k.error),
+                    h.unit,
+                    k.limited_by,
+                    if k.error > h.value.abs() {
+                        ": more than its whole value, a linear extrapolation"
+                    } else {
+                        ""
+                    }
+                ))
+        );
+    }
     for s in &p.short {
         println!(
             "not determined: {} (3σ {:.3e} against {:.3e}){}; {}",
@@ -188,4 +242,32 @@ pub(crate) fn plan_cmd(a: &PlanArgs) -> Result<bool> {
     }
     println!("campaign written to {}", a.out.display());
     Ok(p.met)
+}
+
+/// `x` to three significant digits, in plain notation from 0.001 to 10⁶ (a bench file's own
+/// numbers), else in scientific.
+fn sig3(x: f64) -> String {
+    let a = x.abs();
+    if a == 0.0 || !(1e-3..1e6).contains(&a) {
+        return format!("{x:.2e}");
+    }
+    // The exponent of the value rounded to three digits (9.996 is 10.0, not 10.00).
+    let rounded: f64 = format!("{a:.2e}").parse().unwrap_or(a);
+    let decimals = (2 - rounded.log10().floor() as i32).max(0) as usize;
+    format!("{x:.decimals$}")
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn three_significant_digits() {
+        assert_eq!(super::sig3(0.5249), "0.525");
+        assert_eq!(super::sig3(27.70), "27.7");
+        assert_eq!(super::sig3(215_700.0), "215700");
+        assert_eq!(super::sig3(1600.0), "1600");
+        assert_eq!(super::sig3(0.0433), "0.0433");
+        assert_eq!(super::sig3(2.0e-4), "2.00e-4");
+        assert_eq!(super::sig3(9.996), "10.0");
+        assert_eq!(super::sig3(-0.0999), "-0.0999");
+    }
 }

@@ -162,6 +162,95 @@ const SCALARS: [Scalar; 6] = [
     ),
 ];
 
+/// A field the fit holds at the bench file's value: (bench field, unit, getter, setter).
+type HeldField = (
+    &'static str,
+    &'static str,
+    fn(&BenchFile) -> f64,
+    fn(&mut BenchFile, f64),
+);
+
+/// The plant's fields a fit holds whose error can move what it fits (`pto plan`'s held-field
+/// leverage): what compresses with the trapped air (the liquid's bulk modulus, the dead
+/// volume), what sets the chambers' pressures (the check valves' cracking: a suction valve
+/// that cracks late lets a chamber fall further below LP, where its air expands more), the
+/// accumulators the fit does not fit, and the seals' friction.
+const HELD: [HeldField; 6] = [
+    (
+        "check_valve.cracking_bar",
+        "bar",
+        |f| f.check_valve.cracking_bar,
+        // The full-open pressure moves with it (the opening band kept).
+        |f, x| {
+            let band = f.check_valve.full_open_bar - f.check_valve.cracking_bar;
+            f.check_valve.cracking_bar = x;
+            f.check_valve.full_open_bar = x + band;
+        },
+    ),
+    (
+        "lp_accumulator.precharge_bar",
+        "bar",
+        |f| f.lp_accumulator.precharge_bar,
+        |f, x| f.lp_accumulator.precharge_bar = x,
+    ),
+    (
+        "hp_accumulator.volume_l",
+        "L",
+        |f| f.hp_accumulator.volume_l,
+        |f, x| f.hp_accumulator.volume_l = x,
+    ),
+    (
+        "oil.liquid_bulk_modulus_mpa",
+        "MPa",
+        |f| f.oil.liquid_bulk_modulus_mpa,
+        |f, x| f.oil.liquid_bulk_modulus_mpa = x,
+    ),
+    (
+        "cylinder_mounting.dead_volume_cm3",
+        "cm³",
+        |f| f.cylinder_mounting.dead_volume_cm3,
+        |f, x| f.cylinder_mounting.dead_volume_cm3 = x,
+    ),
+    (
+        "cylinder_mounting.seal_friction_n_s_per_m",
+        "N·s/m",
+        |f| f.cylinder_mounting.seal_friction_n_s_per_m,
+        |f, x| f.cylinder_mounting.seal_friction_n_s_per_m = x,
+    ),
+];
+
+/// A held field's bounds: its value ± this many times its value. Only the value and one
+/// finite-difference step from it are simulated, so the bounds need not be physical; they put
+/// the value mid-range, where the bounded coordinate's step is its slope to second order (the
+/// information's units rest on that slope), and make the step ([`STEP_OF_RANGE`] of the range)
+/// 1 % of the value, as the fitted parameters' are 0.5–1 % of theirs. With steps of 0.1 %
+/// (bounds of 0.5–1.5 times the value) the small shifts are the solver's noise: the check
+/// valves' cracking moved the precharge by 1.8e-2 bar per bar, against 3.4e-3 with steps of
+/// 1 % (trapped air, the shift that matters, 1.00e-2 against 9.7e-3 per bar).
+pub const HELD_HALF_RANGE: f64 = 5.0;
+
+/// The held fields (the table above) that none of `fitted` fits, as parameters named by their
+/// bench field, bounded by [`HELD_HALF_RANGE`] around their value in `start` (the loader keeps
+/// these fields above 0). They have no precision of their own (never checked: infinite).
+pub fn held_params(fitted: &[Param], start: &BenchFile) -> Vec<Param> {
+    HELD.iter()
+        .filter(|h| fitted.iter().all(|p| p.key != h.0))
+        .filter_map(|&(key, unit, get, set)| {
+            let value = get(start);
+            (value.is_finite() && value > 0.0).then(|| Param {
+                name: key.into(),
+                key: key.into(),
+                unit: unit.into(),
+                lo: value * (1.0 - HELD_HALF_RANGE),
+                hi: value * (1.0 + HELD_HALF_RANGE),
+                get: Arc::new(get),
+                set: Arc::new(set),
+                needed: Precision::Absolute(f64::INFINITY),
+            })
+        })
+        .collect()
+}
+
 /// The scalar parameter called `name`.
 fn scalar_param(name: &str) -> Option<Param> {
     let &(name, key, unit, lo, hi, get, set, needed) = SCALARS.iter().find(|s| s.0 == name)?;

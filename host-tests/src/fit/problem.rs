@@ -131,6 +131,23 @@ impl Problem {
         out
     }
 
+    /// Whether the budget of simulations has run out.
+    fn budget_spent(&self) -> bool {
+        self.budget
+            .as_ref()
+            .is_some_and(|b| b.load(std::sync::atomic::Ordering::Relaxed) < 0)
+    }
+
+    /// The length of the residual vector (see `assemble`).
+    fn residual_len(&self) -> usize {
+        let logs: usize = self
+            .logs
+            .iter()
+            .map(|p| CHANNELS * p.idx.len() + usize::from(p.collapse.is_some()))
+            .sum();
+        logs + if self.offsets { 2 * self.logs.len() } else { 0 }
+    }
+
     fn base(&self, z: &[f64]) -> Option<(Vec<Vec<Truth>>, Offsets)> {
         let offsets = self.offsets_of(z);
         let benches = [self.bench_at(z).ok()];
@@ -140,6 +157,11 @@ impl Problem {
         Some((sims?, offsets))
     }
 }
+
+/// Each residual of a trial point whose simulation fails: above any residual the fit produces
+/// (flattened ones stay below [`ROBUST_SIGMAS`], a start correction's prior below 1e3 for any
+/// correction under 300 bar).
+const FAILED_RESIDUAL: f64 = 1e4;
 
 /// σ of a log's start P2 as read from its first samples, bar (the prior on its correction).
 pub const SIGMA_START_BAR: f64 = 0.3;
@@ -159,9 +181,19 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem {
 
     fn residuals(&self) -> Option<DVector<f64>> {
         let z: Vec<f64> = self.z.iter().copied().collect();
-        let (sims, offsets) = self.base(&z)?;
-        let refs: Vec<&Vec<Truth>> = sims.iter().collect();
-        Some(DVector::from_vec(self.assemble(&refs, &offsets)))
+        match self.base(&z) {
+            Some((sims, offsets)) => {
+                let refs: Vec<&Vec<Truth>> = sims.iter().collect();
+                Some(DVector::from_vec(self.assemble(&refs, &offsets)))
+            }
+            // Past the budget: stop (see `run_jobs`).
+            None if self.budget_spent() => None,
+            // A trial point the plant cannot start from (a start correction that takes P2 below
+            // vacuum) is a step too far, not the end of the fit: a residual larger than any the
+            // fit can produce makes Levenberg–Marquardt refuse it and shrink its step. (`None`
+            // would end the fit there, with the refused point as its result.)
+            None => Some(DVector::from_element(self.residual_len(), FAILED_RESIDUAL)),
+        }
     }
 
     fn jacobian(&self) -> Option<DMatrix<f64>> {
@@ -232,5 +264,59 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Problem {
             }
         }
         Some(jac)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A trial whose start correction takes P2 below vacuum is a refused step (residuals above
+    /// any real one, of the problem's length), not the end of the fit; past the budget the
+    /// residuals are `None`, which ends it. (Before, the failed trial also returned `None`:
+    /// the fit ended on it and reported it.)
+    #[test]
+    fn a_trial_the_plant_cannot_start_from_is_refused_not_the_end() {
+        let bench = Bench::reference();
+        let mut s = crate::sim::scenario::builtin_named("exp-discharge-71").unwrap();
+        s.duration_s = 5.0;
+        let dir = std::env::temp_dir().join(format!("pto-fit-trial-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let log = synth_scenario_log(&bench, &s, 10.0, SensorSpec::default(), 1, &dir).unwrap();
+        let _ = std::fs::remove_dir_all(&dir);
+        let logs = prepare(vec![log], 0.5, &sensor_noise());
+        let p2_start = logs[0].p2_start_bar;
+        let params = params(&["cd".to_string()], &bench.file).unwrap();
+        let z_cd = to_z(&params[0], (params[0].get)(&bench.file));
+        let budget = Arc::new(std::sync::atomic::AtomicIsize::new(100));
+        let mut problem = Problem {
+            start: bench.file.clone(),
+            params,
+            logs: Arc::new(logs),
+            offsets: true,
+            z: DVector::from_vec(vec![z_cd, 0.0, 0.0]),
+            progress: None,
+            evals: Default::default(),
+            budget: Some(budget.clone()),
+            wide_steps: false,
+        };
+        let fine = problem.residuals().expect("a physical start simulates");
+        assert_eq!(fine.len(), problem.residual_len());
+        let worst = fine.amax();
+        // P2 started 5 bar below vacuum.
+        problem.z[1] = -(p2_start + 6.0);
+        let refused = problem.residuals().expect("a refused step, not the end");
+        println!(
+            "largest residual at the start {worst:.2}; the non-physical trial's {:.0}",
+            refused.amin()
+        );
+        assert_eq!(refused.len(), fine.len());
+        assert!(refused.amin() > 100.0 * worst.max(ROBUST_SIGMAS));
+        budget.store(-1, std::sync::atomic::Ordering::Relaxed);
+        problem.z[1] = 0.0;
+        assert!(
+            problem.residuals().is_none(),
+            "past the budget the fit stops"
+        );
     }
 }

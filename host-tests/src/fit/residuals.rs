@@ -1,6 +1,7 @@
 //! Logs prepared for the fit, their simulation, and the weighted, robust residuals.
 
 use super::*;
+use std::cmp::Ordering;
 
 /// A log prepared for simulation: the samples the residuals use.
 #[derive(Debug, Clone)]
@@ -69,7 +70,16 @@ pub fn prepare_each(logs: Vec<BenchLog>, spacing: &[f64], noise: &Noise) -> Vec<
             );
             let (ts, ap) = log.valve_steps();
             let valve = ts.into_iter().zip(ap).collect();
-            let p2_start_bar = start_value(&log.t, &log.p2_bar, moving);
+            let p2_start_bar = if moving {
+                flat_start(
+                    &log.t,
+                    &log.p2_bar,
+                    MOVING_START_WINDOW_S,
+                    START_JUMP_SIGMAS * noise.p2_bar,
+                )
+            } else {
+                start_value(&log.t, &log.p2_bar, moving)
+            };
             let lp_start_bar = if moving {
                 start_value(&log.t, &log.lp_bar, moving)
             } else {
@@ -96,9 +106,10 @@ pub fn prepare_each(logs: Vec<BenchLog>, spacing: &[f64], noise: &Noise) -> Vec<
 /// the HP accumulator running empty — by its noise. With the input blocked the pressure decays
 /// smoothly: a line through the first second, taken at the first sample. With the input moving,
 /// P2 stays flat until the first chamber has compressed its trapped air and then climbs in
-/// strokes, so a line would be biased: the mean of the first 0.3 s (at least three samples).
+/// strokes, so a line would be biased: the mean of the first 0.3 s (at least three samples;
+/// a moving log's P2 takes [`flat_start`] instead).
 pub(super) fn start_value(t: &[f64], y: &[f64], moving: bool) -> f64 {
-    let window = if moving { 0.3 } else { 1.0 };
+    let window = if moving { MOVING_START_WINDOW_S } else { 1.0 };
     let n = window_len(t, window, y.len());
     let (t, y) = (&t[..n], &y[..n]);
     let nf = n as f64;
@@ -111,6 +122,41 @@ pub(super) fn start_value(t: &[f64], y: &[f64], moving: bool) -> f64 {
     let sty: f64 = t.iter().zip(y).map(|(x, v)| (x - tm) * (v - ym)).sum();
     let slope = if stt > 0.0 { sty / stt } else { 0.0 };
     ym + slope * (t[0] - tm)
+}
+
+/// The window of a moving log's start values, s.
+pub const MOVING_START_WINDOW_S: f64 = 0.3;
+
+/// A step in a moving log's first samples larger than this many of the P2 noise's σ ends its
+/// start value's window (2 bar at the sensor model's 0.5 bar).
+pub const START_JUMP_SIGMAS: f64 = 4.0;
+
+/// Start value of a moving log's P2: the mean of its first samples within `window` seconds, up
+/// to the first that stands more than `jump` from their running mean and is followed by another
+/// that does (one noisy sample is not a jump; a missing one, NaN, is). In a charge from below
+/// the HP precharge the accumulator holds no oil and P2 jumps to the precharge within 0.1 s
+/// (10 → 54 bar in 7 samples at 64 Hz): the mean of the whole first 0.3 s read such a log's
+/// start as 42 bar and its truth fitted at χ²ᵣ 3.0; the prefix before the jump reads 10.0.
+pub(super) fn flat_start(t: &[f64], y: &[f64], window: f64, jump: f64) -> f64 {
+    let n = window_len(t, window, y.len());
+    let (mut sum, mut k) = (0.0, 0usize);
+    for i in 0..n {
+        if k > 0 {
+            // NaN (a missing sample) counts as off.
+            let off = |v: f64| {
+                matches!(
+                    (v - sum / k as f64).abs().partial_cmp(&jump),
+                    Some(Ordering::Greater) | None
+                )
+            };
+            if off(y[i]) && y.get(i + 1).is_none_or(|&v| off(v)) {
+                break;
+            }
+        }
+        sum += y[i];
+        k += 1;
+    }
+    sum / k.max(1) as f64
 }
 
 /// The window of a blocked log's LP start value, s: the LP pressure rises smoothly as the
@@ -297,6 +343,39 @@ pub fn crossing(t: &[f64], y: &[f64], level: f64) -> Option<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A charge's P2 that jumps from 10 bar to the precharge within the window starts at 10 bar;
+    /// a flat one at its mean.
+    #[test]
+    fn a_moving_start_stops_at_the_first_jump() {
+        let t: Vec<f64> = (0..40).map(|k| k as f64 / 64.0).collect();
+        let y: Vec<f64> = (0..40)
+            .map(|k| {
+                let noise = if k % 2 == 0 { 0.4 } else { -0.4 };
+                noise + if k < 8 { 10.0 } else { 54.0 }
+            })
+            .collect();
+        let s = flat_start(&t, &y, MOVING_START_WINDOW_S, 2.0);
+        println!(
+            "start {s:.3} bar (mean of the window {:.1})",
+            start_value(&t, &y, true)
+        );
+        assert!((s - 10.0).abs() < 0.1, "{s}");
+        assert!((flat_start(&t, &[7.0; 40], 0.3, 2.0) - 7.0).abs() < 1e-12);
+        // One sample 3 bar off is noise, not the jump: the window goes on past it.
+        let mut spike = [7.0; 40];
+        spike[1] = 10.0;
+        let with_spike = flat_start(&t, &spike, 0.3, 2.0);
+        assert!(
+            (with_spike - (7.0 + 3.0 / 20.0)).abs() < 1e-9,
+            "{with_spike}"
+        );
+        // A missing sample ends it.
+        let mut gap = [7.0; 40];
+        gap[3] = f64::NAN;
+        gap[4] = f64::NAN;
+        assert_eq!(flat_start(&t, &gap, 0.3, 2.0), 7.0);
+    }
 
     /// The parabola's value at the first sample: exact for a parabola, the mean for a flat
     /// line, and less scattered than the first second's line on a noisy LP rise.

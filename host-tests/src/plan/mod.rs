@@ -493,23 +493,10 @@ pub fn score(
     tick: Option<fit::Tick>,
 ) -> Result<Vec<Scored>, FitError> {
     let bench = Bench::from_file(start.clone(), "plan")?;
-    let quiet = crate::model::sensors::SensorSpec {
-        hp_noise_bar: 0.0,
-        lp_noise_bar: 0.0,
-        motor_noise_rpm: 0.0,
-        ..Default::default()
-    };
     candidates
         .into_par_iter()
         .map(|mut segment| {
-            let mut log = fit::synth_scenario_log(
-                &bench,
-                &segment.run,
-                segment.rate_hz,
-                quiet,
-                0,
-                Path::new("."),
-            )?;
+            let mut log = quiet_log(&bench, &segment)?;
             if let Some(t) = &tick {
                 t();
             }
@@ -525,6 +512,143 @@ pub fn score(
         })
         .collect::<Result<Vec<_>, _>>()
         .map(|v| v.into_iter().flatten().collect())
+}
+
+/// A segment's log without noise on `bench` (the sensors' quantisation kept).
+fn quiet_log(bench: &Bench, segment: &Segment) -> Result<BenchLog, FitError> {
+    let quiet = crate::model::sensors::SensorSpec {
+        hp_noise_bar: 0.0,
+        lp_noise_bar: 0.0,
+        motor_noise_rpm: 0.0,
+        ..Default::default()
+    };
+    fit::synth_scenario_log(
+        bench,
+        &segment.run,
+        segment.rate_hz,
+        quiet,
+        0,
+        Path::new("."),
+    )
+}
+
+/// What an error in a field the fit holds (at the bench file's value) does to the fitted
+/// parameters under a campaign.
+#[derive(Debug, Clone, Serialize)]
+pub struct Held {
+    /// The bench field.
+    pub field: String,
+    /// Its unit.
+    pub unit: String,
+    /// Its value in the bench file.
+    pub value: f64,
+    /// Per fitted parameter (in the plan's order): how far it moves per unit of error in the
+    /// field, in its own unit.
+    pub shift_per_unit: Vec<f64>,
+    /// The largest error in the field that keeps every fitted parameter's shift within its
+    /// precision needed; `None` when it moves none. Linear: an error beyond the field's own
+    /// value is an extrapolation.
+    pub keep_within: Option<KeepWithin>,
+}
+
+/// How well a held field must be known.
+#[derive(Debug, Clone, Serialize)]
+pub struct KeepWithin {
+    /// The largest error, in the field's unit.
+    pub error: f64,
+    /// The fitted parameter that error moves by its whole precision.
+    pub limited_by: String,
+}
+
+/// The held fields' leverage on the fitted parameters ([`fit::held_params`]): for each, the
+/// shift of the least-squares estimate per unit of error in the field (the plant's value above
+/// the file's), I_θθ⁻¹ I_θh, from the
+/// information of the campaign's segments on the fitted and held parameters together (the
+/// fit's own Jacobian, start corrections marginalised; the fitted parameters' weak priors as
+/// in [`fit::covariance_of`]). Linear: it says which held field the campaign cannot tell from a
+/// fitted parameter, and how well that field must be known. A fit cannot see such an error in
+/// its residuals: the shifted parameters explain the logs as well as the truth does.
+pub fn held_leverage(
+    start: &BenchFile,
+    params: &[Param],
+    noise: &Noise,
+    segments: &[Segment],
+    needed: &[f64],
+    tick: Option<fit::Tick>,
+) -> Result<Vec<Held>, FitError> {
+    let bench = Bench::from_file(start.clone(), "plan")?;
+    let held = fit::held_params(params, start);
+    let all: Vec<Param> = params.iter().chain(&held).cloned().collect();
+    let (np, n) = (params.len(), all.len());
+    let infos = segments
+        .par_iter()
+        .map(|segment| {
+            let log = quiet_log(&bench, segment)?;
+            if let Some(t) = &tick {
+                t();
+            }
+            let prepared = fit::prepare(vec![log], 0.0, noise).remove(0);
+            fit::information(start, &all, prepared, tick.clone())
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut info = DMatrix::zeros(n, n);
+    for i in &infos {
+        info += i;
+    }
+    let mut a = info.view((0, 0), (np, np)).into_owned();
+    for (j, p) in params.iter().enumerate() {
+        a[(j, j)] += (p.hi - p.lo).powi(-2);
+    }
+    let b = info.view((0, np), (np, n - np)).into_owned();
+    let shift = a
+        .cholesky()
+        .map(|c| c.solve(&b))
+        .ok_or(FitError::Jacobian)?;
+    Ok(held
+        .iter()
+        .enumerate()
+        .map(|(k, h)| {
+            let shift_per_unit: Vec<f64> = (0..np).map(|j| shift[(j, k)]).collect();
+            let value = (h.get)(start);
+            let keep_within = shift_per_unit
+                .iter()
+                .zip(needed)
+                .zip(params)
+                .filter(|((d, _), _)| d.abs() > 0.0)
+                .map(|((d, need), p)| KeepWithin {
+                    error: need / d.abs(),
+                    limited_by: p.name.clone(),
+                })
+                .min_by(|x, y| x.error.total_cmp(&y.error));
+            Held {
+                field: h.name.clone(),
+                unit: h.unit.clone(),
+                value,
+                shift_per_unit,
+                keep_within,
+            }
+        })
+        .collect())
+}
+
+impl Campaign {
+    /// [`held_leverage`] under this campaign, for its parameters at their precisions as
+    /// planned, at `start`.
+    pub fn held_leverage(&self, start: &BenchFile, noise: &Noise) -> Result<Vec<Held>, FitError> {
+        let params = fit::params(&self.params, start)?;
+        // As planned; a campaign written without its predictions takes the defaults.
+        let needed: Vec<f64> = params
+            .iter()
+            .enumerate()
+            .map(|(j, p)| {
+                self.predicted
+                    .get(j)
+                    .filter(|q| q.name == p.name)
+                    .map_or_else(|| p.needed.at((p.get)(start)), |q| q.needed)
+            })
+            .collect();
+        held_leverage(start, &params, noise, &self.segment, &needed, None)
+    }
 }
 
 /// LP a segment may fall to, bar: above it the LP transducer reads the plant (below, the LP
