@@ -269,6 +269,16 @@ impl Outcome {
         self.note = note.into();
         Ok(self)
     }
+
+    /// [`Outcome::before_log`] when the operator stopped the run (Ctrl-C): unfinished.
+    fn interrupted(
+        self,
+        link: &mut Link,
+        config: u8,
+        note: &str,
+    ) -> Result<Outcome, CampaignRunError> {
+        self.before_log(link, config, Status::Unfinished, note)
+    }
 }
 
 /// What a campaign run did.
@@ -612,12 +622,7 @@ fn run_segment(
     let mut sum = (0.0, 0.0, 0u32);
     let first = loop {
         if op.stopped() {
-            return outcome.before_log(
-                feed.link,
-                config,
-                Status::Unfinished,
-                "interrupted before the segment began",
-            );
+            return outcome.interrupted(feed.link, config, "interrupted before the segment began");
         }
         if let Some(s) = feed.next()?
             && let (Some(hp), Some(lp)) = (s.hp_bar, s.lp_bar)
@@ -662,10 +667,9 @@ fn run_segment(
             let t_wait = Instant::now();
             while hp_now > start_bar + tol {
                 if op.stopped() {
-                    return outcome.before_log(
+                    return outcome.interrupted(
                         feed.link,
                         config,
-                        Status::Unfinished,
                         "interrupted before the segment's log began",
                     );
                 }
@@ -698,10 +702,9 @@ fn run_segment(
             }
         }
         if op.stopped() {
-            return outcome.before_log(
+            return outcome.interrupted(
                 feed.link,
                 config,
-                Status::Unfinished,
                 "interrupted before the segment's log began",
             );
         }
