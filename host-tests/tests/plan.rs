@@ -72,8 +72,13 @@ fn the_plan_meets_what_it_can_and_names_what_it_cannot() {
             3.0 * q.sigma,
             q.needed
         );
+        // A staleness check, not a precision: glibc picks its exp/pow code
+        // path per CPU (FMA or not), so the last bits differ between
+        // machines and grow through the adaptive solver and the finite
+        // differences (2.3e-6 relative measured between this machine and
+        // CI). A change to the model or the plan moves σ by percents.
         assert!(
-            (q.sigma / k.sigma - 1.0).abs() < 1e-6,
+            (q.sigma / k.sigma - 1.0).abs() < 1e-4,
             "{}: σ {} against the committed {}: rerun `pto plan --out \
              host-tests/data/campaign-four.toml`",
             q.name,

@@ -10,8 +10,8 @@
 //! (amplitude and period within [`MOTION_TOLERANCE`]) within a grace time; the log is the
 //! monitor's bench log at the segment's rate, for its planned length; then the safe state again.
 //! Each log gets its sidecar (`plan::Record`): complete, unfinished (Ctrl-C, the link lost) or
-//! mismatch (the motion off, frames lost, a trip, a restart, a sensor held faulted, the start
-//! not reached), so `pto fit DIR/*.csv` takes the folder as it is and refuses what is not
+//! mismatch (the motion off, the lever moving before the log began, frames lost, a trip, a
+//! restart, a sensor held faulted, the start not reached), so `pto fit DIR/*.csv` takes the folder as it is and refuses what is not
 //! complete. Running it again skips the complete segments and runs the others.
 
 use crate::hil::client::{self, ClientError, LogWriter, Sample, Units};
@@ -163,6 +163,25 @@ impl SeenMotion {
             longest_s,
         }
     }
+}
+
+/// The shaft's travel between a log's first two rows above which the lever was already moving
+/// when the log began, deg (4.5 of the encoder's 16 384 counts a revolution).
+pub const STILL_AT_START_DEG: f64 = 0.1;
+
+/// Why a log is refused that begins with the lever moving: the cylinders were energised, and
+/// the chambers compressing, before its first row, where the fit's simulation starts them at LP
+/// with the lever at rest. One frame of a 0.2 Hz charge before the log biased the fitted trapped
+/// air by −1.3 %.
+fn moving_at_start(a_deg: &[f64]) -> Option<String> {
+    let travel = (a_deg.get(1)? - a_deg.first()?).abs();
+    (travel > STILL_AT_START_DEG).then(|| {
+        format!(
+            "the lever was already moving when the log began ({travel:.2}° between its first two \
+             rows, above {STILL_AT_START_DEG}°): start it after the prompt, the log's first rows \
+             must show it at rest"
+        )
+    })
 }
 
 /// The lever motion a segment plans, as the encoder would show it on `bench`.
@@ -847,6 +866,9 @@ fn run_segment(
     if let Some(d) = planned.differs(&seen) {
         why.push(d);
     }
+    if let Some(d) = moving_at_start(&a_log) {
+        why.push(d);
+    }
     let due = frames + outcome.lost;
     if outcome.lost as f64 > LOST_LIMIT * due as f64 {
         why.push(format!("{} of {due} frames lost", outcome.lost));
@@ -894,6 +916,19 @@ mod tests {
                 (t, amp * (std::f64::consts::TAU * t / period + phase).sin())
             })
             .unzip()
+    }
+
+    /// A log that begins with the lever moving is named; one that begins at rest (an
+    /// encoder step of jitter) or is too short to tell is not.
+    #[test]
+    fn a_log_that_begins_with_the_lever_moving_is_refused() {
+        let (_, moving) = sine(20.0, 5.0, 0.1, 1.0, 64.0);
+        let why = moving_at_start(&moving).expect("moving at the start");
+        assert!(why.contains("already moving"), "{why}");
+        let still = [0.0, 0.022, 0.0, 0.5, 1.0];
+        assert_eq!(moving_at_start(&still), None);
+        assert_eq!(moving_at_start(&[3.0]), None);
+        assert_eq!(moving_at_start(&[]), None);
     }
 
     /// A sine's amplitude and period are read back from any phase, with the encoder's steps;

@@ -688,9 +688,26 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let mut stop = run.valve.next_event(0.0).min(t_end);
     solver.set_stop_time(stop).map_err(|e| solver_err(0.0, e))?;
     let mut steps = 0usize;
+    let mut restarted_at = f64::NAN;
     loop {
         let t_before = solver.state().t;
-        let reason = solver.step().map_err(|e| solver_err(t_before, e))?;
+        let reason = match solver.step() {
+            Ok(r) => r,
+            // A step that fails (its size driven below diffsol's minimum, e.g. where the motor
+            // line's make-up valve and the motor's zero speed meet) restarts the BDF history
+            // once from the state it failed at, with a consistent derivative — first order and
+            // a fresh step size, as after a discrete input change. A second failure without
+            // progress is the run's error.
+            Err(e) if restarted_at == t_before => return Err(solver_err(t_before, e)),
+            Err(_) => {
+                restarted_at = t_before;
+                refresh_derivative!(solver, t_before);
+                solver
+                    .set_stop_time(stop)
+                    .map_err(|e| solver_err(t_before, e))?;
+                continue;
+            }
+        };
         steps += 1;
         let t_now = solver.state().t;
         {
