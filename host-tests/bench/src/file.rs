@@ -27,6 +27,37 @@ pub struct BenchFile {
     /// without the section gets the firmware's defaults.
     #[serde(default)]
     pub controller: ControllerSection,
+    /// How the full simulation solves the bench; a file without the section gets the defaults.
+    #[serde(default, skip_serializing_if = "SolverSection::is_default")]
+    pub solver: SolverSection,
+}
+
+/// How the full simulation solves the bench.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SolverSection {
+    /// The rods' free-play stops: `"spring"` (a stiff, damped spring the rod penetrates:
+    /// `cylinder_mounting.hard_stop_stiffness_n_per_m`) or `"events"` (a rigid face, its
+    /// contact located as a solver event).
+    #[serde(default)]
+    pub stops: StopsKind,
+}
+
+impl SolverSection {
+    fn is_default(&self) -> bool {
+        *self == SolverSection::default()
+    }
+}
+
+/// The free-play stops' model, as written in the bench file.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "lowercase")]
+pub enum StopsKind {
+    /// A stiff, damped spring.
+    #[default]
+    Spring,
+    /// A rigid face located as an event.
+    Events,
 }
 
 #[allow(missing_docs)]

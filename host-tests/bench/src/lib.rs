@@ -106,6 +106,16 @@ pub enum Load {
     Constant(f64),
 }
 
+/// How the solver treats the rods' free play and the cylinders' ends.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Stops {
+    /// A stiff, damped spring the rod penetrates (`hard_stop_stiffness_n_per_m`).
+    #[default]
+    Spring,
+    /// A rigid face located as an event: the rod follows the eye while engaged.
+    Events,
+}
+
 /// Validated bench in SI units (pressures gauge, Pa).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Bench {
@@ -127,6 +137,8 @@ pub struct Bench {
     pub stop_damping_n_s_per_m: f64,
     /// Seal viscous friction, N·s/m.
     pub seal_friction_n_s_per_m: f64,
+    /// The free play's stops in the solver.
+    pub stops: Stops,
     /// HC3.1..HC3.4.
     pub cylinders: Vec<Cylinder>,
     /// Config 1..4.
@@ -292,6 +304,10 @@ impl Bench {
             stop_stiffness_n_per_m: m.hard_stop_stiffness_n_per_m,
             stop_damping_n_s_per_m: m.hard_stop_damping_n_s_per_m,
             seal_friction_n_s_per_m: m.seal_friction_n_s_per_m,
+            stops: match f.solver.stops {
+                file::StopsKind::Spring => Stops::Spring,
+                file::StopsKind::Events => Stops::Events,
+            },
             cylinders,
             configs,
             check: valve(&f.check_valve),
@@ -386,6 +402,27 @@ mod tests {
             err.contains("my.toml:cylinder[0].bore_mm: 0.5 outside [5, 500] (mm)"),
             "{err}"
         );
+    }
+
+    /// The stops' model: a file without `[solver]` gets the spring; `"events"` is read; any
+    /// other word is named with the two allowed; the default is not written back.
+    #[test]
+    fn the_stop_model_is_read_and_a_bad_one_named() {
+        assert_eq!(Bench::reference().stops, Stops::Spring);
+        let events = format!("{REFERENCE_BENCH_TOML}\n[solver]\nstops = \"events\"\n");
+        let b = Bench::from_toml(&events, "my.toml").unwrap();
+        assert_eq!(b.stops, Stops::Events);
+        let bad = format!("{REFERENCE_BENCH_TOML}\n[solver]\nstops = \"rigid\"\n");
+        let err = Bench::from_toml(&bad, "my.toml").unwrap_err().to_string();
+        println!("{err}");
+        assert!(
+            err.contains("my.toml")
+                && err.contains("rigid")
+                && err.contains("`spring` or `events`"),
+            "{err}"
+        );
+        let written = toml::to_string(&Bench::reference().file).unwrap();
+        assert!(!written.contains("[solver]"), "{written}");
     }
 
     /// The board's crystal is a setting with the datasheet's range; a file without the section

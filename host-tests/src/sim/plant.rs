@@ -188,6 +188,24 @@ struct Kinematics {
     eye: [(f64, f64, f64); N_CYL],
 }
 
+/// How far past a face a free rod's contact root changes sign, m: the rod starts on the face
+/// it left (a root of zero, or a rounding error below it, would be no sign change for the
+/// solver's root finder, and a penetration past it would go unseen).
+pub const CONTACT_SLACK_M: f64 = 1e-9;
+
+/// Where a rod stands in its free play when the stops are located events: free between its
+/// faces (moved by its chambers' pressures against the seal friction) or engaged on one face,
+/// moving with the lever's eye (no penetration, no spring).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Contact {
+    /// Inside the free play.
+    Free,
+    /// On the face that pushes the rod out (gap = +half the free play).
+    Push,
+    /// On the face that pulls it in (gap = −half).
+    Pull,
+}
+
 /// The plant: bench, cylinders on duty, geometry, input motion and the commanded aperture.
 #[derive(Debug)]
 pub struct Plant {
@@ -209,6 +227,11 @@ pub struct Plant {
     fluid: Fluid,
     /// Commanded aperture, % (set by the valve schedule between solver segments).
     pub command_pct: Cell<f64>,
+    /// The rods' free play as located contacts ([`Contact`], one per active cylinder) instead
+    /// of the stiff stop spring: set by the solver for a run.
+    contact_events: Cell<bool>,
+    /// Each active cylinder's contact state while `contact_events` is on.
+    contacts: Cell<[Contact; N_CYL]>,
     i_p2: usize,
     i_lp: usize,
     i_pm: usize,
@@ -281,6 +304,8 @@ impl Plant {
             motion,
             fluid: Fluid::new(&bench.oil),
             command_pct: Cell::new(0.0),
+            contact_events: Cell::new(false),
+            contacts: Cell::new([Contact::Free; N_CYL]),
             i_p2: base,
             i_lp: base + 1,
             i_pm: base + 2,
@@ -425,6 +450,58 @@ impl Plant {
         y
     }
 
+    /// Number of contact root functions (two per active cylinder).
+    pub fn contact_root_count(&self) -> usize {
+        2 * self.active.len()
+    }
+
+    /// The contact root functions at (t, y): for a free rod the gaps to its two faces, for an
+    /// engaged one the face's force (signed to be positive while it holds) and a constant 1.
+    /// A sign change is a contact switch ([`Plant::switch_contact`]).
+    pub fn contact_roots(&self, t: f64, y: &[f64], out: &mut [f64]) {
+        self.evaluate_with_roots(t, y, None, Some(out), false);
+    }
+
+    /// Turns the located stops on or off, every rod free (a run's start: rods at their eyes).
+    pub fn set_contact_events(&self, on: bool) {
+        self.contact_events.set(on);
+        self.contacts.set([Contact::Free; N_CYL]);
+    }
+
+    /// Whether the stops are located events.
+    pub fn contact_events(&self) -> bool {
+        self.contact_events.get()
+    }
+
+    /// The contact state of active cylinder `j`.
+    pub fn contact(&self, j: usize) -> Contact {
+        self.contacts.get()[j]
+    }
+
+    /// Switches the contact whose root `root` (of [`Plant::contact_roots`]) changed sign at
+    /// (t, y): a free rod engages the face it reached, its position set on the face exactly; an
+    /// engaged rod comes free. Returns the new state.
+    pub fn switch_contact(&self, t: f64, y: &mut [f64], root: usize) -> Contact {
+        let j = root / 2;
+        let c = &self.active[j];
+        let (x_eye, _, _) = self.kinematics(t).eye[self.active_index[j]];
+        let half = 0.5 * self.bench.free_play_m;
+        let mut contacts = self.contacts.get();
+        // The rod set on the face exactly, engaging or leaving it: an engaged rod's position,
+        // integrated from the eye's speed, drifts by the solver's error (1e-10 m), and a free
+        // rod that starts a hair beyond the face it left would re-engage it at once.
+        let (state, x) = match contacts[j] {
+            Contact::Free if root.is_multiple_of(2) => (Contact::Push, x_eye - half),
+            Contact::Free => (Contact::Pull, x_eye + half),
+            Contact::Push => (Contact::Free, x_eye - half),
+            Contact::Pull => (Contact::Free, x_eye + half),
+        };
+        y[c.at + 2] = x * 1e3;
+        contacts[j] = state;
+        self.contacts.set(contacts);
+        contacts[j]
+    }
+
     /// Right-hand side in scaled units.
     pub fn rhs(&self, t: f64, y: &[f64], dy: &mut [f64]) {
         self.evaluate(t, y, Some(dy), false);
@@ -438,6 +515,18 @@ impl Plant {
     /// `q/v(p_up)` m³/s of reference volume, and each node turns its net reference inflow into a
     /// pressure rate through its own v(p) and E(p).
     pub fn evaluate(&self, t: f64, y: &[f64], dy: Option<&mut [f64]>, want_quad: bool) -> Eval {
+        self.evaluate_with_roots(t, y, dy, None, want_quad)
+    }
+
+    /// The contact root functions ([`Plant::contact_roots`]), two per active cylinder.
+    fn evaluate_with_roots(
+        &self,
+        t: f64,
+        y: &[f64],
+        dy: Option<&mut [f64]>,
+        mut roots: Option<&mut [f64]>,
+        want_quad: bool,
+    ) -> Eval {
         let b = &self.bench;
         let oil = &b.oil;
         let fl = &self.fluid;
@@ -486,15 +575,21 @@ impl Plant {
         let mut m_into_hp = 0.0;
         let mut m_from_lp = 0.0;
         let mut dy = dy;
+        let events = self.contact_events.get();
+        let contacts = self.contacts.get();
         for (j, c) in self.active.iter().enumerate() {
             let ci = self.active_index[j];
             let p_cap = y[c.at] * BAR;
             let p_rod = y[c.at + 1] * BAR;
             let x = y[c.at + 2] * 1e-3;
             let (x_eye, v_eye, arm) = kin.eye[ci];
-            // Rod fixation: free play of width 2·half closed by a stiff, damped stop.
+            // Rod fixation: free play of width 2·half closed by a stiff, damped stop, or (events)
+            // a rigid face the rod follows the eye on.
             let gap = x_eye - x;
-            let pen = if gap > half {
+            let engaged = events && contacts[j] != Contact::Free;
+            let pen = if events {
+                0.0
+            } else if gap > half {
                 gap - half
             } else if gap < -half {
                 gap + half
@@ -522,12 +617,29 @@ impl Plant {
             if end {
                 den += d;
             }
-            let x_dot = num / den;
-            let f_contact = if contact {
-                k * pen + d * (v_eye - x_dot)
+            let (x_dot, f_contact) = if engaged {
+                // 0 = F_contact + F_hyd + F_end − c·ẋ with ẋ = the eye's speed.
+                let f_end = k * pen_end - if end { d * v_eye } else { 0.0 };
+                (v_eye, c_seal * v_eye - f_hyd - f_end)
             } else {
-                0.0
+                let x_dot = num / den;
+                let f = if contact {
+                    k * pen + d * (v_eye - x_dot)
+                } else {
+                    0.0
+                };
+                (x_dot, f)
             };
+            if let Some(r) = roots.as_deref_mut() {
+                // Free: both faces' gaps stay positive; engaged: the face's force keeps its sign.
+                (r[2 * j], r[2 * j + 1]) = match contacts[j] {
+                    // A rod set on a face starts CONTACT_SLACK_M inside: the root is positive
+                    // where it starts, and its only sign change is the next contact.
+                    Contact::Free => (half + CONTACT_SLACK_M - gap, gap + half + CONTACT_SLACK_M),
+                    Contact::Push => (f_contact, 1.0),
+                    Contact::Pull => (-f_contact, 1.0),
+                };
+            }
             let (v_cap, e_cap, g_cap) = fl.state_exergy(p_cap, want_quad);
             let (v_rod, e_rod, g_rod) = fl.state_exergy(p_rod, want_quad);
             let vol_cap = b.chamber_dead_volume_m3 + c.area_cap * x;
@@ -771,6 +883,36 @@ mod tests {
     fn plant() -> Plant {
         let b = Bench::reference();
         Plant::new(&b, 0, [true, false, false, true], Motion::Blocked(0.0))
+    }
+
+    /// A free rod's roots are both positive; pushed past a face by more than the slack the
+    /// face's root is negative; switched, the rod sits on the face and its root is the face's
+    /// force, positive while it holds; released, it is free on the face with both roots
+    /// positive again (no sign change left to re-engage it at once).
+    #[test]
+    fn a_contact_engages_on_its_face_and_leaves_it_free() {
+        let p = plant();
+        p.set_contact_events(true);
+        let mut y = p.initial_state(60.0 * BAR, 8.0 * BAR, 8.0 * BAR, 0.0, 0.0);
+        let mut r = vec![0.0; p.contact_root_count()];
+        p.contact_roots(0.0, &y, &mut r);
+        assert!(r.iter().all(|x| *x > 0.0), "{r:?}");
+        // HC3.1's rod 2.1 mm behind its eye (half the free play is 2 mm): past the push face.
+        let half_mm = 0.5 * p.bench().free_play_m * 1e3;
+        let x_eye_mm = y[2];
+        y[2] = x_eye_mm - half_mm - 0.1;
+        p.contact_roots(0.0, &y, &mut r);
+        assert!(r[0] < 0.0 && r[1] > 0.0, "{r:?}");
+        assert_eq!(p.switch_contact(0.0, &mut y, 0), Contact::Push);
+        assert!((y[2] - (x_eye_mm - half_mm)).abs() < 1e-9);
+        // Engaged: the first root is the face's force, the second a constant.
+        p.contact_roots(0.0, &y, &mut r);
+        assert_eq!(r[1], 1.0);
+        assert_eq!(p.switch_contact(0.0, &mut y, 0), Contact::Free);
+        p.contact_roots(0.0, &y, &mut r);
+        assert!(r.iter().all(|x| *x > 0.0), "{r:?}");
+        assert!((r[0] - CONTACT_SLACK_M).abs() < 1e-15, "{r:?}");
+        assert_eq!(p.contact(1), Contact::Free);
     }
 
     #[test]

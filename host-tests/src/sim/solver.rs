@@ -381,6 +381,8 @@ pub struct Stats {
     pub steps: usize,
     /// Right-hand side evaluations (incl. Jacobian columns).
     pub rhs_evals: usize,
+    /// Contact switches located (stops as events).
+    pub contact_switches: usize,
     /// Wall time, s.
     pub wall_s: f64,
 }
@@ -438,6 +440,11 @@ struct JvCache {
 }
 
 impl JvCache {
+    /// Forgets the cached f(x) (the right-hand side changed at the same (t, x)).
+    fn invalidate(&mut self) {
+        self.t = f64::NAN;
+    }
+
     fn new(n: usize) -> Self {
         JvCache {
             t: f64::NAN,
@@ -568,6 +575,9 @@ pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture_pct: f64) -> (f64,
     (lp + dp_of(w), w)
 }
 
+/// Contact switches at one instant beyond which a run is refused (a rod chattering on a face).
+const MAX_SWITCHES_AT_ONCE: usize = 16;
+
 /// Runs the simulation.
 pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let plant = run.plant;
@@ -601,6 +611,13 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     };
     let latched = std::cell::Cell::new(threshold.is_none());
     let i_p2 = plant.p2_index();
+    let events = bench.stops == crate::sim::bench::Stops::Events;
+    plant.set_contact_events(events);
+    let n_roots = 1 + if events {
+        plant.contact_root_count()
+    } else {
+        0
+    };
 
     let cache = RefCell::new(JvCache::new(n));
     let qcache = RefCell::new(JvCache::new(n));
@@ -625,13 +642,16 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
             n,
         )
         .root(
-            |x: &[f64], _p: &[f64], _t: f64, y: &mut [f64]| {
+            |x: &[f64], _p: &[f64], t: f64, y: &mut [f64]| {
                 y[0] = match threshold {
                     Some(th) if !latched.get() => x[i_p2] - th,
                     _ => -1.0,
                 };
+                if events {
+                    plant.contact_roots(t, x, &mut y[1..]);
+                }
             },
-            1,
+            n_roots,
         )
         .out_implicit(
             |x: &[f64], _p: &[f64], t: f64, y: &mut [f64]| plant.quadrature(t, x, y),
@@ -689,6 +709,7 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     solver.set_stop_time(stop).map_err(|e| solver_err(0.0, e))?;
     let mut steps = 0usize;
     let mut restarted_at = f64::NAN;
+    let (mut contact_switches, mut last_switch_t, mut switches_here) = (0usize, f64::NAN, 0usize);
     loop {
         let t_before = solver.state().t;
         let reason = match solver.step() {
@@ -746,6 +767,36 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
             progress(t_emit);
         }
         match reason {
+            OdeSolverStopReason::RootFound(tr, idx) if idx > 0 => {
+                // A rod meets or leaves a face of its free play: the state on the face, the
+                // BDF history restarted from there.
+                if tr == last_switch_t {
+                    switches_here += 1;
+                    if switches_here > MAX_SWITCHES_AT_ONCE {
+                        return Err(SimError::Solver {
+                            t: tr,
+                            message: format!(
+                                "the rods' contacts switched {switches_here} times at one instant"
+                            ),
+                        });
+                    }
+                } else {
+                    (last_switch_t, switches_here) = (tr, 1);
+                }
+                solver.state_mut_back(tr).map_err(|e| solver_err(tr, e))?;
+                {
+                    let st = solver.state_mut();
+                    let mut y = st.y.clone_as_vec();
+                    plant.switch_contact(tr, &mut y, idx - 1);
+                    for (i, v) in y.iter().enumerate() {
+                        st.y[i] = *v;
+                    }
+                }
+                contact_switches += 1;
+                cache.borrow_mut().invalidate();
+                qcache.borrow_mut().invalidate();
+                refresh_derivative!(solver, tr);
+            }
             OdeSolverStopReason::RootFound(tr, _) => {
                 latched.set(true);
                 valve_opened_at = Some(tr);
@@ -793,6 +844,7 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let stats = Stats {
         steps,
         rhs_evals: cache.borrow().evals,
+        contact_switches,
         wall_s: start.elapsed().as_secs_f64(),
     };
     Ok(SimResult {
