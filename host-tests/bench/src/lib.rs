@@ -106,7 +106,8 @@ pub enum Load {
     Constant(f64),
 }
 
-/// How the solver treats the rods' free play and the cylinders' ends.
+/// How the solver treats the ends of the rods' free play (the cylinders' end stops stay
+/// springs in both).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Stops {
     /// A stiff, damped spring the rod penetrates (`hard_stop_stiffness_n_per_m`).

@@ -165,21 +165,26 @@ impl SeenMotion {
     }
 }
 
-/// The shaft's travel between a log's first two rows above which the lever was already moving
-/// when the log began, deg (4.5 of the encoder's 16 384 counts a revolution).
+/// The shaft's travel over a log's first 1/64 s (its first frame at 64 Hz, or the rows that
+/// span it at a higher rate) above which the lever was already moving when the log began, deg
+/// (4.5 of the encoder's 16 384 counts a revolution: 6.4°/s, where the charge's lever runs at
+/// 30°/s).
 pub const STILL_AT_START_DEG: f64 = 0.1;
 
 /// Why a log is refused that begins with the lever moving: the cylinders were energised, and
 /// the chambers compressing, before its first row, where the fit's simulation starts them at LP
 /// with the lever at rest. One frame of a 0.2 Hz charge before the log biased the fitted trapped
-/// air by −1.3 %.
-fn moving_at_start(a_deg: &[f64]) -> Option<String> {
-    let travel = (a_deg.get(1)? - a_deg.first()?).abs();
+/// air by −1.3 %. `t` (s) and `a_deg` are the log's rows.
+fn moving_at_start(t: &[f64], a_deg: &[f64]) -> Option<String> {
+    let (t0, a0) = (*t.first()?, *a_deg.first()?);
+    let k = t.iter().position(|ti| ti - t0 >= 1.0 / 64.0 - 1e-9)?;
+    let travel = (a_deg[k] - a0).abs();
     (travel > STILL_AT_START_DEG).then(|| {
         format!(
-            "the lever was already moving when the log began ({travel:.2}° between its first two \
-             rows, above {STILL_AT_START_DEG}°): start it after the prompt, the log's first rows \
-             must show it at rest"
+            "the lever was already moving when the log began ({travel:.2}° over its first {:.0} \
+             ms, above {STILL_AT_START_DEG}°): start it after the prompt, the log's first rows \
+             must show it at rest",
+            (t[k] - t0) * 1e3
         )
     })
 }
@@ -866,7 +871,7 @@ fn run_segment(
     if let Some(d) = planned.differs(&seen) {
         why.push(d);
     }
-    if let Some(d) = moving_at_start(&a_log) {
+    if let Some(d) = moving_at_start(&t_log, &a_log) {
         why.push(d);
     }
     let due = frames + outcome.lost;
@@ -922,13 +927,17 @@ mod tests {
     /// encoder step of jitter) or is too short to tell is not.
     #[test]
     fn a_log_that_begins_with_the_lever_moving_is_refused() {
-        let (_, moving) = sine(20.0, 5.0, 0.1, 1.0, 64.0);
-        let why = moving_at_start(&moving).expect("moving at the start");
-        assert!(why.contains("already moving"), "{why}");
-        let still = [0.0, 0.022, 0.0, 0.5, 1.0];
-        assert_eq!(moving_at_start(&still), None);
-        assert_eq!(moving_at_start(&[3.0]), None);
-        assert_eq!(moving_at_start(&[]), None);
+        // ±20° at 0.2 Hz from mid-stroke: 25°/s, at 64 Hz and at 256 Hz.
+        for hz in [64.0, 256.0] {
+            let (t, moving) = sine(20.0, 5.0, 0.1, 1.0, hz);
+            let why = moving_at_start(&t, &moving).expect("moving at the start");
+            assert!(why.contains("already moving"), "{why}");
+        }
+        // At rest for the first frame (an encoder step of jitter), then moving.
+        let t: Vec<f64> = (0..5).map(|i| f64::from(i) / 64.0).collect();
+        assert_eq!(moving_at_start(&t, &[0.0, 0.022, 0.5, 1.0, 1.5]), None);
+        assert_eq!(moving_at_start(&t[..1], &[3.0]), None);
+        assert_eq!(moving_at_start(&[], &[]), None);
     }
 
     /// A sine's amplitude and period are read back from any phase, with the encoder's steps;

@@ -34,7 +34,7 @@ pub const SEGMENT_SLACK_S: f64 = 900.0;
 /// energised, which comes up to a frame after the change: a lever started with the solenoids
 /// would have moved (and compressed the chambers) before the log's first row, where the fit's
 /// simulation starts the chambers at LP. That biased the twin's trapped air by −0.0012
-/// (1.3 %, 5σ): a synthetic log without its first row fits the same.
+/// (1.3 %, 4–6σ): a synthetic log without its first row fits the same.
 pub const OPERATOR_START_S: f64 = 1.0;
 
 /// Why the twin's campaign stopped.

@@ -191,7 +191,10 @@ struct Kinematics {
 /// How far past a face a free rod's contact root changes sign, m: the rod starts on the face
 /// it left (a root of zero, or a rounding error below it, would be no sign change for the
 /// solver's root finder, and a penetration past it would go unseen).
-pub const CONTACT_SLACK_M: f64 = 1e-9;
+/// 1 µm: well above the rod position's solver tolerance (1e-9 m at the default settings, 1.5e-7 m
+/// at the twin's rtol 1e-6), which a first step after a release may move it by; 2.5e-4 of the
+/// free play.
+pub const CONTACT_SLACK_M: f64 = 1e-6;
 
 /// Where a rod stands in its free play when the stops are located events: free between its
 /// faces (moved by its chambers' pressures against the seal friction) or engaged on one face,
@@ -500,6 +503,25 @@ impl Plant {
         contacts[j] = state;
         self.contacts.set(contacts);
         contacts[j]
+    }
+
+    /// Switches every contact whose root is not positive at (t, y) — a free rod past a face
+    /// (two rods crossing within one root search: the solver reports the first), an engaged
+    /// one whose face pulls — until none is, at most `limit` switches. Returns the switches, or
+    /// `None` when `limit` was not enough (a rod chattering on a face).
+    pub fn settle_contacts(&self, t: f64, y: &mut [f64], limit: usize) -> Option<usize> {
+        let mut r = vec![0.0; self.contact_root_count()];
+        for n in 0..=limit {
+            self.contact_roots(t, y, &mut r);
+            match r.iter().position(|x| *x <= 0.0) {
+                None => return Some(n),
+                Some(_) if n == limit => return None,
+                Some(i) => {
+                    self.switch_contact(t, y, i);
+                }
+            }
+        }
+        None
     }
 
     /// Right-hand side in scaled units.
@@ -913,6 +935,27 @@ mod tests {
         assert!(r.iter().all(|x| *x > 0.0), "{r:?}");
         assert!((r[0] - CONTACT_SLACK_M).abs() < 1e-15, "{r:?}");
         assert_eq!(p.contact(1), Contact::Free);
+    }
+
+    /// Two rods past their faces at once (the solver reports one root a search): settling
+    /// engages both, then releases the one whose face would have to pull — the lever is still
+    /// and LP on the cap's larger area pushes each rod out (+x), which the pull face holds and
+    /// the push face cannot — and a settled state has every root positive.
+    #[test]
+    fn contacts_crossed_together_are_all_settled() {
+        let p = plant();
+        p.set_contact_events(true);
+        let mut y = p.initial_state(60.0 * BAR, 8.0 * BAR, 8.0 * BAR, 0.0, 0.0);
+        let half_mm = 0.5 * p.bench().free_play_m * 1e3;
+        // HC3.1 past its push face, HC3.4 (the second active rod) past its pull face.
+        y[2] -= half_mm + 0.05;
+        y[5] += half_mm + 0.05;
+        assert_eq!(p.settle_contacts(0.0, &mut y, 16), Some(3));
+        assert_eq!((p.contact(0), p.contact(1)), (Contact::Free, Contact::Pull));
+        let mut r = vec![0.0; p.contact_root_count()];
+        p.contact_roots(0.0, &y, &mut r);
+        assert!(r.iter().all(|x| *x > 0.0), "{r:?}");
+        assert_eq!(p.settle_contacts(0.0, &mut y, 0), Some(0));
     }
 
     #[test]

@@ -575,6 +575,14 @@ pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture_pct: f64) -> (f64,
     (lp + dp_of(w), w)
 }
 
+/// The first step's size, s (and a restarted run's).
+const H0_S: f64 = 1e-5;
+
+/// Whether diffsol gave up on a step's size (the error a restart can get past).
+fn step_too_small(e: &diffsol::error::DiffsolError) -> bool {
+    e.to_string().contains("Step size is too small")
+}
+
 /// Contact switches at one instant beyond which a run is refused (a rod chattering on a face).
 const MAX_SWITCHES_AT_ONCE: usize = 16;
 
@@ -591,6 +599,9 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let start = Instant::now();
     plant.set_reuse_kinematics(run.solver.reuse_kinematics);
     let n = plant.len();
+    // Every rod free at its eye (the initial state's), before the controller's first look.
+    let events = bench.stops == crate::sim::bench::Stops::Events;
+    plant.set_contact_events(events);
     // Initial state: motor in steady state for the initial command.
     let probe = plant.initial_state(
         run.initial.p2_pa,
@@ -611,8 +622,6 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     };
     let latched = std::cell::Cell::new(threshold.is_none());
     let i_p2 = plant.p2_index();
-    let events = bench.stops == crate::sim::bench::Stops::Events;
-    plant.set_contact_events(events);
     let n_roots = 1 + if events {
         plant.contact_root_count()
     } else {
@@ -627,7 +636,7 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     let mut problem = OdeBuilder::<M>::new()
         .rtol(run.solver.rtol)
         .atol(plant.atol(run.solver.atol_scale))
-        .h0(1e-5)
+        .h0(H0_S)
         .rhs_implicit(
             |x: &[f64], _p: &[f64], t: f64, y: &mut [f64]| {
                 cache.borrow_mut().evals += 1;
@@ -709,23 +718,27 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
     solver.set_stop_time(stop).map_err(|e| solver_err(0.0, e))?;
     let mut steps = 0usize;
     let mut restarted_at = f64::NAN;
-    let (mut contact_switches, mut last_switch_t, mut switches_here) = (0usize, f64::NAN, 0usize);
+    let mut contact_switches = 0usize;
     loop {
         let t_before = solver.state().t;
         let reason = match solver.step() {
             Ok(r) => r,
-            // A step that fails (its size driven below diffsol's minimum, e.g. where the motor
-            // line's make-up valve and the motor's zero speed meet) restarts the BDF history
-            // once from the state it failed at, with a consistent derivative — first order and
-            // a fresh step size, as after a discrete input change. A second failure without
-            // progress is the run's error.
-            Err(e) if restarted_at == t_before => return Err(solver_err(t_before, e)),
+            // A step whose size is driven below diffsol's minimum (e.g. where the motor line's
+            // make-up valve and the motor's zero speed meet) restarts the BDF history once from
+            // the state it stands at, with a consistent derivative, at first order and the
+            // run's first step size (diffsol keeps the collapsed one). A second failure without
+            // progress, or any other error, is the run's error.
+            Err(e) if restarted_at == solver.state().t || !step_too_small(&e) => {
+                return Err(solver_err(t_before, e));
+            }
             Err(_) => {
-                restarted_at = t_before;
-                refresh_derivative!(solver, t_before);
-                solver
-                    .set_stop_time(stop)
-                    .map_err(|e| solver_err(t_before, e))?;
+                let t = solver.state().t;
+                restarted_at = t;
+                *solver.state_mut().h = H0_S;
+                refresh_derivative!(solver, t);
+                if stop > t {
+                    solver.set_stop_time(stop).map_err(|e| solver_err(t, e))?;
+                }
                 continue;
             }
         };
@@ -768,26 +781,24 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
         }
         match reason {
             OdeSolverStopReason::RootFound(tr, idx) if idx > 0 => {
-                // A rod meets or leaves a face of its free play: the state on the face, the
-                // BDF history restarted from there.
-                if tr == last_switch_t {
-                    switches_here += 1;
-                    if switches_here > MAX_SWITCHES_AT_ONCE {
-                        return Err(SimError::Solver {
-                            t: tr,
-                            message: format!(
-                                "the rods' contacts switched {switches_here} times at one instant"
-                            ),
-                        });
-                    }
-                } else {
-                    (last_switch_t, switches_here) = (tr, 1);
-                }
+                // A rod meets or leaves a face of its free play: the state on the face, every
+                // other contact the search passed over settled too (a root the solver starts
+                // from at or below zero would never change sign), the BDF history restarted.
                 solver.state_mut_back(tr).map_err(|e| solver_err(tr, e))?;
                 {
                     let st = solver.state_mut();
                     let mut y = st.y.clone_as_vec();
                     plant.switch_contact(tr, &mut y, idx - 1);
+                    let more = plant
+                        .settle_contacts(tr, &mut y, MAX_SWITCHES_AT_ONCE)
+                        .ok_or_else(|| SimError::Solver {
+                            t: tr,
+                            message: format!(
+                                "a rod's contact switched more than {MAX_SWITCHES_AT_ONCE} times \
+                                 at one instant (chattering on a face of its free play)"
+                            ),
+                        })?;
+                    contact_switches += more;
                     for (i, v) in y.iter().enumerate() {
                         st.y[i] = *v;
                     }
