@@ -51,14 +51,20 @@ pub fn information(
     Ok(a - &b * c_inv * b.transpose())
 }
 
-/// σ and correlations from an information matrix, with a weak prior on each parameter (its
-/// whole range as one σ: a parameter the logs say nothing of keeps a σ of its range, not an
-/// infinite one).
-pub fn covariance_of(info: &DMatrix<f64>, params: &[Param]) -> (Vec<f64>, Vec<Vec<f64>>) {
-    let mut f = info.clone();
+/// `info`'s leading block for `params` with a weak prior on each (its whole range as one σ: a
+/// parameter the logs say nothing of keeps a σ of its range, not an infinite one).
+pub fn with_priors(info: &DMatrix<f64>, params: &[Param]) -> DMatrix<f64> {
+    let np = params.len();
+    let mut f = info.view((0, 0), (np, np)).into_owned();
     for (j, p) in params.iter().enumerate() {
         f[(j, j)] += (p.hi - p.lo).powi(-2);
     }
+    f
+}
+
+/// σ and correlations from an information matrix, with the weak priors of [`with_priors`].
+pub fn covariance_of(info: &DMatrix<f64>, params: &[Param]) -> (Vec<f64>, Vec<Vec<f64>>) {
+    let f = with_priors(info, params);
     let n = params.len();
     let cov = f
         .clone()

@@ -78,7 +78,7 @@ pub fn prepare_each(logs: Vec<BenchLog>, spacing: &[f64], noise: &Noise) -> Vec<
                     START_JUMP_SIGMAS * noise.p2_bar,
                 )
             } else {
-                start_value(&log.t, &log.p2_bar, moving)
+                start_value(&log.t, &log.p2_bar, false)
             };
             let lp_start_bar = if moving {
                 start_value(&log.t, &log.lp_bar, moving)

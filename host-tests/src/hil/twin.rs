@@ -249,22 +249,15 @@ mod tests {
     use crate::sim::plant::Eval;
     use crate::sim::solver::ValveController;
 
-    /// The valve held closed at the firmware's period, until `end_s`.
-    struct Closed {
-        end_s: f64,
-        t: f64,
-    }
+    /// The valve held closed at the firmware's period.
+    struct Closed;
 
     impl ValveController for Closed {
         fn period(&self) -> f64 {
             2f64.powi(-10)
         }
-        fn update(&mut self, t: f64, _: &Eval) -> f64 {
-            self.t = t;
+        fn update(&mut self, _: f64, _: &Eval) -> f64 {
             0.0
-        }
-        fn finished(&self) -> bool {
-            self.t >= self.end_s
         }
     }
 
@@ -295,12 +288,12 @@ mod tests {
                     p2_pa: 1.04574487894047e6,
                     lp_pa: 7.994923159705985e5,
                 },
-                duration: 3.0,
+                duration: 2.0,
                 sample_dt: 0.05,
                 solver: TWIN_SOLVER,
                 progress: None,
             },
-            Closed { end_s: 2.0, t: 0.0 },
+            Closed,
         );
         let res = res.expect("the charge runs through the lever's turn");
         let t = &res.trace.t_s;

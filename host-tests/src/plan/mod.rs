@@ -595,10 +595,7 @@ pub fn held_leverage(
     for i in &infos {
         info += i;
     }
-    let mut a = info.view((0, 0), (np, np)).into_owned();
-    for (j, p) in params.iter().enumerate() {
-        a[(j, j)] += (p.hi - p.lo).powi(-2);
-    }
+    let a = fit::with_priors(&info, params);
     let b = info.view((0, np), (np, n - np)).into_owned();
     let shift = a
         .cholesky()
@@ -644,7 +641,7 @@ impl Campaign {
                 self.predicted
                     .get(j)
                     .filter(|q| q.name == p.name)
-                    .map_or_else(|| p.needed.at((p.get)(start)), |q| q.needed)
+                    .map_or_else(|| p.needed_at((p.get)(start), &[]), |q| q.needed)
             })
             .collect();
         held_leverage(start, &params, noise, &self.segment, &needed, None)
