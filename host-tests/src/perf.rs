@@ -1,7 +1,8 @@
-//! `pto bench`: wall time, real-time factor and accuracy of the reference runs, the default
-//! solver path side by side with the reference path, and the throughput of a batch of runs.
+//! `pto bench`: wall time, real-time factor and accuracy of the reference runs: the stops as
+//! events (the default) side by side with the stop spring and with the reference solver path,
+//! their repeats interleaved, and the throughput of a batch of runs.
 
-use crate::sim::bench::{BAR, Bench};
+use crate::sim::bench::{BAR, Bench, Stops};
 use crate::sim::scenario::{self, RunError};
 use crate::sim::solver::{SimResult, SolverOptions};
 use rayon::prelude::*;
@@ -16,18 +17,53 @@ pub mod target {
     pub const TEST3_P2_ERR_BAR: f64 = 0.05;
     /// Speed-up of the default path over the reference path, on each run.
     pub const SPEEDUP: f64 = 2.0;
+    /// Speed-up of the stops as events over the stop spring: Test III.
+    pub const EVENTS_SPEEDUP_TEST3: f64 = 3.0;
+    /// Speed-up of the stops as events over the stop spring: the irregular sea.
+    pub const EVENTS_SPEEDUP_SEA: f64 = 1.5;
+    /// Test III's accepted steps with the stops as events.
+    pub const EVENTS_TEST3_STEPS: usize = 15_000;
     /// A batch of 1 000 Test III-length runs on every core, s.
-    pub const BATCH_1000_WALL_S: f64 = 120.0;
+    pub const BATCH_1000_WALL_S: f64 = 40.0;
 }
+
+/// A way of solving the same run: the stop model and the solver path.
+#[derive(Debug, Clone, Copy)]
+struct Variant {
+    label: &'static str,
+    stops: Stops,
+    reference_path: bool,
+}
+
+/// The default (the stops as events, the default path), the stop spring on the default path,
+/// and the stops as events on the reference path.
+const VARIANTS: [Variant; 3] = [
+    Variant {
+        label: "events",
+        stops: Stops::Events,
+        reference_path: false,
+    },
+    Variant {
+        label: "spring",
+        stops: Stops::Spring,
+        reference_path: false,
+    },
+    Variant {
+        label: "events, reference path",
+        stops: Stops::Events,
+        reference_path: true,
+    },
+];
 
 /// One benchmarked run on one solver path.
 #[derive(Debug, Clone, Serialize)]
 pub struct BenchRow {
     /// Scenario.
     pub scenario: String,
-    /// `default` or `reference` (the finite-difference path that evaluates the motion and
-    /// the levers at every call: the path before the speed work, kept for this comparison).
-    pub path: String,
+    /// `events` (the default: the rods' stops as located events, the default solver path),
+    /// `spring` (the stop spring, the default path) or `events, reference path` (the path that
+    /// evaluates the motion and the levers at every call, kept for this comparison).
+    pub variant: String,
     /// Simulated time, s.
     pub simulated_s: f64,
     /// Median wall time over the repeats, s.
@@ -40,8 +76,8 @@ pub struct BenchRow {
     pub steps: usize,
     /// Right-hand-side evaluations.
     pub rhs_evals: usize,
-    /// Max |P2 − P2_tight| over the run, bar (None when not compared).
-    pub p2_max_err_bar: Option<f64>,
+    /// Max |P2 − P2_tight| over the run against a tight run of its own stop model, bar.
+    pub p2_max_err_bar: f64,
 }
 
 /// A batch of runs on every core.
@@ -60,12 +96,14 @@ pub struct Batch {
 /// The report.
 #[derive(Debug, Clone, Serialize)]
 pub struct BenchReport {
-    /// Rows: each scenario on the default path, then on the reference path.
+    /// Rows: each scenario in each variant (events, spring, events on the reference path).
     pub rows: Vec<BenchRow>,
-    /// Wall-time ratio reference / default per scenario (medians).
-    pub speedups: Vec<(String, f64)>,
-    /// Max |P2 default − P2 reference| per scenario, bar.
-    pub paths_p2_diff_bar: Vec<(String, f64)>,
+    /// Per scenario: wall-time ratio spring / events (medians).
+    pub events_speedups: Vec<(String, f64)>,
+    /// Per scenario: wall-time ratio reference path / default path, both with events.
+    pub path_speedups: Vec<(String, f64)>,
+    /// Per scenario: max |P2 events − P2 spring|, bar.
+    pub stops_p2_diff_bar: Vec<(String, f64)>,
     /// The batch, when asked for.
     pub batch: Option<Batch>,
     /// Every target met?
@@ -79,13 +117,19 @@ fn run(bench: &Bench, name: &str, solver: SolverOptions) -> Result<SimResult, Ru
     s.simulate(bench, &base, solver, None).map(|(_, r)| r)
 }
 
-fn row(name: &str, path: &str, walls: &mut [f64], r: &SimResult, err: Option<f64>) -> BenchRow {
+fn with_stops(bench: &Bench, stops: Stops) -> Bench {
+    let mut b = bench.clone();
+    b.stops = stops;
+    b
+}
+
+fn row(name: &str, variant: &str, walls: &mut [f64], r: &SimResult, err: f64) -> BenchRow {
     walls.sort_by(f64::total_cmp);
     let wall = walls[walls.len() / 2];
     let simulated = *r.trace.t_s.last().unwrap_or(&0.0);
     BenchRow {
         scenario: name.into(),
-        path: path.into(),
+        variant: variant.into(),
         simulated_s: simulated,
         wall_s: wall,
         wall_min_s: walls[0],
@@ -106,45 +150,65 @@ fn p2_err_bar(a: &SimResult, b: &SimResult) -> f64 {
     err / BAR
 }
 
-/// Both paths of one scenario, their repeats interleaved so that a change of the machine's load
-/// falls on both alike, each compared with a tight run: (default row, reference row, max
-/// |ΔP2| between the paths in bar).
+/// Every variant of one scenario, their repeats interleaved so that a change of the machine's
+/// load falls on all alike, each compared with a tight run of its own stop model: one row per
+/// variant (in `VARIANTS`' order) and the max |ΔP2| between events and spring in bar.
 fn side_by_side(
     bench: &Bench,
     name: &str,
     repeats: usize,
-) -> Result<(BenchRow, BenchRow, f64), RunError> {
-    let fast = SolverOptions::default();
-    let slow = fast.reference_path();
-    let (mut wf, mut ws) = (Vec::new(), Vec::new());
-    let (mut rf, mut rs) = (None, None);
-    for _ in 0..repeats.max(1) {
-        let a = run(bench, name, fast)?;
-        wf.push(a.stats.wall_s);
-        rf = Some(a);
-        let b = run(bench, name, slow)?;
-        ws.push(b.stats.wall_s);
-        rs = Some(b);
-    }
-    let (Some(rf), Some(rs)) = (rf, rs) else {
-        unreachable!("at least one repeat ran");
+) -> Result<(Vec<BenchRow>, f64), RunError> {
+    let benches = VARIANTS.map(|v| with_stops(bench, v.stops));
+    let solver = |v: &Variant| {
+        let o = SolverOptions::default();
+        if v.reference_path {
+            o.reference_path()
+        } else {
+            o
+        }
     };
-    let diff = p2_err_bar(&rf, &rs);
-    let tight = run(bench, name, SolverOptions::tight().reference_path())?;
-    let (ef, es) = (p2_err_bar(&rf, &tight), p2_err_bar(&rs, &tight));
-    Ok((
-        row(name, "default", &mut wf, &rf, Some(ef)),
-        row(name, "reference", &mut ws, &rs, Some(es)),
-        diff,
-    ))
+    let mut walls = VARIANTS.map(|_| Vec::new());
+    let mut last: [Option<SimResult>; 3] = [None, None, None];
+    for _ in 0..repeats.max(1) {
+        for (k, v) in VARIANTS.iter().enumerate() {
+            let r = run(&benches[k], name, solver(v))?;
+            walls[k].push(r.stats.wall_s);
+            last[k] = Some(r);
+        }
+    }
+    let last = last.map(|r| r.expect("at least one repeat ran"));
+    let mut tight = Vec::new();
+    for stops in [Stops::Events, Stops::Spring] {
+        let r = run(
+            &with_stops(bench, stops),
+            name,
+            SolverOptions::tight().reference_path(),
+        )?;
+        tight.push((stops, r));
+    }
+    let rows = VARIANTS
+        .iter()
+        .zip(walls.iter_mut())
+        .zip(&last)
+        .map(|((v, w), r)| {
+            let t = &tight
+                .iter()
+                .find(|(s, _)| *s == v.stops)
+                .expect("both models")
+                .1;
+            row(name, v.label, w, r, p2_err_bar(r, t))
+        })
+        .collect();
+    Ok((rows, p2_err_bar(&last[0], &last[1])))
 }
 
-/// `runs` runs of `name` on the default path, spread over every core.
+/// `runs` runs of `name` with the stops as events on the default path, spread over every core.
 pub fn batch(bench: &Bench, name: &str, runs: usize) -> Result<Batch, RunError> {
+    let bench = with_stops(bench, Stops::Events);
     let t0 = Instant::now();
     (0..runs)
         .into_par_iter()
-        .try_for_each(|_| run(bench, name, SolverOptions::default()).map(drop))?;
+        .try_for_each(|_| run(&bench, name, SolverOptions::default()).map(drop))?;
     Ok(Batch {
         scenario: name.into(),
         runs,
@@ -157,69 +221,102 @@ fn verdict(ok: bool) -> &'static str {
     if ok { "met" } else { "MISSED" }
 }
 
-/// Accuracy of the default path is unchanged when its P2 error against the tight run is within
-/// the reference path's + max(10 %, 1e-4 bar).
-fn unchanged(default: &BenchRow, reference: &BenchRow) -> bool {
-    let (a, b) = (
-        default.p2_max_err_bar.unwrap_or(f64::INFINITY),
-        reference.p2_max_err_bar.unwrap_or(f64::INFINITY),
-    );
+/// Accuracy is unchanged when a row's P2 error against its tight run is within the other's
+/// + max(10 %, 1e-4 bar) (the default path against the reference path).
+fn unchanged(row: &BenchRow, against: &BenchRow) -> bool {
+    let (a, b) = (row.p2_max_err_bar, against.p2_max_err_bar);
     a <= b + (0.1 * b).max(1e-4)
 }
 
-/// Runs the benchmark: Test III at 10 % and the 1000 s irregular sea, each on both paths and
-/// against a tight run; with `batch_runs`, that many Test III runs on every core.
+/// The stops as events are no worse than the spring: their P2 error against their own tight
+/// run within the spring's against its own + 10 %.
+fn no_worse(events: &BenchRow, spring: &BenchRow) -> bool {
+    events.p2_max_err_bar <= 1.1 * spring.p2_max_err_bar
+}
+
+/// Runs the benchmark: Test III at 10 % and the 1000 s irregular sea, each in every variant and
+/// against tight runs; with `batch_runs`, that many Test III runs (stops as events) on every
+/// core.
 pub fn measure(
     bench: &Bench,
     repeats: usize,
     batch_runs: Option<usize>,
 ) -> Result<BenchReport, RunError> {
-    let (t3, t3_ref, t3_diff) = side_by_side(bench, "test3-ap10", repeats)?;
-    let (irr, irr_ref, irr_diff) = side_by_side(bench, "irregular-sea", repeats.min(3))?;
-    let err = t3.p2_max_err_bar.unwrap_or(f64::INFINITY);
-    let speedups = vec![
-        (t3.scenario.clone(), t3_ref.wall_s / t3.wall_s),
-        (irr.scenario.clone(), irr_ref.wall_s / irr.wall_s),
-    ];
+    let (t3, t3_diff) = side_by_side(bench, "test3-ap10", repeats)?;
+    let (irr, irr_diff) = side_by_side(bench, "irregular-sea", repeats.min(3))?;
+    let (ev, sp) = (&t3[0], &t3[1]);
+    let err = ev.p2_max_err_bar;
     let mut targets = vec![
         format!(
             "Test III wall {:.3} s <= {} s (real-time factor {:.0}): {}",
-            t3.wall_s,
+            ev.wall_s,
             target::TEST3_WALL_S,
-            t3.real_time_factor,
-            verdict(t3.wall_s <= target::TEST3_WALL_S)
+            ev.real_time_factor,
+            verdict(ev.wall_s <= target::TEST3_WALL_S)
         ),
         format!(
             "Test III P2 error vs tight run {err:.4} bar <= {} bar: {}",
             target::TEST3_P2_ERR_BAR,
             verdict(err <= target::TEST3_P2_ERR_BAR)
         ),
+        format!(
+            "Test III steps with the stops as events {} <= {} (spring {}): {}",
+            ev.steps,
+            target::EVENTS_TEST3_STEPS,
+            sp.steps,
+            verdict(ev.steps <= target::EVENTS_TEST3_STEPS)
+        ),
     ];
-    let mut pass = t3.wall_s <= target::TEST3_WALL_S && err <= target::TEST3_P2_ERR_BAR;
-    for (d, r, diff) in [(&t3, &t3_ref, t3_diff), (&irr, &irr_ref, irr_diff)] {
-        let ok = unchanged(d, r);
+    let mut pass = ev.wall_s <= target::TEST3_WALL_S
+        && err <= target::TEST3_P2_ERR_BAR
+        && ev.steps <= target::EVENTS_TEST3_STEPS;
+    let mut events_speedups = Vec::new();
+    let mut path_speedups = Vec::new();
+    for (rows, diff, events_target) in [
+        (&t3, t3_diff, target::EVENTS_SPEEDUP_TEST3),
+        (&irr, irr_diff, target::EVENTS_SPEEDUP_SEA),
+    ] {
+        let (ev, sp, rf) = (&rows[0], &rows[1], &rows[2]);
+        let name = &ev.scenario;
+        let x = sp.wall_s / ev.wall_s;
+        let ok = x >= events_target;
         pass &= ok;
         targets.push(format!(
-            "{}: P2 error vs tight run {:.2e} bar on the default path, {:.2e} on the reference \
-             path (paths differ by ≤ {diff:.1e} bar): accuracy unchanged: {}",
-            d.scenario,
-            d.p2_max_err_bar.unwrap_or(f64::NAN),
-            r.p2_max_err_bar.unwrap_or(f64::NAN),
+            "{name}: stops as events {x:.2}x faster than the spring >= {events_target}x: {}",
+            verdict(ok)
+        ));
+        events_speedups.push((name.clone(), x));
+        let ok = no_worse(ev, sp);
+        pass &= ok;
+        targets.push(format!(
+            "{name}: P2 error vs its own tight run {:.2e} bar with events, {:.2e} with the spring \
+             (the models differ by <= {diff:.2} bar): no worse: {}",
+            ev.p2_max_err_bar,
+            sp.p2_max_err_bar,
             if ok { "yes" } else { "NO" }
         ));
-    }
-    for (name, x) in &speedups {
-        let ok = *x >= target::SPEEDUP;
+        let ok = unchanged(ev, rf);
+        pass &= ok;
+        targets.push(format!(
+            "{name}: P2 error vs tight run {:.2e} bar on the default path, {:.2e} on the \
+             reference path: accuracy unchanged: {}",
+            ev.p2_max_err_bar,
+            rf.p2_max_err_bar,
+            if ok { "yes" } else { "NO" }
+        ));
+        let x = rf.wall_s / ev.wall_s;
+        let ok = x >= target::SPEEDUP;
         pass &= ok;
         targets.push(format!(
             "{name}: default path {x:.2}x faster than the reference path >= {}x: {}",
             target::SPEEDUP,
             verdict(ok)
         ));
+        path_speedups.push((name.clone(), x));
     }
-    let paths_p2_diff_bar = vec![
-        (t3.scenario.clone(), t3_diff),
-        (irr.scenario.clone(), irr_diff),
+    let stops_p2_diff_bar = vec![
+        (ev.scenario.clone(), t3_diff),
+        (irr[0].scenario.clone(), irr_diff),
     ];
     let batch = match batch_runs {
         Some(n) => {
@@ -238,10 +335,13 @@ pub fn measure(
         }
         None => None,
     };
+    let mut rows = t3;
+    rows.extend(irr);
     Ok(BenchReport {
-        rows: vec![t3, t3_ref, irr, irr_ref],
-        speedups,
-        paths_p2_diff_bar,
+        rows,
+        events_speedups,
+        path_speedups,
+        stops_p2_diff_bar,
         batch,
         pass,
         targets,

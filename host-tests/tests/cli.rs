@@ -546,9 +546,10 @@ fn every_command_help_shows_examples_and_exit_codes() {
     }
 }
 
-/// A fit that did not converge exits 1, its `converged` check failed, and writes no fitted bench
-/// or model configuration (the report and figures only); `--write-anyway` writes them with a
-/// first line saying so.
+/// A fit that did not converge (stopped by its simulation budget: a fit of the charge can
+/// converge within any iteration limit, its Cd running to a bound) exits 1, its `converged`
+/// check failed, and writes no fitted bench or model configuration (the report and figures
+/// only); `--write-anyway` writes them with a first line saying so.
 #[test]
 fn an_unconverged_fit_writes_no_fitted_bench_unless_asked() {
     let base = tmp("fit-unconverged");
@@ -563,8 +564,8 @@ fn an_unconverged_fit_writes_no_fitted_bench_unless_asked() {
                 "trapped_air,cd",
                 "--spacing",
                 "1",
-                "--max-iter",
-                "1",
+                "--max-simulations",
+                "10",
                 "--json",
             ])
             .args(extra)

@@ -58,3 +58,95 @@ fn stops_as_events_are_the_rigid_limit_of_the_spring_in_fewer_steps() {
     assert_eq!(spring.stats.contact_switches, 0);
     assert!(ratio <= 0.9);
 }
+
+/// Every paper run with the stops as events and as the bench's spring: P2's max and RMS
+/// difference, against 1 % of the run's P2 range (a run that barely moves P2: 1 % of its
+/// level). Where a run's difference is above that, it is either the spring's compliance (the
+/// stroke its rods lose penetrating the stop: a 10× stiffer spring lies at least twice as close
+/// to the events model as the bench's spring does) or a steep edge a little earlier or later
+/// (within 1 % of the other's trace shifted by less than a sample interval).
+#[test]
+#[allow(clippy::type_complexity)]
+fn the_two_stop_models_agree_on_every_paper_run_or_differ_by_the_springs_compliance() {
+    use pto_host::sim::scenario::builtin;
+    use rayon::prelude::*;
+    // Name, max and RMS |ΔP2| (bar), the run's P2 scale (bar), the RMS of each model to a 10×
+    // stiffer spring where the max is above 1 % of the scale, the max within a sample's shift.
+    type Row = (String, f64, f64, f64, Option<(f64, f64)>, f64);
+    let run = |s: &pto_host::sim::scenario::Scenario, stops, stiffer: f64| {
+        let mut bench = Bench::reference();
+        bench.stops = stops;
+        bench.stop_stiffness_n_per_m *= stiffer;
+        bench.stop_damping_n_s_per_m *= stiffer.sqrt();
+        s.simulate(&bench, Path::new("."), SolverOptions::default(), None)
+            .unwrap()
+            .1
+    };
+    let rows: Vec<Row> = builtin()
+        .par_iter()
+        .map(|s| {
+            let (spring, events) = (run(s, Stops::Spring, 1.0), run(s, Stops::Events, 1.0));
+            let (a, b) = (&spring.trace.p2_pa, &events.trace.p2_pa);
+            assert_eq!(a.len(), b.len(), "{}", s.name);
+            let max = a
+                .iter()
+                .zip(b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f64::max)
+                / 1e5;
+            let rms = p2_rms_bar(&spring, &events);
+            let (lo, hi) = a
+                .iter()
+                .fold((f64::MAX, f64::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+            let scale = ((hi - lo) / 1e5).max(0.01 * hi / 1e5);
+            // The largest distance from a sample of one to the other's (linearly interpolated)
+            // trace within a sample interval either side: what a time shift below one interval
+            // leaves.
+            let shifted = (0..a.len())
+                .map(|i| {
+                    let near = &b[i.saturating_sub(1)..(i + 2).min(b.len())];
+                    let lo = near.iter().copied().fold(f64::MAX, f64::min);
+                    let hi = near.iter().copied().fold(f64::MIN, f64::max);
+                    (lo - a[i]).max(a[i] - hi).max(0.0)
+                })
+                .fold(0.0, f64::max)
+                / 1e5;
+            let stiffer = (max > 0.01 * scale).then(|| {
+                let stiff = run(s, Stops::Spring, 10.0);
+                (p2_rms_bar(&events, &stiff), p2_rms_bar(&spring, &stiff))
+            });
+            (s.name.clone(), max, rms, scale, stiffer, shifted)
+        })
+        .collect();
+    let mut worst = rows.clone();
+    worst.sort_by(|x, y| (y.1 / y.3).total_cmp(&(x.1 / x.3)));
+    println!(
+        "{:<22} {:>8} {:>8} {:>8} {:>9} {:>21}",
+        "run", "max bar", "RMS bar", "% range", "% shifted", "RMS to 10x: ev/spring"
+    );
+    for (name, max, rms, scale, stiffer, shifted) in &worst {
+        let st = stiffer.map_or(String::new(), |(e, s)| format!("{e:.4} / {s:.4}"));
+        println!(
+            "{name:<22} {max:>8.4} {rms:>8.4} {:>8.3} {:>9.3} {st:>21}",
+            100.0 * max / scale,
+            100.0 * shifted / scale
+        );
+    }
+    let max = rows.iter().map(|r| r.1).fold(0.0, f64::max);
+    let rms = (rows.iter().map(|r| r.2 * r.2).sum::<f64>() / rows.len() as f64).sqrt();
+    let above = rows.iter().filter(|r| r.4.is_some()).count();
+    println!(
+        "{} runs: P2 max |Δ| {max:.4} bar, RMS {rms:.4} bar; {above} above 1 % of the range",
+        rows.len()
+    );
+    for (name, _, _, scale, stiffer, shifted) in &rows {
+        if let Some((events_to_stiff, spring_to_stiff)) = stiffer {
+            assert!(
+                2.0 * events_to_stiff <= *spring_to_stiff || *shifted <= 0.01 * scale,
+                "{name}: the 10x stiffer spring is {events_to_stiff:.4} bar RMS from the events \
+                 model and {spring_to_stiff:.4} from the bench's spring, and within a sample's \
+                 shift the two differ by {shifted:.4} bar over a {scale:.2} bar scale"
+            );
+        }
+    }
+}

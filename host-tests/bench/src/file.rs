@@ -54,9 +54,9 @@ impl SolverSection {
 #[serde(rename_all = "lowercase")]
 pub enum StopsKind {
     /// A stiff, damped spring.
-    #[default]
     Spring,
-    /// A rigid face located as an event.
+    /// A rigid face located as an event (the default).
+    #[default]
     Events,
 }
 

@@ -111,9 +111,9 @@ pub enum Load {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Stops {
     /// A stiff, damped spring the rod penetrates (`hard_stop_stiffness_n_per_m`).
-    #[default]
     Spring,
-    /// A rigid face located as an event: the rod follows the eye while engaged.
+    /// A rigid face located as an event: the rod follows the eye while engaged (the default).
+    #[default]
     Events,
 }
 
@@ -405,14 +405,14 @@ mod tests {
         );
     }
 
-    /// The stops' model: a file without `[solver]` gets the spring; `"events"` is read; any
+    /// The stops' model: a file without `[solver]` gets the events; `"spring"` is read; any
     /// other word is named with the two allowed; the default is not written back.
     #[test]
     fn the_stop_model_is_read_and_a_bad_one_named() {
-        assert_eq!(Bench::reference().stops, Stops::Spring);
-        let events = format!("{REFERENCE_BENCH_TOML}\n[solver]\nstops = \"events\"\n");
-        let b = Bench::from_toml(&events, "my.toml").unwrap();
-        assert_eq!(b.stops, Stops::Events);
+        assert_eq!(Bench::reference().stops, Stops::Events);
+        let spring = format!("{REFERENCE_BENCH_TOML}\n[solver]\nstops = \"spring\"\n");
+        let b = Bench::from_toml(&spring, "my.toml").unwrap();
+        assert_eq!(b.stops, Stops::Spring);
         let bad = format!("{REFERENCE_BENCH_TOML}\n[solver]\nstops = \"rigid\"\n");
         let err = Bench::from_toml(&bad, "my.toml").unwrap_err().to_string();
         println!("{err}");

@@ -437,20 +437,27 @@ pub(crate) fn bench_cmd(
         println!("{}", serde_json::to_string_pretty(&rep)?);
     } else {
         println!(
-            "{:<16} {:<10} {:>10} {:>10} {:>10} {:>9} {:>9} {:>14}",
-            "scenario", "path", "simulated", "wall (s)", "RTF", "steps", "f evals", "P2 err (bar)"
+            "{:<14} {:<22} {:>10} {:>9} {:>7} {:>8} {:>8} {:>13}",
+            "scenario",
+            "variant",
+            "simulated",
+            "wall (s)",
+            "RTF",
+            "steps",
+            "f evals",
+            "P2 err (bar)"
         );
         for r in &rep.rows {
             println!(
-                "{:<16} {:<10} {:>9.0}s {:>10.3} {:>10.0} {:>9} {:>9} {:>14}",
+                "{:<14} {:<22} {:>9.0}s {:>9.3} {:>7.0} {:>8} {:>8} {:>13.1e}",
                 r.scenario,
-                r.path,
+                r.variant,
                 r.simulated_s,
                 r.wall_s,
                 r.real_time_factor,
                 r.steps,
                 r.rhs_evals,
-                r.p2_max_err_bar.map_or("-".into(), |e| format!("{e:.4}"))
+                r.p2_max_err_bar
             );
         }
         for t in &rep.targets {

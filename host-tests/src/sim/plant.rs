@@ -188,6 +188,41 @@ struct Kinematics {
     eye: [(f64, f64, f64); N_CYL],
 }
 
+/// One rod's mechanics at a state (SI units, the eye's force positive pushing the rod in).
+#[derive(Debug, Clone, Copy)]
+struct RodForces {
+    p_cap: f64,
+    p_rod: f64,
+    x: f64,
+    /// Eye position − rod position.
+    gap: f64,
+    v_eye: f64,
+    arm: f64,
+    /// Penetration of the free play's stop spring (0 with the stops as events).
+    pen: f64,
+    /// Penetration of an end stop.
+    pen_end: f64,
+    x_dot: f64,
+    f_contact: f64,
+}
+
+impl RodForces {
+    /// The rod's two contact roots in `contact`: free, both faces' gaps stay positive;
+    /// engaged, the face's force keeps its sign.
+    fn roots(&self, contact: Contact, half: f64) -> (f64, f64) {
+        match contact {
+            // A rod set on a face starts CONTACT_SLACK_M inside: the root is positive where it
+            // starts, and its only sign change is the next contact.
+            Contact::Free => (
+                half + CONTACT_SLACK_M - self.gap,
+                self.gap + half + CONTACT_SLACK_M,
+            ),
+            Contact::Push => (self.f_contact, 1.0),
+            Contact::Pull => (-self.f_contact, 1.0),
+        }
+    }
+}
+
 /// How far past a face a free rod's contact root changes sign, m: the rod starts on the face
 /// it left (a root of zero, or a rounding error below it, would be no sign change for the
 /// solver's root finder, and a penetration past it would go unseen).
@@ -462,7 +497,91 @@ impl Plant {
     /// engaged one the face's force (signed to be positive while it holds) and a constant 1.
     /// A sign change is a contact switch ([`Plant::switch_contact`]).
     pub fn contact_roots(&self, t: f64, y: &[f64], out: &mut [f64]) {
-        self.evaluate_with_roots(t, y, None, Some(out), false);
+        // The rods' mechanics only: no flows, no fluid properties (the solver asks after every
+        // step and in every root search).
+        let kin = self.kinematics(t);
+        let contacts = self.contacts.get();
+        let half = 0.5 * self.bench.free_play_m;
+        for j in 0..self.active.len() {
+            (out[2 * j], out[2 * j + 1]) = self.rod(j, &kin, y).roots(contacts[j], half);
+        }
+    }
+
+    /// Active cylinder `j`'s rod at state `y`: its chambers' pressures, its stops' penetrations,
+    /// its speed and the eye's force on it (one formula for the right-hand side and the roots).
+    fn rod(&self, j: usize, kin: &Kinematics, y: &[f64]) -> RodForces {
+        let b = &self.bench;
+        let c = &self.active[j];
+        let half = 0.5 * b.free_play_m;
+        let (k, d, c_seal) = (
+            b.stop_stiffness_n_per_m,
+            b.stop_damping_n_s_per_m,
+            b.seal_friction_n_s_per_m,
+        );
+        let events = self.contact_events.get();
+        let p_cap = y[c.at] * BAR;
+        let p_rod = y[c.at + 1] * BAR;
+        let x = y[c.at + 2] * 1e-3;
+        let (x_eye, v_eye, arm) = kin.eye[self.active_index[j]];
+        // Rod fixation: free play of width 2·half closed by a stiff, damped stop, or (events)
+        // a rigid face the rod follows the eye on.
+        let gap = x_eye - x;
+        let engaged = events && self.contacts.get()[j] != Contact::Free;
+        let pen = if events {
+            0.0
+        } else if gap > half {
+            gap - half
+        } else if gap < -half {
+            gap + half
+        } else {
+            0.0
+        };
+        let contact = pen != 0.0;
+        // Cylinder end stops.
+        let pen_end = if x < 0.0 {
+            -x
+        } else if x > c.stroke {
+            c.stroke - x
+        } else {
+            0.0
+        };
+        let end = pen_end != 0.0;
+        let f_hyd = p_cap * c.area_cap - p_rod * c.area_ann;
+        // Massless rod: 0 = F_contact + F_hyd + F_end − c·ẋ, solved for ẋ.
+        let mut num = f_hyd + k * pen_end;
+        let mut den = c_seal;
+        if contact {
+            num += k * pen + d * v_eye;
+            den += d;
+        }
+        if end {
+            den += d;
+        }
+        let (x_dot, f_contact) = if engaged {
+            // 0 = F_contact + F_hyd + F_end − c·ẋ with ẋ = the eye's speed.
+            let f_end = k * pen_end - if end { d * v_eye } else { 0.0 };
+            (v_eye, c_seal * v_eye - f_hyd - f_end)
+        } else {
+            let x_dot = num / den;
+            let f = if contact {
+                k * pen + d * (v_eye - x_dot)
+            } else {
+                0.0
+            };
+            (x_dot, f)
+        };
+        RodForces {
+            p_cap,
+            p_rod,
+            x,
+            gap,
+            v_eye,
+            arm,
+            pen,
+            pen_end,
+            x_dot,
+            f_contact,
+        }
     }
 
     /// Turns the located stops on or off, every rod free (a run's start: rods at their eyes).
@@ -537,18 +656,6 @@ impl Plant {
     /// `q/v(p_up)` m³/s of reference volume, and each node turns its net reference inflow into a
     /// pressure rate through its own v(p) and E(p).
     pub fn evaluate(&self, t: f64, y: &[f64], dy: Option<&mut [f64]>, want_quad: bool) -> Eval {
-        self.evaluate_with_roots(t, y, dy, None, want_quad)
-    }
-
-    /// The contact root functions ([`Plant::contact_roots`]), two per active cylinder.
-    fn evaluate_with_roots(
-        &self,
-        t: f64,
-        y: &[f64],
-        dy: Option<&mut [f64]>,
-        mut roots: Option<&mut [f64]>,
-        want_quad: bool,
-    ) -> Eval {
         let b = &self.bench;
         let oil = &b.oil;
         let fl = &self.fluid;
@@ -588,7 +695,6 @@ impl Plant {
             aperture_pct,
             ..Eval::default()
         };
-        let half = 0.5 * b.free_play_m;
         let (k, d, c_seal) = (
             b.stop_stiffness_n_per_m,
             b.stop_damping_n_s_per_m,
@@ -597,71 +703,12 @@ impl Plant {
         let mut m_into_hp = 0.0;
         let mut m_from_lp = 0.0;
         let mut dy = dy;
-        let events = self.contact_events.get();
-        let contacts = self.contacts.get();
         for (j, c) in self.active.iter().enumerate() {
             let ci = self.active_index[j];
-            let p_cap = y[c.at] * BAR;
-            let p_rod = y[c.at + 1] * BAR;
-            let x = y[c.at + 2] * 1e-3;
-            let (x_eye, v_eye, arm) = kin.eye[ci];
-            // Rod fixation: free play of width 2·half closed by a stiff, damped stop, or (events)
-            // a rigid face the rod follows the eye on.
-            let gap = x_eye - x;
-            let engaged = events && contacts[j] != Contact::Free;
-            let pen = if events {
-                0.0
-            } else if gap > half {
-                gap - half
-            } else if gap < -half {
-                gap + half
-            } else {
-                0.0
-            };
-            let contact = pen != 0.0;
-            // Cylinder end stops.
-            let pen_end = if x < 0.0 {
-                -x
-            } else if x > c.stroke {
-                c.stroke - x
-            } else {
-                0.0
-            };
-            let end = pen_end != 0.0;
-            let f_hyd = p_cap * c.area_cap - p_rod * c.area_ann;
-            // Massless rod: 0 = F_contact + F_hyd + F_end − c·ẋ, solved for ẋ.
-            let mut num = f_hyd + k * pen_end;
-            let mut den = c_seal;
-            if contact {
-                num += k * pen + d * v_eye;
-                den += d;
-            }
-            if end {
-                den += d;
-            }
-            let (x_dot, f_contact) = if engaged {
-                // 0 = F_contact + F_hyd + F_end − c·ẋ with ẋ = the eye's speed.
-                let f_end = k * pen_end - if end { d * v_eye } else { 0.0 };
-                (v_eye, c_seal * v_eye - f_hyd - f_end)
-            } else {
-                let x_dot = num / den;
-                let f = if contact {
-                    k * pen + d * (v_eye - x_dot)
-                } else {
-                    0.0
-                };
-                (x_dot, f)
-            };
-            if let Some(r) = roots.as_deref_mut() {
-                // Free: both faces' gaps stay positive; engaged: the face's force keeps its sign.
-                (r[2 * j], r[2 * j + 1]) = match contacts[j] {
-                    // A rod set on a face starts CONTACT_SLACK_M inside: the root is positive
-                    // where it starts, and its only sign change is the next contact.
-                    Contact::Free => (half + CONTACT_SLACK_M - gap, gap + half + CONTACT_SLACK_M),
-                    Contact::Push => (f_contact, 1.0),
-                    Contact::Pull => (-f_contact, 1.0),
-                };
-            }
+            let rod = self.rod(j, &kin, y);
+            let (p_cap, p_rod, x, v_eye, arm) = (rod.p_cap, rod.p_rod, rod.x, rod.v_eye, rod.arm);
+            let (pen, pen_end, x_dot, f_contact) = (rod.pen, rod.pen_end, rod.x_dot, rod.f_contact);
+            let (contact, end) = (pen != 0.0, pen_end != 0.0);
             let (v_cap, e_cap, g_cap) = fl.state_exergy(p_cap, want_quad);
             let (v_rod, e_rod, g_rod) = fl.state_exergy(p_rod, want_quad);
             let vol_cap = b.chamber_dead_volume_m3 + c.area_cap * x;
