@@ -1,5 +1,6 @@
-//! Firmware cost report: instructions per estimator + scheduler step under QEMU, flash and
-//! static RAM of both builds. Asserted: the memory targets and the 2 200-instruction step target
+//! Firmware cost report: instructions per estimator + scheduler step and of the controller's
+//! set-up at boot under QEMU, flash and static RAM of both builds. Asserted: the memory
+//! targets, the 5 M-instruction set-up and the 2 400-instruction step target
 //! for every run — the golden vectors (two cylinders on duty, fixed aperture and holding P2) and
 //! six seconds of four cylinders holding P2 through a stroke reversal (the costliest case).
 //! QEMU's instruction count is deterministic, so the maxima are exact, not samples.
@@ -28,6 +29,16 @@ fn firmware_cost_report() {
             s.max
         );
     }
+    println!(
+        "controller set-up at boot: {} instructions (target {})",
+        r.setup_instructions,
+        target::SETUP_INSTRUCTIONS
+    );
+    assert!(
+        r.setup_instructions > 100_000 && r.setup_instructions <= target::SETUP_INSTRUCTIONS,
+        "set-up {} instructions",
+        r.setup_instructions
+    );
     for s in &r.size {
         println!("{:<6} flash {} B, static RAM {} B", s.build, s.flash, s.ram);
     }

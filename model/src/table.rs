@@ -149,12 +149,30 @@ pub struct Table2<const R: usize, const C: usize> {
 impl<const R: usize, const C: usize> Table2<R, C> {
     /// Builds a table by sampling `f(r, c)` on [r0, r1] × [c0, c1] (configuration time).
     pub fn sample(r: (f32, f32), c: (f32, f32), f: impl Fn(f32, f32) -> f32) -> Self {
+        let dc = (c.1 - c.0) / (C - 1) as f32;
+        Self::sample_rows(r, c, |x, row| {
+            for (j, v) in row.iter_mut().enumerate() {
+                *v = f(x, c.0 + dc * j as f32);
+            }
+        })
+    }
+
+    /// Builds a table a row at a time: `row(r, values)` fills the row at `r` (values start at
+    /// 0), for a function whose values along a row are best worked out together (configuration
+    /// time).
+    pub fn sample_rows(
+        r: (f32, f32),
+        c: (f32, f32),
+        mut row: impl FnMut(f32, &mut [f32; C]),
+    ) -> Self {
         let dr = (r.1 - r.0) / (R - 1) as f32;
         let dc = (c.1 - c.0) / (C - 1) as f32;
         let mut y = [[ZERO; C]; R];
-        for (i, row) in y.iter_mut().enumerate() {
-            for (j, v) in row.iter_mut().enumerate() {
-                *v = Fx::saturating_from_num(f(r.0 + dr * i as f32, c.0 + dc * j as f32));
+        for (i, out) in y.iter_mut().enumerate() {
+            let mut values = [0.0f32; C];
+            row(r.0 + dr * i as f32, &mut values);
+            for (o, v) in out.iter_mut().zip(values) {
+                *o = Fx::saturating_from_num(v);
             }
         }
         Table2 {

@@ -68,6 +68,10 @@ pub const SAMPLES_ITSELF: bool = true;
 /// Telemetry every 16th step by default (64 frames/s at 2^-10 s; docs/bench.md has the link
 /// budget at 230 400 baud).
 pub const TELEMETRY_EVERY: u16 = 16;
+
+/// What the step clock counts (the DWT cycle counter at the core clock).
+pub const CLOCK_UNIT: &str = "cycles";
+
 /// The fastest telemetry: every 8th step (128 frames/s of at most 144 B: 80 % of 230 400 baud).
 pub const MIN_TELEMETRY_EVERY: u16 = 8;
 /// The configuration store: the last two 128 KiB sectors (offsets from the flash's start;
@@ -532,8 +536,8 @@ impl IwdgRegs for PacIwdg {
     }
 }
 
-/// Runs `f`, a long operation the controller does only in its declared safe state (a
-/// configuration's tables; a flash erase), with the watchdog raised to
+/// Runs `f`, a long operation the controller does only in its declared safe state (a flash
+/// erase), with the watchdog raised to
 /// [`watchdog::RAISED`] (≥ 4 s at the fastest LSI), then back at [`watchdog::NORMAL`], set from
 /// the known setting (never read back) and the counter reloaded.
 pub fn unwatched<R>(f: impl FnOnce() -> R) -> R {
@@ -550,6 +554,9 @@ impl StepClock for DwtClock {
             let r = f();
             (r, cortex_m::peripheral::DWT::cycle_count().wrapping_sub(t0))
         })
+    }
+    fn count(&mut self) -> u32 {
+        cortex_m::peripheral::DWT::cycle_count()
     }
 }
 

@@ -40,6 +40,10 @@ pub const SAMPLES_ITSELF: bool = false;
 /// Telemetry on the bench link every 16th step, as on the bench (the hardware port answers
 /// every step).
 pub const TELEMETRY_EVERY: u16 = 16;
+
+/// What the step clock counts (QEMU `-icount shift=0`: TIM2 counts one tick per instruction).
+pub const CLOCK_UNIT: &str = "instructions";
+
 /// The fastest telemetry (every step: the pseudo-terminal has no baud rate).
 pub const MIN_TELEMETRY_EVERY: u16 = 1;
 /// SysTick reload for 1 ms at the 168 MHz core clock.
@@ -204,6 +208,9 @@ impl StepClock for Tim2Clock {
             (r, t1.wrapping_sub(t0).saturating_sub(self.overhead))
         })
     }
+    fn count(&mut self) -> u32 {
+        pac::TIM2.cnt().read()
+    }
 }
 
 /// A valve driver that only remembers its duty.
@@ -257,16 +264,6 @@ impl ReadBack for VirtualPin {
 // --- SysTick: time driver and software watchdog.
 
 static WATCHDOG_LEFT_MS: AtomicU32 = AtomicU32::new(u32::MAX);
-
-/// Runs `f`, a long computation the controller does only in its declared safe state (a
-/// configuration's tables: ≈ 136 M instructions), with the watchdog's timeout raised to 10 s;
-/// the normal timeout runs again from its end.
-pub fn unwatched<R>(f: impl FnOnce() -> R) -> R {
-    WATCHDOG_LEFT_MS.store(10_000, Ordering::Relaxed);
-    let r = f();
-    WATCHDOG_LEFT_MS.store(WATCHDOG_TIMEOUT_MS, Ordering::Relaxed);
-    r
-}
 
 /// Software stand-in for the IWDG: counted down by SysTick, which keeps running when the
 /// executor is stuck.
