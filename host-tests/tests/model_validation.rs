@@ -277,7 +277,7 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
         // The one miss allowed, reported by `pto validate` when it happens: in Config 1 the
         // fixed-point model and its f64 twin part at one instant of a model-only dive through
         // the precharge cell, where P2 falls ≈ 250 bar/s and trajectories a few LSBs apart
-        // separate exponentially: 0.182 bar (target 0.2) with the stops as events, 0.216 with
+        // separate exponentially: 0.181 bar (target 0.2) with the stops as events, 0.216 with
         // the stop spring (0.8 of a 1 ms step apart in time). Every other target holds; a new
         // miss fails here.
         let known = |m: &String| r.scenario == "test1-cfg1-c14" && m.starts_with("fixed vs f64");

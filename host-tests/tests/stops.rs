@@ -32,7 +32,8 @@ fn p2_rms_bar(a: &SimResult, b: &SimResult) -> f64 {
 /// closer to a 10× stiffer spring than the bench's spring is by a factor 5 (measured 9) — its
 /// balances close, each of the two rods meets and leaves each face once a period (40 periods:
 /// 320 switches, and the two first contacts from the centred start), in fewer steps (measured
-/// 0.82×: what sets the rest is not traced yet, docs/simulation.md).
+/// 0.82×: the rest is set by the check valves and the smooth stretches at the balances' rtol,
+/// docs/simulation.md).
 #[test]
 fn stops_as_events_are_the_rigid_limit_of_the_spring_in_fewer_steps() {
     let spring = test3(Stops::Spring, 1.0);

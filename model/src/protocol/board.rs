@@ -20,9 +20,10 @@ pub const SECTOR_ERASE_MAX_MS: u32 = 2_000;
 pub const STORE_SECTORS: u32 = 2;
 /// The longest build of a controller's tables, ms: its budget is 5 M instructions (`pto
 /// fw-cost` asserts it; 2.3 M measured under QEMU), ≈ 30 ms at 168 MHz at one cycle each;
-/// bounded at 5× that for the flash's wait states and the multi-cycle instructions. Inside the
+/// bounded at 3× that for the flash's wait states (the ART accelerator hides most of them,
+/// RM0090 §3.5.2) and the multi-cycle instructions. Two of them back to back fit the
 /// watchdog's normal window (≥ 250 ms): a build does not raise it.
-pub const TABLE_BUILD_MAX_MS: u32 = 150;
+pub const TABLE_BUILD_MAX_MS: u32 = 90;
 /// The longest a configuration commit may take before its answer (`persist`: the tables are
 /// checked, the store erased and written, the tables built again), ms, plus 1 s for the link.
 pub const COMMIT_REPLY_MAX_MS: u32 =
