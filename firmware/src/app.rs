@@ -393,6 +393,7 @@ impl Session {
     async fn commit(
         &mut self,
         ctl: &mut Controller,
+        clock: &mut board::Clock,
         persist: bool,
     ) -> Result<FromFirmware, ConfigRefusal> {
         ctl.safe_to_apply().map_err(ConfigRefusal::NotSafe)?;
@@ -423,8 +424,11 @@ impl Session {
         } else {
             Stored::No
         };
+        // Measured like the boot's set-up (logged below; `firmware_config_upload` reads it).
+        let t0 = clock.count();
         ctl.reconfigure(&cfg, &self.sched, &self.cc)
             .map_err(refusal)?;
+        let cost = clock.count().wrapping_sub(t0);
         // Every task stalled with us: none of them is stuck.
         HEARTBEATS.beat_all();
         let source = if persist {
@@ -437,6 +441,11 @@ impl Session {
             "model configuration: uploaded (fingerprint {=u32:08x}), {=str}; estimator restarted",
             self.running.info.fingerprint,
             if persist { "stored" } else { "not stored" }
+        );
+        defmt::info!(
+            "configuration applied in {=u32} {=str}",
+            cost,
+            board::CLOCK_UNIT
         );
         Ok(FromFirmware::ConfigApplied {
             info: self.running.info,
@@ -765,7 +774,7 @@ async fn control_task(
                     if ctl.safe_to_apply().is_ok() {
                         act.apply(&Outputs::DE_ENERGISED);
                     }
-                    let r = s.commit(ctl, persist).await;
+                    let r = s.commit(ctl, &mut clock, persist).await;
                     match &r {
                         Ok(_) => faults_prev = 0,
                         Err(e) => defmt::warn!("configuration refused: {}", e),

@@ -203,6 +203,26 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
             .any(|l| l.contains("uploaded") && l.contains("stored")),
         "{log:#?}"
     );
+    // Each commit's table build, as the firmware measured it: within the set-up's budget.
+    let applied: Vec<u32> = q
+        .log()
+        .iter()
+        .filter_map(|l| {
+            l.text
+                .strip_prefix("configuration applied in ")?
+                .strip_suffix(" instructions")?
+                .parse()
+                .ok()
+        })
+        .collect();
+    println!("commits applied in {applied:?} instructions");
+    assert!(!applied.is_empty(), "{log:#?}");
+    for n in applied {
+        assert!(
+            (100_000..=pto_host::hil::fw_cost::target::SETUP_INSTRUCTIONS).contains(&n),
+            "a commit's tables: {n} instructions"
+        );
+    }
 }
 
 /// Ctrl-C (SIGINT) stops `pto link monitor` cleanly: the log is finished under its name (no
