@@ -204,17 +204,9 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
         "{log:#?}"
     );
     // Each commit's table build, as the firmware measured it: within the set-up's budget.
-    let applied: Vec<u32> = q
-        .log()
-        .iter()
-        .filter_map(|l| {
-            l.text
-                .strip_prefix("configuration applied in ")?
-                .strip_suffix(" instructions")?
-                .parse()
-                .ok()
-        })
-        .collect();
+    let lines = q.log();
+    let applied: Vec<u32> =
+        pto_host::hil::fw_cost::logged_instructions(&lines, "configuration applied in ").collect();
     println!("commits applied in {applied:?} instructions");
     assert!(!applied.is_empty(), "{log:#?}");
     for n in applied {

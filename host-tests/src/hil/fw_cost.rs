@@ -50,6 +50,17 @@ pub enum FwCostError {
     /// The reference configuration has no coefficients.
     #[error(transparent)]
     Config(#[from] ConfigError),
+    /// The twin's log did not say what a commit's table build cost.
+    #[error(
+        "no \"configuration applied in N instructions\" line in the twin's log ({lines} lines)"
+    )]
+    NoCommitCost {
+        /// Lines the log had.
+        lines: usize,
+    },
+    /// The upload over the twin's bench link failed.
+    #[error(transparent)]
+    Client(#[from] crate::hil::client::ClientError),
     /// The boot log did not say what the controller's set-up cost.
     #[error("no \"controller set up in N instructions\" line in the boot log ({lines} lines)")]
     NoSetupCost {
@@ -163,6 +174,9 @@ pub struct Report {
     /// Instructions of the controller's set-up at boot (`Controller::new`: validation and
     /// every table), from the QEMU build's boot log.
     pub setup_instructions: u32,
+    /// Instructions of a configuration commit's table build (`Controller::reconfigure`, one
+    /// build: not stored), from the QEMU twin's log.
+    pub commit_instructions: u32,
     /// Both builds.
     pub size: Vec<Size>,
     /// Every target met.
@@ -300,30 +314,85 @@ pub fn measure() -> Result<Report, FwCostError> {
     // The boot log has long arrived by now.
     let setup_instructions = setup_cost(&q)?;
     q.link.send(&pto_model::protocol::ToFirmware::Exit(0))?;
+    let commit_instructions = commit_cost(&qemu_elf)?;
     let size = vec![size(&bench_elf, "bench")?, size(&qemu_elf, "qemu")?];
     let pass = step.iter().all(|s| s.max <= target::STEP_INSTRUCTIONS)
         && setup_instructions <= target::SETUP_INSTRUCTIONS
+        && commit_instructions <= target::SETUP_INSTRUCTIONS
         && size[0].flash <= target::FLASH
         && size[0].ram <= target::RAM;
     Ok(Report {
         step,
         setup_instructions,
+        commit_instructions,
         size,
         pass,
     })
 }
 
+/// A commit's table build: the QEMU twin booted (fixed 0 %, the valve closed, the trip armed),
+/// ten samples with a valid HP reading on its hardware port (the declared safe state), the
+/// reference configuration uploaded over its bench link without storing; the cost from the
+/// log's "configuration applied in N instructions".
+fn commit_cost(qemu_elf: &Path) -> Result<u32, FwCostError> {
+    use pto_firmware::frontend::{LoopSpec, Transducer};
+    use pto_model::protocol::{FromFirmware, SensorFrame, ToFirmware};
+    let mut q = Qemu::boot_twin(qemu_elf, false)?;
+    let pty = q
+        .pty
+        .clone()
+        .ok_or(FwCostError::NoCommitCost { lines: 0 })?;
+    let (mut bench_link, _) = crate::hil::link::connect(
+        &pty.display().to_string(),
+        230_400,
+        std::time::Duration::from_secs(5),
+    )?;
+    let hp = Transducer::new(LoopSpec::HP).map_err(|_| FwCostError::NoCommitCost { lines: 0 })?;
+    let lp = Transducer::new(LoopSpec::LP).map_err(|_| FwCostError::NoCommitCost { lines: 0 })?;
+    for tick in 0..10u32 {
+        let f = SensorFrame {
+            tick,
+            encoder: 0,
+            hp_adc: hp.counts_at_bar(60.0),
+            lp_adc: lp.counts_at_bar(8.0),
+            motor: Some(pto_model::fx::Rpm::from_num(0.0)),
+            supply_mv: Some(3300),
+        };
+        q.link.request(&ToFirmware::Sensors(f), |r| match r {
+            FromFirmware::Output { tick: t, .. } if *t == tick => Some(()),
+            _ => None,
+        })?;
+    }
+    crate::hil::client::upload(
+        &mut bench_link,
+        &pto_model::config::ModelConfig::reference(),
+        false,
+        |_, _| {},
+    )?;
+    let lines = q.log();
+    let cost = logged_instructions(&lines, "configuration applied in ").next();
+    q.link.send(&ToFirmware::Exit(0))?;
+    cost.ok_or(FwCostError::NoCommitCost { lines: lines.len() })
+}
+
 /// The controller's set-up cost from the boot log's "controller set up in N instructions".
 fn setup_cost(q: &Qemu) -> Result<u32, FwCostError> {
     let lines = q.log();
-    lines
-        .iter()
-        .find_map(|l| {
-            l.text
-                .strip_prefix("controller set up in ")?
-                .strip_suffix(" instructions")?
-                .parse()
-                .ok()
-        })
+    logged_instructions(&lines, "controller set up in ")
+        .next()
         .ok_or(FwCostError::NoSetupCost { lines: lines.len() })
+}
+
+/// The instruction counts the firmware logged as "`prefix`N instructions", in order.
+pub fn logged_instructions<'a>(
+    lines: &'a [crate::hil::qemu::LogLine],
+    prefix: &'a str,
+) -> impl Iterator<Item = u32> + 'a {
+    lines.iter().filter_map(move |l| {
+        l.text
+            .strip_prefix(prefix)?
+            .strip_suffix(" instructions")?
+            .parse()
+            .ok()
+    })
 }
