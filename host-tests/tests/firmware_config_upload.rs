@@ -25,27 +25,7 @@ fn one_twin() -> std::sync::MutexGuard<'static, ()> {
 
 /// `n` sensor frames on the hardware port, HP reading 60 bar, each step's output awaited.
 fn feed(q: &mut Qemu, tick: &mut u32, n: u32) {
-    use pto_firmware::frontend::{LoopSpec, Transducer};
-    let hp = Transducer::new(LoopSpec::HP).unwrap();
-    let lp = Transducer::new(LoopSpec::LP).unwrap();
-    for _ in 0..n {
-        let f = pto_model::protocol::SensorFrame {
-            tick: *tick,
-            encoder: 0,
-            hp_adc: hp.counts_at_bar(60.0),
-            lp_adc: lp.counts_at_bar(8.0),
-            motor: Some(pto_model::fx::Rpm::from_num(0.0)),
-            supply_mv: Some(3300),
-        };
-        let t = *tick;
-        q.link
-            .request(&ToFirmware::Sensors(f), |r| match r {
-                FromFirmware::Output { tick, .. } if *tick == t => Some(()),
-                _ => None,
-            })
-            .expect("a step's output");
-        *tick += 1;
-    }
+    pto_host::hil::pil::feed_at_rest(q, tick, n).expect("a step's output");
 }
 
 fn refusal(e: client::ClientError) -> ConfigRefusal {

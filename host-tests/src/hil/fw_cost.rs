@@ -58,6 +58,9 @@ pub enum FwCostError {
         /// Lines the log had.
         lines: usize,
     },
+    /// The QEMU twin named no pseudo-terminal for its bench link.
+    #[error("the QEMU twin named no pseudo-terminal for its bench link")]
+    NoPty,
     /// The upload over the twin's bench link failed.
     #[error(transparent)]
     Client(#[from] crate::hil::client::ClientError),
@@ -335,34 +338,15 @@ pub fn measure() -> Result<Report, FwCostError> {
 /// reference configuration uploaded over its bench link without storing; the cost from the
 /// log's "configuration applied in N instructions".
 fn commit_cost(qemu_elf: &Path) -> Result<u32, FwCostError> {
-    use pto_firmware::frontend::{LoopSpec, Transducer};
-    use pto_model::protocol::{FromFirmware, SensorFrame, ToFirmware};
+    use pto_model::protocol::ToFirmware;
     let mut q = Qemu::boot_twin(qemu_elf, false)?;
-    let pty = q
-        .pty
-        .clone()
-        .ok_or(FwCostError::NoCommitCost { lines: 0 })?;
+    let pty = q.pty.clone().ok_or(FwCostError::NoPty)?;
     let (mut bench_link, _) = crate::hil::link::connect(
         &pty.display().to_string(),
         230_400,
         std::time::Duration::from_secs(5),
     )?;
-    let hp = Transducer::new(LoopSpec::HP).map_err(|_| FwCostError::NoCommitCost { lines: 0 })?;
-    let lp = Transducer::new(LoopSpec::LP).map_err(|_| FwCostError::NoCommitCost { lines: 0 })?;
-    for tick in 0..10u32 {
-        let f = SensorFrame {
-            tick,
-            encoder: 0,
-            hp_adc: hp.counts_at_bar(60.0),
-            lp_adc: lp.counts_at_bar(8.0),
-            motor: Some(pto_model::fx::Rpm::from_num(0.0)),
-            supply_mv: Some(3300),
-        };
-        q.link.request(&ToFirmware::Sensors(f), |r| match r {
-            FromFirmware::Output { tick: t, .. } if *t == tick => Some(()),
-            _ => None,
-        })?;
-    }
+    pil::feed_at_rest(&mut q, &mut 0, 10)?;
     crate::hil::client::upload(
         &mut bench_link,
         &pto_model::config::ModelConfig::reference(),

@@ -97,6 +97,32 @@ pub fn prime(q: &mut Qemu, p2: f32, lp: f32, mode: Mode) -> Result<(), PilError>
     Ok(q.link.send(&ToFirmware::SetMode(mode))?)
 }
 
+/// `n` samples of a bench at rest on the twin's hardware port (lever still, HP 60 bar, LP 8 bar,
+/// motor stopped, 3.3 V supply), from `tick` on, each answered: what the declared safe state
+/// needs besides fixed 0 % (a valid HP reading).
+pub fn feed_at_rest(q: &mut Qemu, tick: &mut u32, n: u32) -> Result<(), PilError> {
+    use pto_firmware::frontend::LoopSpec;
+    let hp = Transducer::new(LoopSpec::HP).map_err(PilError::Transducer)?;
+    let lp = Transducer::new(LoopSpec::LP).map_err(PilError::Transducer)?;
+    for _ in 0..n {
+        let f = SensorFrame {
+            tick: *tick,
+            encoder: 0,
+            hp_adc: hp.counts_at_bar(60.0),
+            lp_adc: lp.counts_at_bar(8.0),
+            motor: Some(Rpm::from_num(0.0)),
+            supply_mv: Some(3300),
+        };
+        let t = *tick;
+        q.link.request(&ToFirmware::Sensors(f), |r| match r {
+            FromFirmware::Output { tick, .. } if *tick == t => Some(()),
+            _ => None,
+        })?;
+        *tick += 1;
+    }
+    Ok(())
+}
+
 /// Replays `inputs` through the firmware (lockstep), returning its outputs.
 pub fn replay(
     q: &mut Qemu,
