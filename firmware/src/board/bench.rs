@@ -24,8 +24,8 @@
 //! Bring-up order in [`init`]: the crystal (bounded wait, internal oscillator as fall-back) →
 //! the outputs at their boot levels (de-energised, or the trip's from the trip memory) → the
 //! flash's caches and prefetch → the watchdog (frozen while a debugger halts the core) → the
-//! brown-out level → the clock monitor → the peripherals. Every table build and flash erase
-//! comes after, with the watchdog raised for it ([`unwatched`]).
+//! brown-out level → the clock monitor → the peripherals. Every flash erase comes after, with
+//! the watchdog raised for it ([`unwatched`]); a table build runs inside the normal window.
 
 #![allow(unsafe_code)]
 

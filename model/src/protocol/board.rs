@@ -21,8 +21,10 @@ pub const STORE_SECTORS: u32 = 2;
 /// The longest build of a controller's tables, ms: its budget is 5 M instructions (`pto
 /// fw-cost` asserts it; 2.3 M measured under QEMU), ≈ 30 ms at 168 MHz at one cycle each;
 /// bounded at 3× that for the flash's wait states (the ART accelerator hides most of them,
-/// RM0090 §3.5.2) and the multi-cycle instructions. Two of them back to back fit the
-/// watchdog's normal window (≥ 250 ms): a build does not raise it.
+/// RM0090 §3.5.2) and the multi-cycle instructions (an assumed average: per-instruction cycles
+/// are in the Cortex-M4 TRM, not RM0090; the bring-up checklist checks the boot log's DWT cycle
+/// count against it, docs/bench.md §0). Two of them back to back fit the watchdog's normal
+/// window (≥ 250 ms): a build does not raise it.
 pub const TABLE_BUILD_MAX_MS: u32 = 90;
 /// The longest a configuration commit may take before its answer (`persist`: the tables are
 /// checked, the store erased and written, the tables built again), ms, plus 1 s for the link.
