@@ -103,7 +103,7 @@ enum Cmd {
     /// targets (builds pto-model for them; needs `rustup target add thumbv6m-none-eabi
     /// thumbv7em-none-eabihf`).
     #[command(
-        after_help = "Examples:\n  pto model-cost --json\n\nExit status:\n  0 every budget met\n  1 a budget missed\n  2 the build failed"
+        after_help = "Examples:\n  pto model-cost --json\n\nExit status:\n  0 every budget met, no panic reachable from the step\n  1 a budget missed or a panic reachable\n  2 the build failed"
     )]
     ModelCost {
         /// Machine-readable output.
@@ -347,7 +347,7 @@ enum Cmd {
     /// Firmware cost: instructions per estimator + scheduler step (QEMU, -icount shift=0,
     /// TIM2), flash and static RAM of the bench and QEMU builds.
     #[command(
-        after_help = "Examples:\n  pto fw-cost\n  pto fw-cost --json --trace step-costs.csv\n\nExit status:\n  0 every budget met (2 200 instructions a step, 128 KiB flash, 32 KiB RAM)\n  1 a budget missed\n  2 QEMU or the build missing\n  130 interrupted"
+        after_help = "Examples:\n  pto fw-cost\n  pto fw-cost --json --trace step-costs.csv\n\nExit status:\n  0 every budget met (2 400 instructions a step, 5 M the set-up, 128 KiB flash, 32 KiB RAM)\n  1 a budget missed\n  2 QEMU or the build missing\n  130 interrupted"
     )]
     FwCost {
         /// Machine-readable output.

@@ -248,13 +248,22 @@ pub(crate) fn model_cost_cmd(json: bool) -> Result<bool> {
         );
         for c in &cost.code {
             println!(
-                "{:<24} per-step code {:>6} B (target ≤ {} B); whole crate .text {:>6} B, .rodata {:>5} B",
+                "{:<24} per-step code {:>6} B (target ≤ {} B): {} functions, {} B of code, the \
+                 rest constants; whole crate .text {:>6} B, .rodata {:>5} B",
                 c.target,
                 c.step_code_bytes,
                 pto_host::model::cost::target::FLASH_BYTES,
+                c.step_functions,
+                c.step_text_bytes,
                 c.text_bytes,
                 c.rodata_bytes
             );
+            if !c.step_external.is_empty() {
+                println!("  from outside the crate: {}", c.step_external.join(", "));
+            }
+            if !c.step_panics.is_empty() {
+                println!("  MISSED: the step can panic: {}", c.step_panics.join(", "));
+            }
         }
     }
     Ok(cost.pass)

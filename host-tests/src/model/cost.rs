@@ -1,5 +1,6 @@
 //! Cost of the fixed-point model: host nanoseconds per estimator + scheduler step, and code size
-//! of `pto-model` for both thumb targets (the `.text` of its release rlib).
+//! of `pto-model` for both thumb targets: the `.text` of its release rlib, and the per-step
+//! code as the call graph of the step's entry points over the ELF objects' relocations.
 
 use super::{inputs, model_config};
 use crate::sim::bench::Bench;
@@ -48,17 +49,24 @@ pub enum CostError {
     /// A member of the rlib could not be read.
     #[error(transparent)]
     Member(object::read::Error),
-    /// A per-step function or table of the list is not in the rlib.
-    #[error(
-        "{path}: no symbol matches `{fragment}`: the per-step function list in model/cost.rs is \
-         stale"
-    )]
-    StaleList {
+    /// A root of the per-step call graph is not in the rlib.
+    #[error("{path}: no function `{root}` (the step's entry point) in the rlib")]
+    NoRoot {
         /// The rlib.
         path: PathBuf,
-        /// The name fragment not found.
-        fragment: &'static str,
+        /// The entry point's path.
+        root: &'static str,
     },
+    /// The target's sysroot could not be found (`rustc --print sysroot`).
+    #[error("cannot find the Rust sysroot (`rustc --print sysroot`): {0}")]
+    Sysroot(String),
+    /// A symbol the step reaches is defined in none of the rlibs read (another toolchain's
+    /// sysroot?): the count would be short.
+    #[error(
+        "the step reaches symbols defined in none of the rlibs read (is `rustc` the toolchain \
+         cargo builds with?): {0}"
+    )]
+    Unresolved(String),
     /// The reference configuration has no coefficients.
     #[error(transparent)]
     Config(#[from] ConfigError),
@@ -82,12 +90,24 @@ pub struct CodeSize {
     pub text_bytes: u64,
     /// `.rodata*` bytes of the rlib.
     pub rodata_bytes: u64,
-    /// Code of the per-step path: `estimator::step`, its per-cylinder part and the shaft
-    /// tracker's start-up (with its constant gain table), `scheduler::step`,
-    /// `aperture_for_flow`, `recip` and the table lookups (symbol sizes); the
-    /// rest of `.text` is configuration-time code (coefficient tables in soft or hard float),
+    /// Per-step code and the constants it reads: every section reached from
+    /// `estimator::step` and `scheduler::step` (the firmware's per-period calls) over the
+    /// relocations of the ELF objects — calls, branches and data references — through this
+    /// crate, its dependencies and the target's `core` and `compiler_builtins`. The rest of
+    /// `.text` is configuration-time code (coefficient tables in soft or hard float),
     /// validation, formatting and the advisor.
     pub step_code_bytes: u64,
+    /// Of it, code (`.text*` sections), bytes.
+    pub step_text_bytes: u64,
+    /// Functions reached.
+    pub step_functions: usize,
+    /// Functions reached outside `pto_model`'s own objects (compiler builtins, `core`),
+    /// demangled.
+    pub step_external: Vec<String>,
+    /// Panic entry points reached (`core::panicking::*`, however reached: an `unwrap`, a slice
+    /// index, a bounds check), each with the crate's function on the way to it: none, or the
+    /// step can panic.
+    pub step_panics: Vec<String>,
 }
 
 /// The report.
@@ -162,29 +182,29 @@ pub fn host_ns_per_step() -> f64 {
     runs[2]
 }
 
-/// The per-step functions and tables, as fragments of their mangled names (legacy mangling:
-/// length-prefixed path segments, then `17h` and the hash). Every one must be found in the
-/// rlib ([`code_size`] fails otherwise), so a function moved to another module cannot drop out
-/// of the count unnoticed.
-const STEP: [&str; 12] = [
-    "9estimator4step17h",
-    "9estimator8cylinder8cylinder17h",
-    "9estimator8cylinder13reversal_unit17h",
-    "9estimator7tracker15tracker_startup17h",
-    "6coeffs15TRACKER_STARTUP",
-    "9scheduler4step17h",
-    "17aperture_for_flow",
-    "2fx5recip",
-    "2fx7mul_q24",
-    "2at17h",
-    "6at_ext17h",
-    "6at_q3217h",
-];
+/// The step's entry points (the firmware's per-period calls), as demangled paths.
+const ROOTS: [&str; 2] = ["pto_model::estimator::step", "pto_model::scheduler::step"];
 
-/// Builds `pto-model` for `target` (release, into `target/model-size`) and sums its sections.
+/// Undefined symbols the rlibs may leave unresolved (demangled paths' last segment): the panic
+/// handler, defined by the final binary (reached only behind a panic, reported as one).
+const LINK_TIME: [&str; 1] = ["rust_begin_unwind"];
+
+/// One loaded ELF object (an rlib member).
+struct Obj<'d> {
+    file: object::File<'d>,
+}
+
+/// A section of one object: the call graph's node.
+type Node = (usize, object::SectionIndex);
+
+/// Builds `pto-model` for `target` (release, into `target/model-size`), sums its sections and
+/// walks the step's call graph.
 pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> {
+    use object::{Object, ObjectSection, ObjectSymbol, RelocationTarget, SymbolSection};
+    use std::collections::{HashMap, HashSet};
     let target_dir = workspace.join("target").join("model-size");
-    let out = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
+    let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+    let out = Command::new(&cargo)
         .current_dir(workspace)
         .args([
             "build",
@@ -204,65 +224,247 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
             stderr: String::from_utf8_lossy(&out.stderr).into_owned(),
         });
     }
-    let rlib = target_dir
-        .join(target)
-        .join("release")
-        .join("libpto_model.rlib");
-    let data = std::fs::read(&rlib).map_err(|source| CostError::Read {
-        path: rlib.clone(),
-        source,
-    })?;
-    let archive =
-        object::read::archive::ArchiveFile::parse(&*data).map_err(|source| CostError::Archive {
-            path: rlib.clone(),
+    let release = target_dir.join(target).join("release");
+    let rlib = release.join("libpto_model.rlib");
+    // The crate first (its symbols win a name), then its dependencies, then the sysroot's.
+    let mut rlibs = vec![rlib.clone()];
+    let mut deps: Vec<PathBuf> = std::fs::read_dir(release.join("deps"))
+        .map_err(|source| CostError::Read {
+            path: release.join("deps"),
             source,
+        })?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| {
+            let n = p
+                .file_name()
+                .map(|n| n.to_string_lossy())
+                .unwrap_or_default();
+            n.ends_with(".rlib") && !n.starts_with("libpto_model")
+        })
+        .collect();
+    deps.sort();
+    rlibs.extend(deps);
+    rlibs.extend(sysroot_rlibs(workspace, target)?);
+    let data: Vec<Vec<u8>> = rlibs
+        .iter()
+        .map(|p| {
+            std::fs::read(p).map_err(|source| CostError::Read {
+                path: p.clone(),
+                source,
+            })
+        })
+        .collect::<Result<_, _>>()?;
+    let mut objs: Vec<Obj> = Vec::new();
+    // Objects 0..crate_objs are the crate's own.
+    let mut crate_objs = 0;
+    let (mut text, mut rodata) = (0u64, 0u64);
+    for (k, (bytes, path)) in data.iter().zip(&rlibs).enumerate() {
+        let archive = object::read::archive::ArchiveFile::parse(&**bytes).map_err(|source| {
+            CostError::Archive {
+                path: path.clone(),
+                source,
+            }
         })?;
-    let (mut text, mut rodata, mut step) = (0u64, 0u64, 0u64);
-    let mut seen = [false; STEP.len()];
-    for member in archive.members() {
-        let member = member.map_err(CostError::Member)?;
-        let name = String::from_utf8_lossy(member.name()).to_string();
-        if !name.ends_with(".o") {
-            continue;
-        }
-        let bytes = member.data(&*data).map_err(CostError::Member)?;
-        let Ok(file) = object::File::parse(bytes) else {
-            continue;
-        };
-        use object::{Object, ObjectSection, ObjectSymbol};
-        for sym in file.symbols() {
-            let n = sym.name().unwrap_or("");
-            if !n.contains("9pto_model") {
+        for member in archive.members() {
+            let member = member.map_err(CostError::Member)?;
+            if !String::from_utf8_lossy(member.name()).ends_with(".o") {
                 continue;
             }
-            if let Some(i) = STEP.iter().position(|m| n.contains(m)) {
-                step += sym.size();
-                seen[i] = true;
+            // An object that does not parse (LLVM bitcode, say) would drop its code from the
+            // count: an error, not a skip.
+            let file = object::File::parse(member.data(&**bytes).map_err(CostError::Member)?)
+                .map_err(CostError::Member)?;
+            if k == 0 {
+                for s in file.sections() {
+                    let n = s.name().unwrap_or("");
+                    if n.starts_with(".text") {
+                        text += s.size();
+                    } else if n.starts_with(".rodata") {
+                        rodata += s.size();
+                    }
+                }
             }
+            objs.push(Obj { file });
         }
-        for s in file.sections() {
-            let n = s.name().unwrap_or("");
-            if n.starts_with(".text") {
-                text += s.size();
-            } else if n.starts_with(".rodata") {
-                rodata += s.size();
+        if k == 0 {
+            crate_objs = objs.len();
+        }
+    }
+    // Defined global symbols by name: the first strong definition wins (the crate's own first),
+    // a weak one only where there is none.
+    let mut global: HashMap<&str, (Node, bool)> = HashMap::new();
+    let mut roots: Vec<Option<Node>> = vec![None; ROOTS.len()];
+    for (i, o) in objs.iter().enumerate() {
+        for sym in o.file.symbols() {
+            let (Ok(name), SymbolSection::Section(sec)) = (sym.name(), sym.section()) else {
+                continue;
+            };
+            if sym.is_global() {
+                let weak = sym.is_weak();
+                match global.get(name) {
+                    Some((_, false)) => {}
+                    Some((_, true)) if weak => {}
+                    _ => {
+                        global.insert(name, ((i, sec), weak));
+                    }
+                }
+            }
+            if i < crate_objs && sym.kind() == object::SymbolKind::Text {
+                let path = format!("{:#}", rustc_demangle::demangle(name));
+                for (r, root) in roots.iter_mut().zip(ROOTS) {
+                    if r.is_none() && path == root {
+                        *r = Some((i, sec));
+                    }
+                }
             }
         }
     }
-    // A function moved or renamed would silently drop out of the count: every entry must be
-    // found.
-    if let Some(i) = seen.iter().position(|s| !s) {
-        return Err(CostError::StaleList {
-            path: rlib,
-            fragment: STEP[i],
-        });
+    let mut queue = Vec::new();
+    for (r, root) in roots.iter().zip(ROOTS) {
+        queue.push(r.ok_or_else(|| CostError::NoRoot {
+            path: rlib.clone(),
+            root,
+        })?);
     }
+    let mut seen: HashSet<Node> = queue.iter().copied().collect();
+    // Every reference followed (to name a panic's callers), and what resolved to nothing.
+    let mut edges: Vec<(Node, Node)> = Vec::new();
+    let mut unresolved: Vec<String> = Vec::new();
+    while let Some((i, sec)) = queue.pop() {
+        let file = &objs[i].file;
+        let Ok(section) = file.section_by_index(sec) else {
+            continue;
+        };
+        for (_, rel) in section.relocations() {
+            let next = match rel.target() {
+                RelocationTarget::Symbol(idx) => {
+                    let Ok(sym) = file.symbol_by_index(idx) else {
+                        continue;
+                    };
+                    match sym.section() {
+                        SymbolSection::Section(s) => Some((i, s)),
+                        _ => {
+                            let name = sym.name().unwrap_or("?");
+                            let found = global.get(name).map(|(n, _)| *n);
+                            let path = format!("{:#}", rustc_demangle::demangle(name));
+                            let last = path.rsplit("::").next().unwrap_or("");
+                            if found.is_none() && !LINK_TIME.contains(&last) {
+                                unresolved.push(path);
+                            }
+                            found
+                        }
+                    }
+                }
+                RelocationTarget::Section(s) => Some((i, s)),
+                _ => None,
+            };
+            let Some(n) = next else {
+                continue;
+            };
+            edges.push(((i, sec), n));
+            if seen.insert(n) {
+                queue.push(n);
+            }
+        }
+    }
+    if !unresolved.is_empty() {
+        unresolved.sort();
+        unresolved.dedup();
+        return Err(CostError::Unresolved(unresolved.join(", ")));
+    }
+    // A code section's function, demangled (`.text.<name>`, `.text.unlikely.<name>`; a bare
+    // `.text`, hand-written assembly, by the object's name for it).
+    let function = |(i, sec): Node| -> String {
+        let name = objs[i]
+            .file
+            .section_by_index(sec)
+            .ok()
+            .and_then(|s| s.name().ok())
+            .unwrap_or("?");
+        let mangled = name.strip_prefix(".text.").unwrap_or(name);
+        let mangled = mangled.strip_prefix("unlikely.").unwrap_or(mangled);
+        format!("{:#}", rustc_demangle::demangle(mangled))
+    };
+    let (mut step, mut step_text, mut functions) = (0u64, 0u64, 0usize);
+    let (mut external, mut panics) = (Vec::new(), Vec::new());
+    for &node in &seen {
+        let Ok(section) = objs[node.0].file.section_by_index(node.1) else {
+            continue;
+        };
+        match section.kind() {
+            // RAM, not flash.
+            object::SectionKind::UninitializedData | object::SectionKind::UninitializedTls => {
+                continue;
+            }
+            object::SectionKind::Text => {}
+            _ => {
+                step += section.size();
+                continue;
+            }
+        }
+        step += section.size();
+        step_text += section.size();
+        functions += 1;
+        let path = function(node);
+        if path.starts_with("core::panicking") {
+            // Named with the crate's functions on the way to it (back along the references
+            // followed, to the nearest of the crate's own).
+            let mut from: Vec<Node> = vec![node];
+            let mut back: HashSet<Node> = from.iter().copied().collect();
+            while let Some(n) = from.pop() {
+                for &(a, _) in edges.iter().filter(|(_, b)| *b == n) {
+                    if a.0 < crate_objs {
+                        panics.push(format!("{path} from {}", function(a)));
+                    } else if back.insert(a) {
+                        from.push(a);
+                    }
+                }
+            }
+        }
+        if node.0 >= crate_objs {
+            external.push(path);
+        }
+    }
+    panics.sort();
+    panics.dedup();
+    external.sort();
     Ok(CodeSize {
         target: target.into(),
         text_bytes: text,
         rodata_bytes: rodata,
         step_code_bytes: step,
+        step_text_bytes: step_text,
+        step_functions: functions,
+        step_external: external,
+        step_panics: panics,
     })
+}
+
+/// The target's `core`, `compiler_builtins` (and the rest of its sysroot's rlibs), of the
+/// toolchain that builds in `workspace` (its overrides apply).
+fn sysroot_rlibs(workspace: &Path, target: &str) -> Result<Vec<PathBuf>, CostError> {
+    let rustc = std::env::var("RUSTC").unwrap_or_else(|_| "rustc".into());
+    let out = Command::new(rustc)
+        .current_dir(workspace)
+        .args(["--print", "sysroot"])
+        .output()
+        .map_err(|e| CostError::Sysroot(e.to_string()))?;
+    if !out.status.success() {
+        return Err(CostError::Sysroot(
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        ));
+    }
+    let lib = PathBuf::from(String::from_utf8_lossy(&out.stdout).trim())
+        .join("lib/rustlib")
+        .join(target)
+        .join("lib");
+    let mut v: Vec<PathBuf> = std::fs::read_dir(&lib)
+        .map_err(|e| CostError::Sysroot(format!("{}: {e}", lib.display())))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "rlib"))
+        .collect();
+    v.sort();
+    Ok(v)
 }
 
 /// The full report. `workspace` is the repository root (for the nested cargo builds).
@@ -275,7 +477,9 @@ pub fn measure(workspace: &Path) -> Result<Cost, CostError> {
     }
     let state_bytes = std::mem::size_of::<State>() + std::mem::size_of::<SchedulerState>();
     // The flash target is the bench MCU's (Cortex-M4F); thumbv6m is reported for the record.
+    // No target's step may reach a panic.
     let pass = state_bytes <= target::STATE_BYTES
+        && code.iter().all(|c| c.step_panics.is_empty())
         && code
             .iter()
             .filter(|c| c.target.starts_with("thumbv7em"))

@@ -153,7 +153,7 @@ impl Estimate {
 
     /// Hydraulic power into the control valve, P2 · valve flow (what drives the motor and the
     /// valve's throttling; 0 … 32 767 W, saturating). Taken on demand, like
-    /// [`Estimate::p2_sigma`], for the telemetry: the per-step code stays within its 8 KiB.
+    /// [`Estimate::p2_sigma`], for the telemetry: the per-step code stays within its 9 KiB.
     pub fn hydraulic_power(&self) -> HydraulicPower {
         hydraulic_power(self.p2.0, self.q_valve.0)
     }
