@@ -258,6 +258,13 @@ pub(crate) fn model_cost_cmd(json: bool) -> Result<bool> {
                 c.text_bytes,
                 c.rodata_bytes
             );
+            let largest: Vec<String> = c
+                .step_largest
+                .iter()
+                .take(5)
+                .map(|(f, b)| format!("{f} {b} B"))
+                .collect();
+            println!("  largest: {}", largest.join(", "));
             if !c.step_external.is_empty() {
                 println!("  from outside the crate: {}", c.step_external.join(", "));
             }

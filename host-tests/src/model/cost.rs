@@ -101,6 +101,8 @@ pub struct CodeSize {
     pub step_text_bytes: u64,
     /// Functions reached.
     pub step_functions: usize,
+    /// The step's functions by code size, largest first (demangled path, bytes).
+    pub step_largest: Vec<(String, u64)>,
     /// Functions reached outside `pto_model`'s own objects (compiler builtins, `core`),
     /// demangled.
     pub step_external: Vec<String>,
@@ -386,7 +388,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
         format!("{:#}", rustc_demangle::demangle(mangled))
     };
     let (mut step, mut step_text, mut functions) = (0u64, 0u64, 0usize);
-    let (mut external, mut panics) = (Vec::new(), Vec::new());
+    let (mut external, mut panics, mut sizes) = (Vec::new(), Vec::new(), Vec::new());
     for &node in &seen {
         let Ok(section) = objs[node.0].file.section_by_index(node.1) else {
             continue;
@@ -406,6 +408,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
         step_text += section.size();
         functions += 1;
         let path = function(node);
+        sizes.push((path.clone(), section.size()));
         if path.starts_with("core::panicking") {
             // Named with the crate's functions on the way to it (back along the references
             // followed, to the nearest of the crate's own).
@@ -428,6 +431,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
     panics.sort();
     panics.dedup();
     external.sort();
+    sizes.sort_by(|a, b| b.1.cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
     Ok(CodeSize {
         target: target.into(),
         text_bytes: text,
@@ -435,6 +439,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
         step_code_bytes: step,
         step_text_bytes: step_text,
         step_functions: functions,
+        step_largest: sizes,
         step_external: external,
         step_panics: panics,
     })
