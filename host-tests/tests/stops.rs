@@ -1,23 +1,27 @@
-//! The rods' free-play stops as located events (`[solver] stops = "events"`) against the stiff
-//! spring: the rigid limit the spring tends to as it stiffens, in fewer steps.
+//! The rods' free-play stops as located events (`[solver] stops = "events"`, the default)
+//! against the stiff spring (`stops = "spring"`): the rigid limit the spring tends to as it
+//! stiffens, in fewer steps.
 
 use pto_host::sim::bench::{Bench, Stops};
-use pto_host::sim::scenario::builtin_named;
+use pto_host::sim::scenario::{Scenario, builtin_named};
 use pto_host::sim::solver::{SimResult, SolverOptions};
 use std::path::Path;
 
-/// Test III on the reference bench with `stops`, the stop spring `stiffer` times stiffer (its
+/// `s` on the reference bench with `stops`, the stop spring `stiffer` times stiffer (its
 /// damping √ times, the same damping ratio).
-fn test3(stops: Stops, stiffer: f64) -> SimResult {
+fn simulate(s: &Scenario, stops: Stops, stiffer: f64) -> SimResult {
     let mut bench = Bench::reference();
     bench.stops = stops;
     bench.stop_stiffness_n_per_m *= stiffer;
     bench.stop_damping_n_s_per_m *= stiffer.sqrt();
-    let s = builtin_named("test3-ap10").unwrap();
-    let (_, res) = s
-        .simulate(&bench, Path::new("."), SolverOptions::default(), None)
-        .unwrap();
-    res
+    s.simulate(&bench, Path::new("."), SolverOptions::default(), None)
+        .unwrap()
+        .1
+}
+
+/// Test III (`test3-ap10`), as [`simulate`].
+fn test3(stops: Stops, stiffer: f64) -> SimResult {
+    simulate(&builtin_named("test3-ap10").unwrap(), stops, stiffer)
 }
 
 /// RMS of P2(a) − P2(b) over their samples, bar.
@@ -74,19 +78,13 @@ fn the_two_stop_models_agree_on_every_paper_run_or_differ_by_the_springs_complia
     // Name, max and RMS |ΔP2| (bar), the run's P2 scale (bar), the RMS of each model to a 10×
     // stiffer spring where the max is above 1 % of the scale, the max within a sample's shift.
     type Row = (String, f64, f64, f64, Option<(f64, f64)>, f64);
-    let run = |s: &pto_host::sim::scenario::Scenario, stops, stiffer: f64| {
-        let mut bench = Bench::reference();
-        bench.stops = stops;
-        bench.stop_stiffness_n_per_m *= stiffer;
-        bench.stop_damping_n_s_per_m *= stiffer.sqrt();
-        s.simulate(&bench, Path::new("."), SolverOptions::default(), None)
-            .unwrap()
-            .1
-    };
-    let rows: Vec<Row> = builtin()
+    let mut rows: Vec<Row> = builtin()
         .par_iter()
         .map(|s| {
-            let (spring, events) = (run(s, Stops::Spring, 1.0), run(s, Stops::Events, 1.0));
+            let (spring, events) = (
+                simulate(s, Stops::Spring, 1.0),
+                simulate(s, Stops::Events, 1.0),
+            );
             let (a, b) = (&spring.trace.p2_pa, &events.trace.p2_pa);
             assert_eq!(a.len(), b.len(), "{}", s.name);
             let max = a
@@ -113,19 +111,19 @@ fn the_two_stop_models_agree_on_every_paper_run_or_differ_by_the_springs_complia
                 .fold(0.0, f64::max)
                 / 1e5;
             let stiffer = (max > 0.01 * scale).then(|| {
-                let stiff = run(s, Stops::Spring, 10.0);
+                let stiff = simulate(s, Stops::Spring, 10.0);
                 (p2_rms_bar(&events, &stiff), p2_rms_bar(&spring, &stiff))
             });
             (s.name.clone(), max, rms, scale, stiffer, shifted)
         })
         .collect();
-    let mut worst = rows.clone();
-    worst.sort_by(|x, y| (y.1 / y.3).total_cmp(&(x.1 / x.3)));
+    // Worst first (relative to the run's scale).
+    rows.sort_by(|x, y| (y.1 / y.3).total_cmp(&(x.1 / x.3)));
     println!(
         "{:<22} {:>8} {:>8} {:>8} {:>9} {:>21}",
         "run", "max bar", "RMS bar", "% range", "% shifted", "RMS to 10x: ev/spring"
     );
-    for (name, max, rms, scale, stiffer, shifted) in &worst {
+    for (name, max, rms, scale, stiffer, shifted) in &rows {
         let st = stiffer.map_or(String::new(), |(e, s)| format!("{e:.4} / {s:.4}"));
         println!(
             "{name:<22} {max:>8.4} {rms:>8.4} {:>8.3} {:>9.3} {st:>21}",

@@ -705,9 +705,18 @@ impl Plant {
         let mut dy = dy;
         for (j, c) in self.active.iter().enumerate() {
             let ci = self.active_index[j];
-            let rod = self.rod(j, &kin, y);
-            let (p_cap, p_rod, x, v_eye, arm) = (rod.p_cap, rod.p_rod, rod.x, rod.v_eye, rod.arm);
-            let (pen, pen_end, x_dot, f_contact) = (rod.pen, rod.pen_end, rod.x_dot, rod.f_contact);
+            let RodForces {
+                p_cap,
+                p_rod,
+                x,
+                v_eye,
+                arm,
+                pen,
+                pen_end,
+                x_dot,
+                f_contact,
+                ..
+            } = self.rod(j, &kin, y);
             let (contact, end) = (pen != 0.0, pen_end != 0.0);
             let (v_cap, e_cap, g_cap) = fl.state_exergy(p_cap, want_quad);
             let (v_rod, e_rod, g_rod) = fl.state_exergy(p_rod, want_quad);
