@@ -6,7 +6,7 @@
 //! settings would put the VCO at 504 MHz, above its 432 MHz limit. The PLL is worked out here,
 //! checked against RM0090's limits, and tested for every crystal the datasheet allows.
 //!
-//! RM0090 §6.3.2 (`RCC_PLLCFGR`): VCO input = f_in / M in 1–2 MHz (2 MHz recommended, to limit
+//! RM0090 §7.3.2 (`RCC_PLLCFGR`): VCO input = f_in / M in 1–2 MHz (2 MHz recommended, to limit
 //! the PLL's jitter), 2 ≤ M ≤ 63; VCO output = VCO input × N in 100–432 MHz, 50 ≤ N ≤ 432;
 //! SYSCLK = VCO / P, P ∈ {2, 4, 6, 8}, ≤ 168 MHz; the 48 MHz clock = VCO / Q, 2 ≤ Q ≤ 15.
 //! DS8626 ("HSE 4–26 MHz oscillator characteristics"): a crystal of 4–26 MHz, starting in

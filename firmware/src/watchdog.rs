@@ -1,12 +1,14 @@
 //! The independent watchdog (IWDG): its settings worked out from the LSI's datasheet range, and
-//! a driver over its four registers that follows RM0090 §19.3 to the letter.
+//! a driver over its four registers that follows RM0090 §21.3 to the letter.
 //!
 //! The IWDG counts the LSI RC oscillator, 17–47 kHz (32 kHz typical; DS8626, "LSI oscillator
 //! characteristics"), so a timeout is a range, not a number: a setting must cover what it
 //! guards at the *fastest* LSI (the shortest timeout), and expires at the latest at the
-//! slowest. [`IwdgSetting::covering`] picks the smallest prescaler that does.
+//! slowest. A timeout is (RLR + 1) × prescaler / f_LSI (RM0090 §21.3, table 107: the /4 … /256
+//! dividers, 0.125–32 768 ms at 32 kHz). [`IwdgSetting::covering`] picks the smallest prescaler
+//! that does.
 //!
-//! RM0090 §19.4.3–§19.4.4: `IWDG_PR` and `IWDG_RLR` are written in the LSI domain; an update in
+//! RM0090 §21.4.3–§21.4.4: `IWDG_PR` and `IWDG_RLR` are written in the LSI domain; an update in
 //! progress shows as `PVU` / `RVU` in `IWDG_SR`, during which the registers must not be written
 //! again and their read value "may not be up to date/valid". So the driver never reads them
 //! back (it restores a setting it knows, [`Iwdg::unwatched`]), waits for `PVU`/`RVU` to clear
@@ -14,14 +16,14 @@
 //! value. Register access sits behind [`IwdgRegs`], so this is tested on the host against a
 //! model of those rules.
 
-/// The LSI's slowest frequency, Hz (DS8626).
+/// The LSI's slowest frequency, Hz (DS8626, "LSI oscillator characteristics").
 pub const LSI_MIN_HZ: u32 = 17_000;
 /// The LSI's typical frequency, Hz.
 pub const LSI_TYP_HZ: u32 = 32_000;
 /// The LSI's fastest frequency, Hz.
 pub const LSI_MAX_HZ: u32 = 47_000;
 
-/// `IWDG_KR` keys (RM0090 §19.4.1).
+/// `IWDG_KR` keys (RM0090 §21.4.1).
 pub mod key {
     /// Reload the counter ("feed").
     pub const RELOAD: u16 = 0xAAAA;
@@ -41,7 +43,7 @@ pub struct IwdgSetting {
 }
 
 impl IwdgSetting {
-    /// The reset value (RM0090 §19.4.2–§19.4.3: /4, 0xFFF).
+    /// The reset value (RM0090 §21.4.2–§21.4.3: /4, 0xFFF).
     pub const RESET: IwdgSetting = IwdgSetting { pr: 0, rlr: 0xFFF };
 
     /// The setting with the smallest prescaler whose timeout is at least `ms` at the fastest
@@ -84,7 +86,9 @@ pub const NORMAL: IwdgSetting = match IwdgSetting::covering(crate::WATCHDOG_TIME
 
 /// The longest operation done with the watchdog raised ([`Iwdg::unwatched`]), ms: an erase of
 /// the two store sectors by the datasheet's bound (`pto_model::protocol::SECTOR_ERASE_MAX_MS`).
-/// A table build is not one: it runs inside the normal window (asserted below).
+/// The other one, the brown-out level's option-byte write at boot (RM0090 §3.7.2, once in a
+/// chip's life), has no bound in the datasheet: it relies on the raised window alone. A table
+/// build is not one: it runs inside the normal window (asserted below).
 pub const UNWATCHED_MAX_MS: u32 =
     pto_model::protocol::STORE_SECTORS * pto_model::protocol::SECTOR_ERASE_MAX_MS;
 
@@ -124,7 +128,7 @@ pub struct Iwdg<R> {
 }
 
 impl<R: IwdgRegs> Iwdg<R> {
-    /// Starts the watchdog at `normal` (RM0090 §19.3.2: start, unlock, program, reload).
+    /// Starts the watchdog at `normal` (RM0090 §21.3.2: start, unlock, program, reload).
     pub fn start(regs: R, normal: IwdgSetting) -> Self {
         let mut w = Iwdg { regs, normal };
         w.regs.key(key::START);
@@ -188,7 +192,7 @@ impl<R: IwdgRegs> crate::supervisor::Watchdog for Iwdg<R> {
 mod tests {
     use super::*;
 
-    /// The IWDG as RM0090 §19 describes it, counting its misuses: a write to `PR`/`RLR` while
+    /// The IWDG as RM0090 §21 describes it, counting its misuses: a write to `PR`/`RLR` while
     /// its update is in progress or while locked, and a reload while `RVU` is set (the counter
     /// then takes the old reload value). An update takes `lag` polls of `IWDG_SR`; reads of
     /// `PR`/`RLR` return the old value until then.

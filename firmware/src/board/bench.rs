@@ -24,8 +24,9 @@
 //! Bring-up order in [`init`]: the crystal (bounded wait, internal oscillator as fall-back) →
 //! the outputs at their boot levels (de-energised, or the trip's from the trip memory) → the
 //! flash's caches and prefetch → the watchdog (frozen while a debugger halts the core) → the
-//! brown-out level → the clock monitor → the peripherals. Every flash erase comes after, with
-//! the watchdog raised for it ([`unwatched`]); a table build runs inside the normal window.
+//! brown-out level (its option-byte write, when the chip has not had it, with the watchdog
+//! raised: [`unwatched`]) → the clock monitor → the peripherals. Every flash erase comes after,
+//! with the watchdog raised for it too; a table build runs inside the normal window.
 
 #![allow(unsafe_code)]
 
@@ -311,7 +312,7 @@ pub fn init(spawner: Spawner) -> Board {
     );
     let brownout = unwatched(brownout_level3);
     if started {
-        // The clock monitor: a crystal that stops raises the NMI (RM0090 §6.2.7), which resets
+        // The clock monitor: a crystal that stops raises the NMI (RM0090 §7.2.7), which resets
         // the controller; it then boots on the internal oscillator.
         pac::RCC.cr().modify(|w| w.set_csson(true));
     }

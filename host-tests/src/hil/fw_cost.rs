@@ -50,23 +50,14 @@ pub enum FwCostError {
     /// The reference configuration has no coefficients.
     #[error(transparent)]
     Config(#[from] ConfigError),
-    /// The twin's log did not say what a commit's table build cost.
-    #[error(
-        "no \"configuration applied in N instructions\" line in the twin's log ({lines} lines)"
-    )]
-    NoCommitCost {
-        /// Lines the log had.
-        lines: usize,
-    },
-    /// The QEMU twin named no pseudo-terminal for its bench link.
-    #[error("the QEMU twin named no pseudo-terminal for its bench link")]
-    NoPty,
     /// The upload over the twin's bench link failed.
     #[error(transparent)]
     Client(#[from] crate::hil::client::ClientError),
-    /// The boot log did not say what the controller's set-up cost.
-    #[error("no \"controller set up in N instructions\" line in the boot log ({lines} lines)")]
-    NoSetupCost {
+    /// The twin's log did not say what a table build cost (at boot, or at a commit).
+    #[error("no \"{prefix}N instructions\" line in the twin's log ({lines} lines)")]
+    NoLoggedCost {
+        /// The line's start: "controller set up in " or "configuration applied in ".
+        prefix: &'static str,
         /// Lines the log had.
         lines: usize,
     },
@@ -83,9 +74,10 @@ pub mod target {
     pub const FLASH: u64 = 128 * 1024;
     /// Static RAM of the bench build, bytes.
     pub const RAM: u64 = 32 * 1024;
-    /// The controller's set-up at boot (its tables: `Controller::new`), instructions: ≈ 30 ms
-    /// at 168 MHz, inside the watchdog's normal window.
-    pub const SETUP_INSTRUCTIONS: u32 = 5_000_000;
+    /// The controller's set-up at boot (its tables: `Controller::new`) and a commit's,
+    /// instructions: the firmware's own bound (`pto_model::protocol::TABLE_BUILD_MAX_INSTRUCTIONS`,
+    /// from which the watchdog's window is checked): ≈ 30 ms at 168 MHz.
+    pub const SETUP_INSTRUCTIONS: u32 = pto_model::protocol::TABLE_BUILD_MAX_INSTRUCTIONS;
 }
 
 /// Start of the four-cylinder window in the torque run, s.
@@ -315,7 +307,7 @@ pub fn measure() -> Result<Report, FwCostError> {
         "hold P2, 4 cylinders, no HP",
     )?);
     // The boot log has long arrived by now.
-    let setup_instructions = setup_cost(&q)?;
+    let setup_instructions = logged_cost(&q, "controller set up in ")?;
     q.link.send(&pto_model::protocol::ToFirmware::Exit(0))?;
     let commit_instructions = commit_cost(&qemu_elf)?;
     let size = vec![size(&bench_elf, "bench")?, size(&qemu_elf, "qemu")?];
@@ -340,7 +332,10 @@ pub fn measure() -> Result<Report, FwCostError> {
 fn commit_cost(qemu_elf: &Path) -> Result<u32, FwCostError> {
     use pto_model::protocol::ToFirmware;
     let mut q = Qemu::boot_twin(qemu_elf, false)?;
-    let pty = q.pty.clone().ok_or(FwCostError::NoPty)?;
+    let pty = q
+        .pty
+        .clone()
+        .expect("boot_twin fails without its pseudo-terminal");
     let (mut bench_link, _) = crate::hil::link::connect(
         &pty.display().to_string(),
         230_400,
@@ -353,18 +348,20 @@ fn commit_cost(qemu_elf: &Path) -> Result<u32, FwCostError> {
         false,
         |_, _| {},
     )?;
-    let lines = q.log();
-    let cost = logged_instructions(&lines, "configuration applied in ").next();
+    let cost = logged_cost(&q, "configuration applied in ");
     q.link.send(&ToFirmware::Exit(0))?;
-    cost.ok_or(FwCostError::NoCommitCost { lines: lines.len() })
+    cost
 }
 
-/// The controller's set-up cost from the boot log's "controller set up in N instructions".
-fn setup_cost(q: &Qemu) -> Result<u32, FwCostError> {
+/// The first count the twin logged as "`prefix`N instructions".
+fn logged_cost(q: &Qemu, prefix: &'static str) -> Result<u32, FwCostError> {
     let lines = q.log();
-    logged_instructions(&lines, "controller set up in ")
+    logged_instructions(&lines, prefix)
         .next()
-        .ok_or(FwCostError::NoSetupCost { lines: lines.len() })
+        .ok_or(FwCostError::NoLoggedCost {
+            prefix,
+            lines: lines.len(),
+        })
 }
 
 /// The instruction counts the firmware logged as "`prefix`N instructions", in order.
