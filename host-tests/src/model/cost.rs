@@ -191,11 +191,6 @@ const ROOTS: [&str; 2] = ["pto_model::estimator::step", "pto_model::scheduler::s
 /// handler, defined by the final binary (reached only behind a panic, reported as one).
 const LINK_TIME: [&str; 1] = ["rust_begin_unwind"];
 
-/// One loaded ELF object (an rlib member).
-struct Obj<'d> {
-    file: object::File<'d>,
-}
-
 /// A section of one object: the call graph's node.
 type Node = (usize, object::SectionIndex);
 
@@ -256,7 +251,8 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
             })
         })
         .collect::<Result<_, _>>()?;
-    let mut objs: Vec<Obj> = Vec::new();
+    // The rlibs' ELF objects.
+    let mut objs: Vec<object::File> = Vec::new();
     // Objects 0..crate_objs are the crate's own.
     let mut crate_objs = 0;
     let (mut text, mut rodata) = (0u64, 0u64);
@@ -286,7 +282,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
                     }
                 }
             }
-            objs.push(Obj { file });
+            objs.push(file);
         }
         if k == 0 {
             crate_objs = objs.len();
@@ -297,7 +293,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
     let mut global: HashMap<&str, (Node, bool)> = HashMap::new();
     let mut roots: Vec<Option<Node>> = vec![None; ROOTS.len()];
     for (i, o) in objs.iter().enumerate() {
-        for sym in o.file.symbols() {
+        for sym in o.symbols() {
             let (Ok(name), SymbolSection::Section(sec)) = (sym.name(), sym.section()) else {
                 continue;
             };
@@ -333,7 +329,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
     let mut edges: Vec<(Node, Node)> = Vec::new();
     let mut unresolved: Vec<String> = Vec::new();
     while let Some((i, sec)) = queue.pop() {
-        let file = &objs[i].file;
+        let file = &objs[i];
         let Ok(section) = file.section_by_index(sec) else {
             continue;
         };
@@ -378,7 +374,6 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
     // `.text`, hand-written assembly, by the object's name for it).
     let function = |(i, sec): Node| -> String {
         let name = objs[i]
-            .file
             .section_by_index(sec)
             .ok()
             .and_then(|s| s.name().ok())
@@ -390,21 +385,20 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
     let (mut step, mut step_text, mut functions) = (0u64, 0u64, 0usize);
     let (mut external, mut panics, mut sizes) = (Vec::new(), Vec::new(), Vec::new());
     for &node in &seen {
-        let Ok(section) = objs[node.0].file.section_by_index(node.1) else {
+        let Ok(section) = objs[node.0].section_by_index(node.1) else {
             continue;
         };
-        match section.kind() {
-            // RAM, not flash.
-            object::SectionKind::UninitializedData | object::SectionKind::UninitializedTls => {
-                continue;
-            }
-            object::SectionKind::Text => {}
-            _ => {
-                step += section.size();
-                continue;
-            }
+        use object::SectionKind::{Text, UninitializedData, UninitializedTls};
+        let kind = section.kind();
+        // RAM, not flash.
+        if matches!(kind, UninitializedData | UninitializedTls) {
+            continue;
         }
         step += section.size();
+        // Constants: flash, not code.
+        if kind != Text {
+            continue;
+        }
         step_text += section.size();
         functions += 1;
         let path = function(node);
