@@ -386,7 +386,7 @@ pub(super) fn cylinder(
     // mm·kN = N·m. The seals' drag adds to it: counted all stroke long, also while the eye
     // crosses its free play (the rod then stands in the plant, but that is right after a
     // reversal, where the lever's speed and with it the drag are small).
-    sd.qmul(f_hyd).saturating_neg().saturating_add(lever.seal)
+    lever.seal.saturating_sub(sd.qmul(f_hyd))
 }
 
 /// The cylinders stage of a step: per cylinder on duty, its stroke and reversal work, its flows

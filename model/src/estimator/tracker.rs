@@ -37,35 +37,28 @@ pub(super) fn residual(theta_meas: i64, pred_theta: i64) -> i64 {
     i64::from((theta_meas - pred_theta).clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32)
 }
 
-/// The shaft tracker's first reading (it starts there, at rest) and its first
-/// [`TrackerCoeffs::tracker_startup_len`] updates after it: the expanding-memory gains
-/// [`TRACKER_STARTUP`] (the least-squares line through every reading so far), the acceleration
-/// held at 0 until the fading-memory tracker takes over. Out of line: the steady step only
-/// tests its phase.
+/// The shaft tracker's first reading: it starts there, at rest, and takes the expanding-memory
+/// gains for its next [`TrackerCoeffs::tracker_startup_len`] updates ([`startup_gains`]). Out of
+/// line: the steady step only tests its phase.
 #[inline(never)]
 #[cold]
-pub(super) fn tracker_startup(
-    t: &mut TrackerState,
-    c: &TrackerCoeffs,
-    dtl: u8,
-    theta_meas: i64,
-    count: i32,
-    p2: Fx,
-) {
-    if t.phase == ENC_UNSEEN {
-        // The first reading: the tracker starts at it, at rest.
-        t.theta_q32 = theta_meas;
-        t.omega_q32 = 0;
-        t.accel_q32 = 0;
-        t.phase = c.tracker_startup_len.saturating_add(ENC_TRACKING);
-        t.last_count = count;
-        t.hp_at_change = p2;
-        return;
-    }
-    // The prediction with the acceleration at 0, as it is all through the start-up.
-    let pred_theta = t.theta_q32 + shr64(t.omega_q32 + c.round_dt_q32, u32::from(dtl));
-    let pred_omega = t.omega_q32;
-    let r = residual(theta_meas, pred_theta);
+pub(super) fn tracker_start(t: &mut TrackerState, c: &TrackerCoeffs, theta_meas: i64, p2: Fx) {
+    t.theta_q32 = theta_meas;
+    t.omega_q32 = 0;
+    t.accel_q32 = 0;
+    t.phase = c.tracker_startup_len.saturating_add(ENC_TRACKING);
+    t.hp_at_change = p2;
+}
+
+/// The gains of one of the first [`TrackerCoeffs::tracker_startup_len`] updates after the first
+/// reading: the expanding-memory gains [`TRACKER_STARTUP`] (the least-squares line through every
+/// reading so far) as α (Q1.31, up to 1: a `u32`), β/dt (Q16.16) and 2γ/dt² = 0, so that the
+/// acceleration stays 0 until the fading-memory gains take over (and with it the prediction's
+/// acceleration terms: the update is the steady one with these gains). Counts the phase down.
+/// Out of line: the steady step only tests its phase.
+#[inline(never)]
+#[cold]
+pub(super) fn startup_gains(t: &mut TrackerState, c: &TrackerCoeffs, dtl: u8) -> (u32, i32, i32) {
     // The n-th update since the start, n − 1 the table's index; its length is a power of two,
     // so the masked index cannot leave it.
     let i = usize::from(
@@ -77,11 +70,7 @@ pub(super) fn tracker_startup(
     t.phase = t.phase.saturating_sub(1).max(ENC_TRACKING);
     // β_n/dt in Q16.16: β_n (Q1.31) · 2^dt_log2 / 2^15; dt_log2 ≤ 12 (validated), so the shift
     // is 3..=9 bits and β_n/dt < 2^29 as the fading-memory β/dt.
-    let b = b >> (15u8.saturating_sub(dtl) & 31);
-    t.theta_q32 =
-        (pred_theta + ((r * i64::from(a) + (1 << 30)) >> 31)).clamp(-THETA_LIM_Q32, THETA_LIM_Q32);
-    t.omega_q32 =
-        (pred_omega + ((r * i64::from(b) + (1 << 15)) >> 16)).clamp(-OMEGA_LIM_Q32, OMEGA_LIM_Q32);
+    (a, (b >> (15u8.saturating_sub(dtl) & 31)) as i32, 0)
 }
 
 /// The shaft stage of a step: the α–β–γ tracker on the encoder angle, in Q32.32 (i64), its
@@ -114,20 +103,26 @@ pub(super) fn track(
     match inp.encoder {
         Some(count) => {
             let theta_meas = i64::from(count) * i64::from(c.rad_per_count_q32);
-            if t.phase == ENC_TRACKING {
-                // The residual held to ±0.5 rad fits an i32, so each gain product is one
-                // 32 × 32 → 64 multiply.
-                let r = residual(theta_meas, pred_theta);
-                t.theta_q32 = (pred_theta + ((r * i64::from(c.alpha_q31) + (1 << 30)) >> 31))
-                    .clamp(-THETA_LIM_Q32, THETA_LIM_Q32);
-                t.omega_q32 = (pred_omega
-                    + ((r * i64::from(c.beta_over_dt_q16) + (1 << 15)) >> 16))
-                    .clamp(-OMEGA_LIM_Q32, OMEGA_LIM_Q32);
-                t.accel_q32 = (t.accel_q32
-                    + ((r * i64::from(c.gamma_over_dt2_q16) + (1 << 15)) >> 16))
-                    .clamp(-ACCEL_LIM_Q32, ACCEL_LIM_Q32);
+            if t.phase == ENC_UNSEEN {
+                tracker_start(t, c, theta_meas, p2);
+                t.last_count = count;
             } else {
-                tracker_startup(t, c, dtl, theta_meas, count, p2);
+                // The fading-memory gains, or during the start-up the expanding-memory ones
+                // (whose acceleration stays 0, so the prediction above is theirs too).
+                let (a, b, g) = if t.phase == ENC_TRACKING {
+                    (c.alpha_q31 as u32, c.beta_over_dt_q16, c.gamma_over_dt2_q16)
+                } else {
+                    startup_gains(t, c, dtl)
+                };
+                // The residual held to ±0.5 rad fits an i32, so each gain product is one
+                // 32 × 32 → 64 multiply (α unsigned: it reaches 1 at the first update).
+                let r = residual(theta_meas, pred_theta);
+                t.theta_q32 = (pred_theta + ((r * i64::from(a) + (1 << 30)) >> 31))
+                    .clamp(-THETA_LIM_Q32, THETA_LIM_Q32);
+                t.omega_q32 = (pred_omega + ((r * i64::from(b) + (1 << 15)) >> 16))
+                    .clamp(-OMEGA_LIM_Q32, OMEGA_LIM_Q32);
+                t.accel_q32 = (t.accel_q32 + ((r * i64::from(g) + (1 << 15)) >> 16))
+                    .clamp(-ACCEL_LIM_Q32, ACCEL_LIM_Q32);
             }
             if count != t.last_count {
                 t.last_count = count;
