@@ -2,13 +2,10 @@
 
 use crate::paper::Results;
 use crate::plot::{BarChart, Figure, Panel, Series};
-use crate::sim::bench::BAR;
+use crate::sim::bench::{BAR, LPM, RPM};
 use crate::sim::power::Power;
 use crate::sim::scenario::{BLOCKED_APERTURES, SETS, TEST3_APERTURES};
 use crate::sim::solver::Trace;
-
-const RPM: f64 = 30.0 / std::f64::consts::PI;
-const LPM: f64 = 6e4;
 
 /// Which trace column a series shows, with its display scale.
 #[derive(Clone, Copy)]

@@ -11,6 +11,10 @@ use std::path::{Path, PathBuf};
 pub const P_ATM: f64 = 101_325.0;
 /// Pa per bar.
 pub const BAR: f64 = 1e5;
+/// rpm per rad/s.
+pub const RPM: f64 = 30.0 / std::f64::consts::PI;
+/// L/min per m³/s.
+pub const LPM: f64 = 6e4;
 
 /// The reference bench shipped with the project (`data/reference-bench.toml`).
 pub const REFERENCE_BENCH_TOML: &str = include_str!("../../data/reference-bench.toml");
@@ -343,8 +347,8 @@ impl Bench {
                 l.lp_to_manifold_length_m,
                 l.lp_to_manifold_inner_diameter_mm,
             ),
-            hp_line_resistance_pa_s_per_m3: l.hp_line_resistance_bar_per_lpm * BAR * 6e4,
-            lp_line_resistance_pa_s_per_m3: l.lp_line_resistance_bar_per_lpm * BAR * 6e4,
+            hp_line_resistance_pa_s_per_m3: l.hp_line_resistance_bar_per_lpm * BAR * LPM,
+            lp_line_resistance_pa_s_per_m3: l.lp_line_resistance_bar_per_lpm * BAR * LPM,
             file: f,
         })
     }

@@ -2,14 +2,11 @@
 //! ([`pto_model::ModelConfig`]), the scheduler's ([`SchedulerConfig`]) and the firmware's
 //! control settings ([`ControlConfig`]), for the host tools and for the firmware's build script.
 
-use crate::{BAR, Bench, Load};
+use crate::{BAR, Bench, LPM, Load, RPM};
 use pto_model::ModelConfig;
 use pto_model::config::{AccumulatorConfig, ConfigError, CylinderConfig, GeometryConfig};
 use pto_model::control::{ControlConfig, LoopSpec};
 use pto_model::scheduler::SchedulerConfig;
-
-/// rpm per rad/s.
-const RPM: f64 = 30.0 / std::f64::consts::PI;
 
 /// Why a bench has no model configuration, or a configuration no coefficients.
 #[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
@@ -61,7 +58,7 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, ModelError> {
     // Relief: flow gained per bar above the setting, d/dp of Cd·A(p)·sqrt(2Δp/ρ) at the setting.
     let relief_gain = b.relief_cd * b.relief_area_m2 / b.relief_range_pa
         * (2.0 * (b.relief_setting_pa - 8.0 * BAR) / b.oil.density_kg_m3).sqrt()
-        * 6e4
+        * LPM
         * BAR;
     let r = ModelConfig::reference();
     let c = ModelConfig {
@@ -83,7 +80,7 @@ pub fn model_config(b: &Bench) -> Result<ModelConfig, ModelError> {
         relief_setting_bar: (b.relief_setting_pa / BAR) as f32,
         relief_gain_lpm_per_bar: relief_gain as f32,
         motor_displacement_cm3_per_rev: f.motor.displacement_cm3_per_rev as f32,
-        motor_leak_lpm_per_bar: (b.motor_leak_m3_per_s_pa * 6e4 * BAR) as f32,
+        motor_leak_lpm_per_bar: (b.motor_leak_m3_per_s_pa * LPM * BAR) as f32,
         motor_mech_efficiency: b.motor_eta_mech as f32,
         load_nm_per_rpm: load_nm_per_rpm as f32,
         motor_inertia_kg_m2: b.motor_inertia_kg_m2 as f32,

@@ -6,7 +6,7 @@ use pto_host::figures;
 use pto_host::paper::{self, Fact, Results, tol};
 use pto_host::perf;
 use pto_host::runner::{self, Outcome};
-use pto_host::sim::bench::BAR;
+use pto_host::sim::bench::{BAR, LPM};
 use pto_host::sim::power::{Power, percent_text};
 use pto_host::sim::scenario;
 use pto_host::sim::solver::{SimResult, SolverOptions};
@@ -70,8 +70,8 @@ pub(crate) fn summarize(name: &str, r: &SimResult, csv: &Path, figs: [&Path; 3])
         p2_min_bar: t.p2_pa.iter().copied().fold(f64::INFINITY, f64::min) / BAR,
         p2_max_bar: t.p2_pa.iter().copied().fold(f64::NEG_INFINITY, f64::max) / BAR,
         lp_end_bar: t.lp_pa[t.len() - 1] / BAR,
-        mean_injected_lpm: mean(&t.q_inj_m3_s) * 6e4,
-        mean_motor_flow_lpm: mean(&t.q_motor_m3_s) * 6e4,
+        mean_injected_lpm: mean(&t.q_inj_m3_s) * LPM,
+        mean_motor_flow_lpm: mean(&t.q_motor_m3_s) * LPM,
         mean_motor_speed_rpm: mean(&t.omega_rad_s) * 30.0 / std::f64::consts::PI,
         peak_torque_nm: t.torque_nm.iter().fold(0.0f64, |m, v| m.max(v.abs())),
         balance_worst_rel: r.balance.worst(),

@@ -1,14 +1,11 @@
 //! The paper's facts (Section 4.1), checked on the built-in scenarios.
 
 use crate::runner::Outcome;
-use crate::sim::bench::{BAR, Bench};
+use crate::sim::bench::{BAR, Bench, LPM, RPM};
 use crate::sim::scenario::{BLOCKED_APERTURES, SETS, TEST3_APERTURES};
 use crate::sim::solver::{SimResult, Trace};
 use serde::Serialize;
 use std::collections::HashMap;
-
-const RPM: f64 = 30.0 / std::f64::consts::PI;
-const LPM: f64 = 6e4;
 
 /// Tolerances of the facts, named.
 pub mod tol {

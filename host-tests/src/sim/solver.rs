@@ -3,7 +3,7 @@
 //! Over 600 lines on purpose: one integration loop (segments between valve events, roots,
 //! sampling, balances) whose parts share its state; the trace and balance types sit with it.
 
-use crate::sim::bench::{BAR, Bench};
+use crate::sim::bench::{BAR, Bench, LPM, RPM};
 use crate::sim::plant::{Eval, N_CYL, N_QUAD, Plant, QUAD_NAMES, Stored, quad};
 use crate::sim::power::Power;
 use diffsol::{
@@ -306,20 +306,19 @@ impl Trace {
             ]);
         }
         w.write_record(&header)?;
-        let rpm = 30.0 / std::f64::consts::PI;
         for k in 0..self.len() {
             let mut row = vec![
                 self.t_s[k],
                 self.theta_rad[k].to_degrees(),
-                self.theta_dot_rad_s[k] * rpm,
+                self.theta_dot_rad_s[k] * RPM,
                 self.p2_pa[k] / BAR,
                 self.lp_pa[k] / BAR,
                 self.p_motor_pa[k] / BAR,
-                self.q_inj_m3_s[k] * 6e4,
-                self.q_motor_m3_s[k] * 6e4,
-                self.q_valve_m3_s[k] * 6e4,
-                self.q_relief_m3_s[k] * 6e4,
-                self.omega_rad_s[k] * rpm,
+                self.q_inj_m3_s[k] * LPM,
+                self.q_motor_m3_s[k] * LPM,
+                self.q_valve_m3_s[k] * LPM,
+                self.q_relief_m3_s[k] * LPM,
+                self.omega_rad_s[k] * RPM,
                 self.aperture_pct[k],
                 self.torque_nm[k],
                 self.input_power_w[k],
@@ -331,7 +330,7 @@ impl Trace {
                     self.rod_m[i][k] * 1e3,
                     self.p_cap_pa[i][k] / BAR,
                     self.p_rod_pa[i][k] / BAR,
-                    self.q_cyl_m3_s[i][k] * 6e4,
+                    self.q_cyl_m3_s[i][k] * LPM,
                     self.torque_cyl_nm[i][k],
                 ]);
             }

@@ -1,9 +1,7 @@
 //! Plant values at an instant of a run, in the units the controller uses (bar, N·m, rpm).
 
-use crate::sim::bench::BAR;
+use crate::sim::bench::{BAR, RPM};
 use crate::sim::solver::Trace;
-
-const RPM: f64 = 30.0 / std::f64::consts::PI;
 
 /// Plant values at one instant (linear interpolation of a trace, or the plant's evaluation).
 #[derive(Debug, Clone, Copy, Default)]

@@ -4,13 +4,11 @@
 use super::{RunKey, RunSpec};
 use crate::model::closed_loop::ModelController;
 use crate::model::{controller_config, duty_mask, model_config};
-use crate::sim::bench::BAR;
+use crate::sim::bench::{BAR, RPM};
 use crate::sim::scenario::Prepared;
 use crate::sim::solver::{self, Run, SimResult, ValveSchedule};
 use pto_model::scheduler::Mode;
 use serde::{Deserialize, Serialize};
-
-const RPM: f64 = 30.0 / std::f64::consts::PI;
 
 /// Balance target of a run (as `pto simulate`'s): a run that misses it is flagged
 /// ([`Status::Balance`]).
