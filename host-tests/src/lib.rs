@@ -11,7 +11,7 @@
 //!   sensors, the f64 mirror, `pto validate`, golden vectors, code cost).
 //! - [`hil`]: the firmware built from the host, run under QEMU, processor-in-the-loop, firmware cost.
 //! - [`runner`]: scenarios run in parallel on all cores; [`perf`]: the solver's timing
-//!   (`pto bench`); [`sweep`]: a design matrix over bench, scenario and controller fields, one
+//!   (`pto perf`); [`sweep`]: a design matrix over bench, scenario and controller fields, one
 //!   row per run (`pto sweep`).
 //! - [`figures`] (the figures of a run and of the paper), [`plot`] (the plotting), [`output`]
 //!   (outputs written whole).

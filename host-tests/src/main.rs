@@ -11,7 +11,7 @@ mod cli;
 use cli::firmware::{fw_cost_cmd, pil_cmd, qemu_cmd};
 use cli::fit::{fit_cmd, synth_logs_cmd};
 use cli::model::{model_cost_cmd, validate_cmd};
-use cli::sim::{bench_cmd, paper_cmd, scenarios, simulate};
+use cli::sim::{paper_cmd, perf_cmd, scenarios, simulate};
 
 #[derive(Parser)]
 #[command(
@@ -410,11 +410,13 @@ enum Cmd {
     },
     /// Wall time, real-time factor and accuracy of Test III and a 1000 s irregular sea: the
     /// stops as events (the default) side by side with the stop spring and with the reference
-    /// solver path, each against a tight run of its own stop model.
+    /// solver path, each against a tight run of its own stop model. (`pto bench`, its former
+    /// name, still runs it for one release.)
     #[command(
-        after_help = "Examples:\n  pto bench\n  pto bench --repeats 5 --json\n  pto bench --batch 1000\n\nExit status:\n  0 every target met\n  1 a target missed\n  2 bad input"
+        alias = "bench",
+        after_help = "Examples:\n  pto perf\n  pto perf --repeats 5 --json\n  pto perf --batch 1000\n\nExit status:\n  0 every target met\n  1 a target missed\n  2 bad input"
     )]
-    Bench {
+    Perf {
         /// Bench parameter file (default: the reference bench).
         #[arg(long)]
         bench: Option<PathBuf>,
@@ -663,12 +665,12 @@ fn main() -> ExitCode {
             json,
             no_plots,
         } => paper_cmd(bench.as_ref(), &out, json, !no_plots),
-        Cmd::Bench {
+        Cmd::Perf {
             bench,
             repeats,
             batch,
             json,
-        } => bench_cmd(bench.as_ref(), repeats, batch, json),
+        } => perf_cmd(bench.as_ref(), repeats, batch, json),
         Cmd::Sweep {
             cmd:
                 Some(SweepCmd::Merge {

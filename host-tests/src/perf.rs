@@ -1,4 +1,4 @@
-//! `pto bench`: wall time, real-time factor and accuracy of the reference runs: the stops as
+//! `pto perf`: wall time, real-time factor and accuracy of the reference runs: the stops as
 //! events (the default) side by side with the stop spring and with the reference solver path,
 //! their repeats interleaved, and the throughput of a batch of runs.
 

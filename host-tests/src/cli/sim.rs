@@ -419,7 +419,7 @@ pub(crate) fn markdown_report(r: &PaperReport, outcomes: &[Outcome]) -> String {
     s
 }
 
-pub(crate) fn bench_cmd(
+pub(crate) fn perf_cmd(
     bench_path: Option<&PathBuf>,
     repeats: usize,
     batch: Option<usize>,

@@ -366,7 +366,7 @@ impl Plant {
     }
 
     /// Whether evaluations at the same instant share the motion and lever values (on by
-    /// default; off reproduces the reference path that `pto bench` compares against).
+    /// default; off reproduces the reference path that `pto perf` compares against).
     pub fn set_reuse_kinematics(&self, on: bool) {
         self.reuse_kinematics.set(on);
         self.kinematics.set(None);

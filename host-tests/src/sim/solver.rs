@@ -121,7 +121,7 @@ pub struct SolverOptions {
     /// Absolute tolerance scale (1 = 1e-3 bar on pressures, 1e-4 mm on rods).
     pub atol_scale: f64,
     /// Evaluations at one instant (a step's Newton iterations, the finite-difference Jacobian's
-    /// columns) share the motion and lever values. Off: the reference path `pto bench` compares
+    /// columns) share the motion and lever values. Off: the reference path `pto perf` compares
     /// against, which evaluates them at every call (same results to the last bit).
     pub reuse_kinematics: bool,
 }
