@@ -547,7 +547,10 @@ fn every_command_help_shows_examples_and_exit_codes() {
     // `pto bench`, `pto perf`'s former name, still runs it (hidden from the command list).
     let out = pto().args(["bench", "--help"]).output().unwrap();
     let help = String::from_utf8_lossy(&out.stdout);
-    assert!(out.status.success() && help.contains("Usage: pto perf"), "{help}");
+    assert!(
+        out.status.success() && help.contains("Usage: pto perf"),
+        "{help}"
+    );
     let out = pto().arg("--help").output().unwrap();
     assert!(!String::from_utf8_lossy(&out.stdout).contains("  bench "));
 }
