@@ -186,10 +186,8 @@ fn side_by_side(
         )
     };
     let (tight_events, tight_spring) = (tight(Stops::Events)?, tight(Stops::Spring)?);
-    let mut k = 0;
-    let rows = VARIANTS.map(|v| {
-        let (r, w) = (&last[k], &mut walls[k]);
-        k += 1;
+    let rows = std::array::from_fn(|k| {
+        let (v, r, w) = (&VARIANTS[k], &last[k], &mut walls[k]);
         let t = match v.stops {
             Stops::Events => &tight_events,
             Stops::Spring => &tight_spring,

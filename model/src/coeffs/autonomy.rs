@@ -83,7 +83,6 @@ impl ModelConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::coeffs::N_APERTURE;
 
     /// The autonomy table, built a row at a time, against the integral ∫ 60·C/Q dP from the stop
     /// pressure worked out finely (f64 midpoint sums at ≤ 0.008 bar, split at the precharge;

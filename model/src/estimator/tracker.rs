@@ -17,7 +17,7 @@ pub struct TrackerState {
     /// The tracker's phase: 0 before its first encoder reading (and after a drop-out), 1
     /// tracking with the fading-memory gains, n + 1 with n start-up steps left
     /// ([`TrackerCoeffs::tracker_startup_len`], the expanding-memory gains [`TRACKER_STARTUP`]).
-    /// One byte, so that the steady step tests one value.
+    /// One byte: the steady step tests it against 0 and 1.
     pub phase: u8,
     /// Last encoder count.
     pub last_count: i32,
