@@ -1,11 +1,13 @@
-//! The embassy tasks, shared by both boards. Hardware comes from `board` through embedded-hal and
-//! embedded-io-async traits; the logic lives in the host-tested library.
+//! The embassy tasks, shared by both boards, wired: hardware comes from `board` through
+//! embedded-hal and embedded-io-async traits; each step and each command is the host-tested
+//! library's [`Session`], whose events are logged here.
 //!
 //! The control task owns the outputs: each step's are driven before anything is logged or
 //! awaited, so neither the link nor a log (defmt-rtt never blocks: `disable-blocking-mode`)
 //! stands between a trip and the dump valve.
 
 use crate::board;
+use crate::log::{TripMemory, log_event, log_setup_error};
 use core::cell::Cell;
 use core::ops::Range;
 use core::sync::atomic::{AtomicU32, Ordering};
@@ -15,19 +17,20 @@ use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
 use embassy_sync::channel::Channel;
 use embassy_time::{Duration, Timer, with_timeout};
 use embedded_io_async::{Read, Write};
-use pto_firmware::control::{ControlConfig, Controller, ReconfigureError, SetupError, StepClock};
+use pto_firmware::control::{ControlConfig, Controller, StepClock};
 use pto_firmware::link::{HostReceiver, Transmitter};
-use pto_firmware::outputs::{Actuators, Outputs};
-use pto_firmware::store::{ConfigStore, Loaded, NotStored, stored_config};
+use pto_firmware::outputs::Actuators;
+use pto_firmware::session::{
+    self, BoardLimits, BootChoice, BuiltIn, Handled, Running, Session, readback_reply,
+    telemetry_fits,
+};
+use pto_firmware::store::{ConfigStore, NotStored};
 use pto_firmware::supervisor::{Heartbeats, Supervisor, Task, Watchdog};
-use pto_firmware::upload::Upload;
 use pto_firmware::{HEARTBEAT_MS, SUPERVISOR_PERIOD_MS, VERSION};
 use pto_model::ModelConfig;
-use pto_model::protocol::selftest::OutputReport;
 use pto_model::protocol::{
-    BoardInfo, CONFIG_MAX_BYTES, Chunk, ConfigInfo, ConfigRefusal, ConfigSource, FromFirmware,
-    Hello, LinkCounts, MAX_FRAME, PROTOCOL_VERSION, Refusal, SCHEMA_HASH, SelfTest,
-    SelfTestRefusal, SelfTestReply, SensorFrame, Stored, Telemetry, ToFirmware, config_fingerprint,
+    BoardInfo, FromFirmware, Hello, LinkCounts, MAX_FRAME, PROTOCOL_VERSION, SCHEMA_HASH,
+    SensorFrame, ToFirmware,
 };
 use pto_model::scheduler::SchedulerConfig;
 use static_cell::StaticCell;
@@ -43,7 +46,7 @@ pub struct Board {
     /// Step-cost clock.
     pub clock: board::Clock,
     /// The valve, the dump valve and the duty solenoids, already at their boot levels
-    /// ([`Outputs::at_boot`]).
+    /// ([`pto_firmware::outputs::Outputs::at_boot`]).
     pub actuators: Actuators<board::Valve, board::Pin>,
     /// What the board says of itself.
     pub info: BoardInfo,
@@ -265,49 +268,6 @@ async fn send(port: Port, msg: FromFirmware) {
 /// Replies the transmit queue could not take.
 static REPLIES_DROPPED: AtomicU32 = AtomicU32::new(0);
 
-fn log_setup_error(e: &SetupError) {
-    match e {
-        SetupError::Model(m) => defmt::error!(
-            "configuration rejected: {=str} = {} outside [{}, {}]",
-            m.field,
-            m.value,
-            m.min,
-            m.max
-        ),
-        SetupError::Loop(l) => {
-            defmt::error!("transducer loop rejected: {=str} = {}", l.field, l.value)
-        }
-        SetupError::Control { field, value } => {
-            defmt::error!("control config rejected: {=str} = {}", field, value)
-        }
-    }
-}
-
-/// The configuration that runs and its bytes (for `GetConfig` and `ConfigRead`).
-struct Running {
-    bytes: [u8; CONFIG_MAX_BYTES],
-    info: ConfigInfo,
-}
-
-impl Running {
-    fn new(bytes: &[u8], source: ConfigSource) -> Running {
-        let mut b = [0u8; CONFIG_MAX_BYTES];
-        b[..bytes.len()].copy_from_slice(bytes);
-        Running {
-            bytes: b,
-            info: ConfigInfo {
-                source,
-                fingerprint: config_fingerprint(bytes),
-                len: bytes.len() as u16,
-            },
-        }
-    }
-
-    fn bytes(&self) -> &[u8] {
-        &self.bytes[..usize::from(self.info.len)]
-    }
-}
-
 /// The stored configuration when there is a valid one, else the built-in one; the boot log
 /// says which and why.
 async fn boot_config(
@@ -316,179 +276,47 @@ async fn boot_config(
     cc: &ControlConfig,
 ) -> (ModelConfig, Running) {
     let src = pto_firmware::built_config::SOURCE;
-    let built_in = pto_firmware::built_config::FINGERPRINT;
     let Some(model) = pto_firmware::built_config::model() else {
         defmt::error!("the built-in model configuration does not decode: damaged image");
         board::fail(2)
     };
-    let mut buf = [0u8; CONFIG_MAX_BYTES];
-    let loaded = match store.as_mut() {
-        Some(s) => s.load(&mut buf).await,
-        None => Loaded::Failed,
+    let built = BuiltIn {
+        model,
+        bytes: pto_firmware::built_config::BYTES,
+        fingerprint: pto_firmware::built_config::FINGERPRINT,
     };
-    match stored_config(loaded, &buf, built_in, model.dt_log2) {
-        Ok(cfg) => match valid(&cfg, sched, cc) {
-            Ok(()) => {
-                let len = match loaded {
-                    Loaded::Found { len, .. } => len,
-                    _ => 0,
-                };
-                let bytes = &buf[..len];
-                defmt::info!(
-                    "model configuration: stored (fingerprint {=u32:08x}); the built-in one for \
-                     {=str} (fingerprint {=u32:08x}) is not used",
-                    config_fingerprint(bytes),
-                    src,
-                    built_in
-                );
-                return (cfg, Running::new(bytes, ConfigSource::Stored));
-            }
-            Err(e) => {
-                defmt::warn!("the stored configuration is not valid for this firmware:");
-                log_setup_error(&e);
-            }
-        },
-        Err(NotStored::Empty) => defmt::info!("no stored configuration"),
-        Err(why) => defmt::warn!("the stored configuration is not used: {}", why),
+    let (cfg, running, why) = session::boot_config(store.as_mut(), &built, sched, cc).await;
+    match why {
+        BootChoice::Stored => {
+            defmt::info!(
+                "model configuration: stored (fingerprint {=u32:08x}); the built-in one for \
+                 {=str} (fingerprint {=u32:08x}) is not used",
+                running.info().fingerprint,
+                src,
+                built.fingerprint
+            );
+            return (cfg, running);
+        }
+        BootChoice::StoredNotValid(e) => {
+            defmt::warn!("the stored configuration is not valid for this firmware:");
+            log_setup_error(&e);
+        }
+        BootChoice::NotStored(NotStored::Empty) => defmt::info!("no stored configuration"),
+        BootChoice::NotStored(why) => {
+            defmt::warn!("the stored configuration is not used: {}", why)
+        }
     }
     defmt::info!(
         "model configuration: built for {=str} (fingerprint {=u32:08x})",
         src,
-        built_in
+        built.fingerprint
     );
-    (
-        model,
-        Running::new(pto_firmware::built_config::BYTES, ConfigSource::BuiltIn),
-    )
-}
-
-/// Whether a controller can be made (built on the stack and dropped, not kept in a future).
-fn valid(
-    model: &ModelConfig,
-    sched: &SchedulerConfig,
-    cc: &ControlConfig,
-) -> Result<(), SetupError> {
-    Controller::new(model, sched, cc).map(|_| ())
+    (cfg, running)
 }
 
 /// The controller (≈ 11 KB: coefficient tables and state), in a static of its own rather than
 /// in the control task's future.
 static CONTROLLER: StaticCell<Controller> = StaticCell::new();
-
-/// What the control task keeps between steps besides the controller.
-struct Session {
-    sched: SchedulerConfig,
-    cc: ControlConfig,
-    store: Option<ConfigStore<board::Flash>>,
-    upload: Upload,
-    running: Running,
-    telemetry_every: u16,
-}
-
-impl Session {
-    /// `ConfigCommit`: checks (the declared safe state, then the configuration), stores when
-    /// asked, applies. The controller stops stepping meanwhile (its tables are built once,
-    /// twice when storing: ≈ 2.3 M instructions each, inside the watchdog's normal window; the
-    /// store's erase raises it).
-    async fn commit(
-        &mut self,
-        ctl: &mut Controller,
-        clock: &mut board::Clock,
-        persist: bool,
-    ) -> Result<FromFirmware, ConfigRefusal> {
-        ctl.safe_to_apply().map_err(ConfigRefusal::NotSafe)?;
-        let (cfg, bytes) = self.upload.finish()?;
-        let refusal = |e| match e {
-            ReconfigureError::NotSafe(n) => ConfigRefusal::NotSafe(n),
-            ReconfigureError::Setup(SetupError::Model(m)) => ConfigRefusal::from(m),
-            ReconfigureError::Setup(_) => ConfigRefusal::Decode,
-        };
-        // Before storing, checked without changing anything (no controller is kept across the
-        // store's await: one is ≈ 11 KB); without storing, `reconfigure` below checks it itself,
-        // and the tables are built once.
-        if persist {
-            ctl.check_reconfigure(&cfg, &self.sched, &self.cc)
-                .map_err(refusal)?;
-        }
-        let stored = if persist {
-            let store = self.store.as_mut().ok_or(ConfigRefusal::Store)?;
-            defmt::info!("storing the configuration (the controller stalls during an erase)");
-            let r = store
-                .save(bytes, pto_firmware::built_config::FINGERPRINT)
-                .await;
-            r.map_err(|e| {
-                defmt::error!("configuration store: {}", e);
-                ConfigRefusal::Store
-            })?;
-            Stored::Yes
-        } else {
-            Stored::No
-        };
-        // Measured like the boot's set-up (logged below; `firmware_config_upload` reads it).
-        let t0 = clock.count();
-        ctl.reconfigure(&cfg, &self.sched, &self.cc)
-            .map_err(refusal)?;
-        let cost = clock.count().wrapping_sub(t0);
-        // Every task stalled with us: none of them is stuck.
-        HEARTBEATS.beat_all();
-        let source = if persist {
-            ConfigSource::UploadedStored
-        } else {
-            ConfigSource::Uploaded
-        };
-        self.running = Running::new(bytes, source);
-        defmt::info!(
-            "model configuration: uploaded (fingerprint {=u32:08x}), {=str}; estimator restarted",
-            self.running.info.fingerprint,
-            if persist { "stored" } else { "not stored" }
-        );
-        defmt::info!(
-            "configuration applied in {=u32} {=str}",
-            cost,
-            board::CLOCK_UNIT
-        );
-        Ok(FromFirmware::ConfigApplied {
-            info: self.running.info,
-            stored,
-        })
-    }
-
-    /// `ConfigClear`: erases the store (in the declared safe state).
-    async fn clear(&mut self, ctl: &Controller) -> Result<FromFirmware, ConfigRefusal> {
-        ctl.safe_to_apply().map_err(ConfigRefusal::NotSafe)?;
-        let store = self.store.as_mut().ok_or(ConfigRefusal::Store)?;
-        let r = store.clear().await;
-        HEARTBEATS.beat_all();
-        r.map_err(|_| ConfigRefusal::Store)?;
-        // What runs is no longer stored.
-        if self.running.info.source == ConfigSource::UploadedStored {
-            self.running.info.source = ConfigSource::Uploaded;
-        }
-        defmt::info!("configuration store cleared: the next boot runs the built-in one");
-        Ok(FromFirmware::ConfigCleared)
-    }
-}
-
-/// The self-test's answer to a drive: what was commanded, what the hardware reads back.
-async fn driven(
-    d: pto_model::protocol::selftest::TestDrive,
-    o: Outputs,
-    act: &Actuators<board::Valve, board::Pin>,
-) -> SelfTestReply {
-    // A GPIO's input register follows its pin within a few AHB cycles (RM0090 §8.3.1); the
-    // wait leaves the driver's output stage time to settle as well.
-    Timer::after_micros(200).await;
-    let (valve_readback, dump_readback, solenoids_readback) = act.read_back();
-    SelfTestReply::Driven(OutputReport {
-        drive: d,
-        valve: o.aperture,
-        dump_open: o.dump_open,
-        solenoids: o.on_duty,
-        valve_readback,
-        dump_readback,
-        solenoids_readback,
-    })
-}
 
 #[embassy_executor::task]
 async fn control_task(
@@ -564,24 +392,22 @@ async fn control_task(
         // Only the twin has a hardware port.
         send(Port::Hardware, FromFirmware::Hello(hello())).await;
     }
-    let mut s = Session {
+    let limits = BoardLimits {
+        samples_itself: board::SAMPLES_ITSELF,
+        min_telemetry_every: board::MIN_TELEMETRY_EVERY,
+        info,
+    };
+    let mut s = Session::new(
+        ctl,
         sched,
         cc,
         store,
-        upload: Upload::new(),
         running,
-        telemetry_every: board::TELEMETRY_EVERY,
-    };
-    let mut faults_prev = 0u16;
-    let mut tripped_prev = ctl.status.tripped;
-    // Written in the first step: a memory that held nothing valid then holds "none".
-    let mut held_sensors_prev = u8::MAX;
-    let selftest_ends = |ctl: &Controller, why: &str| {
-        if ctl.selftest_active() {
-            defmt::warn!("self-test ended by {=str}", why);
-        }
-    };
-    if tripped_prev {
+        pto_firmware::built_config::FINGERPRINT,
+        limits,
+        board::TELEMETRY_EVERY,
+    );
+    if ctl.status.tripped {
         defmt::error!(
             "booted tripped: the trip held when the controller reset; valve and dump open"
         );
@@ -599,52 +425,18 @@ async fn control_task(
         match msg {
             ToControl::Sample { frame: f, from } => {
                 last_sample = embassy_time::Instant::now();
-                if !ctl.fresh(f.tick) {
+                // The outputs first: the session drives them before it logs anything.
+                let Some(st) = s.step(
+                    &f,
+                    ctl,
+                    &mut act,
+                    &mut clock,
+                    &mut TripMemory,
+                    &mut log_event,
+                ) else {
                     continue;
-                }
-                let o = ctl.sample(&f, &mut clock);
-                // The outputs first: nothing is logged or awaited before they are driven.
-                act.apply(&o.outputs());
-                let tripped = ctl.status.tripped;
-                if tripped != tripped_prev {
-                    crate::trip_memory::remember(tripped);
-                }
-                // The held sensors survive a reset too (a reboot does not clear them).
-                let held_sensors = ctl.sensor_faults();
-                if held_sensors != held_sensors_prev {
-                    crate::trip_memory::remember_sensor_faults(held_sensors);
-                    held_sensors_prev = held_sensors;
-                }
-                let new = o.estimate.faults & !faults_prev;
-                if new != 0 {
-                    defmt::warn!(
-                        "tick {}: new faults {=u16:#06x}, P2 {} bar ± {}",
-                        f.tick,
-                        new,
-                        o.estimate.p2.to_f32(),
-                        o.estimate.p2_sigma().to_f32()
-                    );
-                }
-                faults_prev = o.estimate.faults;
-                if tripped != tripped_prev {
-                    if tripped {
-                        defmt::error!("tick {}: overpressure trip, valve and dump open", f.tick);
-                    } else {
-                        defmt::info!("tick {}: trip released", f.tick);
-                    }
-                    tripped_prev = tripped;
-                }
-                if o.sensor_faults_new != 0 {
-                    defmt::error!(
-                        "tick {}: sensor fault held (bits {=u8:#06b}: 1 HP, 2 LP, 4 motor, 8 \
-                         encoder): its readings withheld, valve at the sensor-fault aperture",
-                        f.tick,
-                        o.sensor_faults_new
-                    );
-                }
-                if let Some(why) = o.selftest_ended {
-                    defmt::warn!("tick {}: self-test ended: {}", f.tick, why);
-                }
+                };
+                let o = st.out;
                 if let Some(port) = from {
                     send(
                         port,
@@ -659,224 +451,52 @@ async fn control_task(
                     )
                     .await;
                 }
-                let every = u32::from(s.telemetry_every);
-                if every != 0 && f.tick.is_multiple_of(every) {
-                    let (_, config) = ctl.duty();
-                    let t = FromFirmware::Telemetry(Telemetry {
-                        sensors: f,
-                        estimate: o.estimate,
-                        command: o.command,
-                        applied: o.applied,
-                        dump: o.dump,
-                        on_duty: o.on_duty,
-                        config,
-                        hydraulic_power: o.estimate.hydraulic_power(),
-                        sensor_faults: ctl.sensor_faults(),
-                    });
+                if let Some(t) = st.telemetry {
                     // Never wait for the link: telemetry leaves room in the queue for the
                     // replies to commands (which the loop sends waiting), and a frame it
                     // cannot take is counted.
                     let q = &TO_TX[Port::Link as usize];
-                    if q.len() + REPLY_SLOTS > TX_QUEUE || q.try_send(ToTx::Send(t)).is_err() {
+                    if !telemetry_fits(q.len(), TX_QUEUE, REPLY_SLOTS)
+                        || q.try_send(ToTx::Send(FromFirmware::Telemetry(t))).is_err()
+                    {
                         TELEMETRY_DROPPED.fetch_add(1, Ordering::Relaxed);
                     }
                 }
             }
-            ToControl::Command(port, cmd) => match cmd {
-                // The live estimator is the trip's input: on a board that samples its own
-                // sensors, a host's inputs never step it.
-                ToFirmware::Replay { .. } if board::SAMPLES_ITSELF => {
-                    defmt::warn!("replay refused: this board steps its own sensors");
-                    send(port, FromFirmware::Refused(Refusal::ReplayOnTwinOnly)).await;
-                }
-                ToFirmware::Replay { tick, inputs } => {
-                    let (estimate, command) = ctl.replay(&inputs, &mut clock);
-                    send(
-                        port,
-                        FromFirmware::Output {
-                            tick,
-                            estimate,
-                            command,
-                            applied: ctl.status.aperture,
-                            dump: ctl.status.dump_valve,
-                            on_duty: act.applied().on_duty,
-                        },
-                    )
+            ToControl::Command(port, cmd) => {
+                let h = s
+                    .command(cmd, ctl, &mut act, &mut clock, &HEARTBEATS, &mut log_event)
                     .await;
-                }
-                // The receive task turns sensor frames into samples: never a command.
-                ToFirmware::Sensors(_) => {}
-                ToFirmware::Ping(n) => send(port, FromFirmware::Pong(n)).await,
-                ToFirmware::Hello => send(port, FromFirmware::Hello(hello())).await,
-                ToFirmware::SetMode(m) => {
-                    selftest_ends(ctl, "a mode command");
-                    defmt::info!("mode {}", m);
-                    ctl.set_mode(m);
-                }
-                ToFirmware::SetDuty { on_duty, config } => {
-                    selftest_ends(ctl, "a duty command");
-                    defmt::info!("on duty {=u8:#06b}, config {}", on_duty, config + 1);
-                    ctl.set_duty(on_duty, config);
-                }
-                ToFirmware::SetTelemetry { every } => {
-                    // No faster than the link carries (0 stays off).
-                    let every = if every == 0 {
-                        0
-                    } else {
-                        every.max(board::MIN_TELEMETRY_EVERY)
-                    };
-                    defmt::info!("telemetry every {=u16} steps", every);
-                    s.telemetry_every = every;
-                    send(port, FromFirmware::Pong(u32::from(every))).await;
-                }
-                ToFirmware::Reset { p2, lp } => {
-                    let selftest = ctl.selftest_active();
-                    match ctl.reset(p2, lp) {
-                        Ok(()) => {
-                            if selftest {
-                                defmt::warn!("self-test ended by a reset");
-                            }
-                            defmt::info!("reset: P2 {} bar, LP {} bar", p2.to_f32(), lp.to_f32());
-                            faults_prev = 0;
-                            send(port, FromFirmware::ResetDone).await;
-                        }
-                        Err(hold) => {
-                            defmt::warn!("reset refused: the overpressure trip holds ({})", hold);
-                            send(port, FromFirmware::Refused(Refusal::TripHeld(hold))).await;
-                        }
+                match h {
+                    Handled::Nothing => {}
+                    Handled::Reply(r) => send(port, r).await,
+                    Handled::Hello => send(port, FromFirmware::Hello(hello())).await,
+                    Handled::Status(mut st) => {
+                        st.link = LINK_COUNTS[port as usize].lock(Cell::get);
+                        st.frames_overrun = st
+                            .frames_overrun
+                            .wrapping_add(FRAMES_OVERRUN.load(Ordering::Relaxed))
+                            .wrapping_add(SENSORS_ON_LINK.load(Ordering::Relaxed));
+                        st.bytes_lost = board::bytes_lost() + RX_ERRORS.load(Ordering::Relaxed);
+                        st.samples_missed = board::samples_missed();
+                        st.stack_unused = crate::stack::unused_bytes();
+                        st.replies_dropped = REPLIES_DROPPED.load(Ordering::Relaxed);
+                        st.telemetry_dropped = TELEMETRY_DROPPED.load(Ordering::Relaxed);
+                        send(port, FromFirmware::Status(st)).await;
                     }
-                }
-                ToFirmware::GetStatus => {
-                    let mut st = ctl.status;
-                    st.link = LINK_COUNTS[port as usize].lock(Cell::get);
-                    st.frames_overrun = st
-                        .frames_overrun
-                        .wrapping_add(FRAMES_OVERRUN.load(Ordering::Relaxed))
-                        .wrapping_add(SENSORS_ON_LINK.load(Ordering::Relaxed));
-                    st.bytes_lost = board::bytes_lost() + RX_ERRORS.load(Ordering::Relaxed);
-                    st.samples_missed = board::samples_missed();
-                    st.stack_unused = crate::stack::unused_bytes();
-                    st.replies_dropped = REPLIES_DROPPED.load(Ordering::Relaxed);
-                    st.telemetry_dropped = TELEMETRY_DROPPED.load(Ordering::Relaxed);
-                    send(port, FromFirmware::Status(st)).await;
-                }
-                ToFirmware::ConfigBegin { len, crc } => {
-                    let r = s.upload.begin(len, crc).map(FromFirmware::ConfigProgress);
-                    send(port, config_reply(r)).await;
-                }
-                ToFirmware::ConfigChunk(c) => {
-                    let r = s.upload.chunk(&c).map(FromFirmware::ConfigProgress);
-                    send(port, config_reply(r)).await;
-                }
-                ToFirmware::ConfigCommit { persist } => {
-                    // The loop stops for the tables (and the erase): the dump valve open and the
-                    // solenoids off meanwhile; the next step drives the outputs again.
-                    if ctl.safe_to_apply().is_ok() {
-                        act.apply(&Outputs::DE_ENERGISED);
+                    Handled::ReadBack(d, o) => {
+                        // A GPIO's input register follows its pin within a few AHB cycles
+                        // (RM0090 §8.3.1); the wait leaves the driver's output stage time to
+                        // settle as well.
+                        Timer::after_micros(200).await;
+                        send(port, readback_reply(d, o, &act)).await;
                     }
-                    let r = s.commit(ctl, &mut clock, persist).await;
-                    match &r {
-                        Ok(_) => faults_prev = 0,
-                        Err(e) => defmt::warn!("configuration refused: {}", e),
-                    }
-                    send(port, config_reply(r)).await;
+                    Handled::Stall => core::future::pending::<()>().await,
+                    Handled::Exit(code) => TO_TX[port as usize].send(ToTx::Exit(code)).await,
                 }
-                ToFirmware::ConfigClear => {
-                    if ctl.safe_to_apply().is_ok() {
-                        act.apply(&Outputs::DE_ENERGISED);
-                    }
-                    let r = s.clear(ctl).await;
-                    if let Err(e) = &r {
-                        defmt::warn!("configuration store not cleared: {}", e);
-                    }
-                    send(port, config_reply(r)).await;
-                }
-                ToFirmware::GetConfig => {
-                    send(port, FromFirmware::ConfigInfo(s.running.info)).await;
-                }
-                ToFirmware::ConfigRead { offset } => {
-                    let bytes = s.running.bytes();
-                    send(
-                        port,
-                        FromFirmware::ConfigData {
-                            total: bytes.len() as u16,
-                            chunk: Chunk::of(bytes, usize::from(offset)),
-                        },
-                    )
-                    .await;
-                }
-                ToFirmware::Stall if ctl.status.tripped => {
-                    defmt::warn!("watchdog test refused: the overpressure trip holds");
-                    send(port, FromFirmware::Refused(Refusal::StallWhileTripped)).await;
-                }
-                ToFirmware::Stall => {
-                    let _ = ctl.selftest_end();
-                    // Nothing stays energised while the watchdog runs out.
-                    act.apply(&Outputs::DE_ENERGISED);
-                    defmt::warn!("watchdog test: outputs de-energised, the control task stops");
-                    core::future::pending::<()>().await;
-                }
-                ToFirmware::Exit(code) => TO_TX[port as usize].send(ToTx::Exit(code)).await,
-                ToFirmware::ClearSensorFaults => {
-                    let before = ctl.sensor_faults();
-                    let held = ctl.clear_sensor_faults();
-                    defmt::warn!(
-                        "sensor faults: {=u8:#06b} cleared by the host, {=u8:#06b} still held",
-                        before & !held,
-                        held
-                    );
-                    send(port, FromFirmware::SensorFaults(held)).await;
-                }
-                ToFirmware::SelfTest(req) => {
-                    let r: Result<SelfTestReply, SelfTestRefusal> = match req {
-                        SelfTest::Inputs => {
-                            ctl.selftest_touch();
-                            Ok(SelfTestReply::Inputs(ctl.input_report(info)))
-                        }
-                        SelfTest::Begin => match ctl.selftest_begin() {
-                            Ok(o) => {
-                                act.apply(&o);
-                                defmt::warn!(
-                                    "self-test: outputs de-energised (valve closed, dump open)"
-                                );
-                                Ok(SelfTestReply::Inputs(ctl.input_report(info)))
-                            }
-                            Err(e) => Err(e),
-                        },
-                        SelfTest::Drive(d) => match ctl.selftest_drive(d) {
-                            Ok(o) => {
-                                act.apply(&o);
-                                defmt::info!("self-test: drive {}", d);
-                                Ok(driven(d, o, &act).await)
-                            }
-                            Err(e) => Err(e),
-                        },
-                        SelfTest::End => match ctl.selftest_end() {
-                            Ok(o) => {
-                                act.apply(&o);
-                                defmt::info!("self-test ended");
-                                Ok(SelfTestReply::Ended)
-                            }
-                            Err(e) => Err(e),
-                        },
-                    };
-                    let reply = match r {
-                        Ok(r) => FromFirmware::SelfTest(r),
-                        Err(e) => {
-                            defmt::warn!("self-test request refused: {}", e);
-                            FromFirmware::Refused(Refusal::SelfTest(e))
-                        }
-                    };
-                    send(port, reply).await;
-                }
-            },
+            }
         }
     }
-}
-
-/// A configuration step's answer: the reply, or the refusal.
-fn config_reply(r: Result<FromFirmware, ConfigRefusal>) -> FromFirmware {
-    r.unwrap_or_else(|e| FromFirmware::Refused(Refusal::Config(e)))
 }
 
 #[embassy_executor::task]

@@ -17,6 +17,9 @@
 //! - [`link`]: COBS frame assembly with drop counting, reply encoding.
 //! - [`control`]: the control step: raw sample → estimator → scheduler → trip latch → actuator
 //!   stage, with the cost of the model step measured by a [`control::StepClock`].
+//! - [`session`]: the control task's session: each sample's step and each host command
+//!   (configuration upload, store, self-test, watchdog test) in the order that keeps the bench
+//!   safe, generic over the board.
 //! - [`supervisor`]: task heartbeats and the watchdog-feed decision.
 //! - [`trip`]: the overpressure trip latch (a state machine that only a valid reading
 //!   releases).
@@ -36,6 +39,7 @@ pub mod outputs;
 pub mod sampler;
 pub mod selftest;
 pub mod sensor_faults;
+pub mod session;
 pub mod store;
 pub mod supervisor;
 pub mod trip;

@@ -1,6 +1,7 @@
 //! PTO bench controller firmware (STM32F405, embassy).
 //!
-//! Tasks (all board-independent, in `app.rs`): link receive, control (estimator + scheduler +
+//! Tasks (all board-independent, wired in `app.rs`; each step and command is the library's
+//! `session`, logged by `log.rs`): link receive, control (estimator + scheduler +
 //! trip latch, the model's power-of-two step), actuator output, link transmit, supervisor
 //! (heartbeats → watchdog). One thin board module supplies the hardware: `board/bench.rs` (the
 //! real bench, embassy-stm32) or `board/qemu.rs` (QEMU `netduinoplus2`, used by the tests).
@@ -15,6 +16,8 @@ mod app;
 mod board;
 #[cfg(all(target_os = "none", not(feature = "bench")))]
 mod executor;
+#[cfg(target_os = "none")]
+mod log;
 #[cfg(target_os = "none")]
 mod stack;
 #[cfg(target_os = "none")]
