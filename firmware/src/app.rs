@@ -1,6 +1,6 @@
 //! The embassy tasks, shared by both boards, wired: hardware comes from `board` through
 //! embedded-hal and embedded-io-async traits; each step and each command is the host-tested
-//! library's [`Session`], whose events are logged here.
+//! library's [`Session`], whose events `log.rs` logs.
 //!
 //! The control task owns the outputs: each step's are driven before anything is logged or
 //! awaited, so neither the link nor a log (defmt-rtt never blocks: `disable-blocking-mode`)

@@ -1,9 +1,9 @@
 //! PTO bench controller firmware (STM32F405, embassy).
 //!
 //! Tasks (all board-independent, wired in `app.rs`; each step and command is the library's
-//! `session`, logged by `log.rs`): link receive, control (estimator + scheduler +
-//! trip latch, the model's power-of-two step), actuator output, link transmit, supervisor
-//! (heartbeats → watchdog). One thin board module supplies the hardware: `board/bench.rs` (the
+//! `session`, logged by `log.rs`): link receive and transmit per port, control (estimator +
+//! scheduler + trip latch at the model's power-of-two step, driving the outputs itself),
+//! supervisor (heartbeats → watchdog); the bench's board adds its sampling task. One thin board module supplies the hardware: `board/bench.rs` (the
 //! real bench, embassy-stm32) or `board/qemu.rs` (QEMU `netduinoplus2`, used by the tests).
 //! Build: `cargo fw` (QEMU) or `cargo fw-bench`; see the README.
 #![cfg_attr(target_os = "none", no_std, no_main)]

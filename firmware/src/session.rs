@@ -1,7 +1,9 @@
 //! The control task's session: each sample's step and each host command, in the order that
 //! keeps the bench safe, generic over the board (its actuators, the store's [`NorFlash`], the
 //! step clock, the memory that survives a reset) so that every ordering is tested on the host.
-//! The firmware's `app.rs` only moves messages between the tasks and logs the [`Event`]s.
+//! The firmware's `app.rs` wires the tasks around it (queues, the boot's configuration, the
+//! link counters in `Status`, the self-test's settling wait) and its `log.rs` logs the
+//! [`Event`]s.
 //!
 //! The orderings this module keeps, each with a test below:
 //! - A step drives the outputs before anything else happens (nothing is logged or remembered
@@ -12,8 +14,8 @@
 //! - A configuration to store is checked whole before the store is touched, stored and read
 //!   back before it is applied: a store that fails leaves the previous configuration running
 //!   (and stored).
-//! - A commit keeps the trip latch's count and the sensor faults held; the trip itself is never
-//!   released by a commit (a tripped controller is not in the safe state).
+//! - A commit keeps the trip latch's count and the sensors held faulted; the trip itself is
+//!   never released by a commit (a tripped controller is not in the safe state).
 //! - A host's replay never steps a board that samples its own sensors; the watchdog test is
 //!   refused while the trip holds and de-energises everything before the task stops.
 //!
@@ -824,6 +826,10 @@ mod tests {
     }
 
     fn rig(samples_itself: bool) -> Rig {
+        rig_with(samples_itself, SchedulerConfig::default())
+    }
+
+    fn rig_with(samples_itself: bool, sched: SchedulerConfig) -> Rig {
         let journal: Journal = Rc::default();
         let pin = || Pin {
             high: false,
@@ -842,7 +848,7 @@ mod tests {
         };
         let model = ModelConfig::reference();
         let built = encoded(&model);
-        let (sched, cc) = (SchedulerConfig::default(), ControlConfig::default());
+        let cc = ControlConfig::default();
         let ctl = Controller::new(&model, &sched, &cc).unwrap();
         let board = BoardLimits {
             samples_itself,
@@ -1037,12 +1043,32 @@ mod tests {
         assert_eq!(r.s.running().info().source, ConfigSource::BuiltIn);
         assert_eq!(r.stored(), None, "nothing stored");
         assert!(!r.events.contains(&Event::Storing), "{:?}", r.events);
-        // The store is not cleared either.
+        // The store is not cleared either, and the outputs stay.
         let h = r.command(ToFirmware::ConfigClear);
         assert_eq!(
             refused(&h),
             Some(ConfigRefusal::NotSafe(NotSafe::ValveOpen))
         );
+        assert_eq!(r.act.applied(), applied);
+        assert!(!r.journal.borrow().contains(&"drive"));
+    }
+
+    #[test]
+    fn a_configuration_to_store_is_checked_whole_before_the_store_is_touched() {
+        let mut r = rig(false);
+        r.make_safe();
+        let mut cfg = ModelConfig::reference();
+        cfg.trip_bar = 500.0;
+        r.upload(&encoded(&cfg));
+        r.events.clear();
+        let h = r.command(ToFirmware::ConfigCommit { persist: true });
+        assert!(
+            matches!(refused(&h), Some(ConfigRefusal::Field { .. })),
+            "{h:?}"
+        );
+        assert!(!r.events.contains(&Event::Storing), "{:?}", r.events);
+        assert_eq!(r.stored(), None);
+        assert_eq!(r.ctl.trip().to_f32(), 140.0);
     }
 
     #[test]
@@ -1052,7 +1078,14 @@ mod tests {
         r.make_safe();
         r.upload(&bytes);
         r.events.clear();
+        r.journal.borrow_mut().clear();
         let h = r.command(ToFirmware::ConfigCommit { persist: true });
+        let j = r.journal.borrow().clone();
+        let first_log = j.iter().position(|x| *x == "log").unwrap();
+        assert!(
+            j[..first_log].iter().filter(|x| **x == "drive").count() >= 5,
+            "de-energised before the store: {j:?}"
+        );
         let Handled::Reply(FromFirmware::ConfigApplied { info, stored }) = h else {
             panic!("{h:?}")
         };
@@ -1201,16 +1234,40 @@ mod tests {
     }
 
     #[test]
+    fn the_sensors_held_faulted_are_kept_across_a_commit() {
+        // A bench whose sensor-fault aperture is 0 %: a held fault leaves the valve closed, so
+        // the safe state (and a commit) is reachable with it held.
+        let sched = SchedulerConfig {
+            sensor_fault_aperture_pct: 0.0,
+            ..SchedulerConfig::default()
+        };
+        let mut r = rig_with(false, sched);
+        let (_, bytes) = other();
+        r.make_safe();
+        r.ctl.boot_sensor_faults(0b0100);
+        r.make_safe();
+        r.upload(&bytes);
+        let h = r.command(ToFirmware::ConfigCommit { persist: false });
+        assert!(
+            matches!(h, Handled::Reply(FromFirmware::ConfigApplied { .. })),
+            "{h:?}"
+        );
+        assert_eq!(r.ctl.trip().to_f32(), 135.0);
+        assert_eq!(r.ctl.sensor_faults(), 0b0100, "still held");
+    }
+
+    #[test]
     fn a_host_never_steps_a_board_that_samples_itself_and_the_watchdog_test_is_safe() {
         let mut r = rig(true);
         r.make_safe();
         let inputs = pto_model::estimator::Inputs::default();
+        let steps = r.ctl.status.steps;
         let h = r.command(ToFirmware::Replay { tick: 1, inputs });
         assert_eq!(
             h,
             Handled::Reply(FromFirmware::Refused(Refusal::ReplayOnTwinOnly))
         );
-        let steps = r.ctl.status.steps;
+        assert_eq!(r.ctl.status.steps, steps, "a refused replay steps nothing");
         let trip = r.ctl.trip().to_f32();
         r.step(trip + 5.0);
         assert_eq!(
