@@ -705,7 +705,7 @@ impl ObserverCoeffs {
     /// units of 2^−32, held to [0, 1]. A Q16.16 gain near its steady ≈ 0.008 is good to 0.2 %:
     /// times a 2 bar innovation that was 2.5 P2 LSBs a step, and the variance's own rounding
     /// to its LSB another 7 (the gain table's slope there is ≈ 4 per bar²); this one leaves the
-    /// step within 2 LSB of its f64 form (`tests/model_validation.rs`).
+    /// step within 2 LSB of its f64 form (`tests/model/model_validation.rs`).
     /// (1 is returned as 1 − 2^−32, so the gain is one 32-bit word.)
     #[inline]
     pub fn gain_q32(&self, var: Fx, var_lo: u16) -> u32 {

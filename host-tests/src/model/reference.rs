@@ -126,7 +126,7 @@ impl Reference {
     /// The fixed-point estimator's state `s` as the reference's: every value the reference
     /// keeps, exactly (the pressure nodes, the variance and the motor flow with their bits
     /// below the Q16.16 LSB). One step of both from it measures the arithmetic's one-step
-    /// difference alone (`tests/model_validation.rs`).
+    /// difference alone (`tests/model/model_validation.rs`).
     pub fn from_state(cfg: &ModelConfig, k: &Coefficients, s: &State) -> Self {
         let q32 = |x: i64| x as f64 / 4_294_967_296.0;
         let ext =

@@ -1,5 +1,5 @@
-//! What the end-to-end tests on the QEMU twin share: the `pto` binary and its reaped children,
-//! a JSON field of its output, and the check of the firmware's model-only P2 error (the HP
+//! What the integration tests share: the `pto` binary and its reaped children, a fresh folder
+//! per test ([`tmp!`]), a JSON field of `pto`'s output, and, for the QEMU twin, the check of the firmware's model-only P2 error (the HP
 //! transducer's wire broken, the estimate on the model alone) against the plant.
 
 #![allow(dead_code)]
@@ -8,6 +8,7 @@ use pto_host::hil::pil::{self, Injection, PilRow};
 use pto_host::hil::qemu::Qemu;
 use pto_host::model::sensors::SensorSpec;
 use pto_host::sim::bench::Bench;
+use std::path::PathBuf;
 use std::process::{Child, Command};
 
 /// A child process ended and reaped whatever happens.
@@ -98,4 +99,23 @@ pub fn model_only_rms_bar(rows: &[PilRow], from_s: f64) -> f64 {
         .collect();
     assert!(e.len() > 10_000, "{} model-only steps", e.len());
     (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt()
+}
+
+/// A fresh, empty folder for one test's files, named for its module and `name` and unique to
+/// this run: `tmp!("bench")`.
+#[allow(unused_macros)]
+macro_rules! tmp {
+    ($name:expr) => {
+        $crate::common::fresh_dir(module_path!(), $name)
+    };
+}
+
+/// The folder [`tmp!`] makes: `pto-<module>-<pid>-<name>` in the system's temporary folder,
+/// emptied if a run left it.
+pub fn fresh_dir(module: &str, name: &str) -> PathBuf {
+    let module = module.rsplit("::").next().unwrap_or(module);
+    let d = std::env::temp_dir().join(format!("pto-{module}-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).expect("a temporary folder");
+    d
 }

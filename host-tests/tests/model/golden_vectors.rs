@@ -2,7 +2,7 @@
 //! regenerates it from the full simulation, says how many lines changed against the committed
 //! file, and then checks the new file as always (its inputs, read back, must reproduce its
 //! outputs); review the diff before committing it. (The reference bench ↔ firmware
-//! configuration check is `tests/model_config.rs`.)
+//! configuration check is `tests/model/model_config.rs`.)
 
 use pto_host::model::golden;
 use pto_host::sim::bench::Bench;

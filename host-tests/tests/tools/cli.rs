@@ -1,21 +1,11 @@
 //! The `pto` binary: exit codes, error messages that name the file and field, outputs written.
 
+use crate::common::pto;
 use std::path::PathBuf;
-use std::process::Command;
-
-fn pto() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_pto"))
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("pto-cli-{}-{name}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 #[test]
 fn bad_bench_file_names_file_field_range_and_unit() {
-    let dir = tmp("bench");
+    let dir = tmp!("bench");
     let f = dir.join("my-bench.toml");
     let text = pto_host::sim::bench::REFERENCE_BENCH_TOML
         .replace("setting_bar = 130.0", "setting_bar = 900.0");
@@ -46,7 +36,7 @@ fn unknown_scenario_is_a_clear_error() {
 
 #[test]
 fn simulate_writes_csv_with_units_and_a_json_summary() {
-    let dir = tmp("sim");
+    let dir = tmp!("sim");
     let out = pto()
         .args(["simulate", "torque-cfg1-c14", "--json", "--out"])
         .arg(&dir)
@@ -102,7 +92,7 @@ fn simulate_writes_csv_with_units_and_a_json_summary() {
 
 #[test]
 fn scenario_file_with_recorded_trace_runs() {
-    let dir = tmp("trace");
+    let dir = tmp!("trace");
     let mut trace = String::from("time_s,shaft_angle_deg\n");
     for k in 0..=300 {
         let t = k as f64 * 0.1;
@@ -170,7 +160,7 @@ fn scenarios_json_lists_every_builtin() {
 
 #[test]
 fn a_scenario_name_cannot_leave_the_output_folder() {
-    let dir = tmp("escape");
+    let dir = tmp!("escape");
     let f = dir.join("s.toml");
     let (mut s, _) = pto_host::sim::scenario::resolve("torque-cfg1-c1").unwrap();
     s.name = "../../escaped".into();
@@ -201,7 +191,7 @@ fn a_scenario_name_cannot_leave_the_output_folder() {
 fn an_interrupted_paper_run_leaves_the_previous_output_whole() {
     use nix::sys::signal::{Signal, kill};
     use nix::unistd::Pid;
-    let base = tmp("paper-int");
+    let base = tmp!("paper-int");
     let out_dir = base.join("paper");
     let run = |extra: &[&str]| {
         let mut c = pto();
@@ -274,7 +264,7 @@ fn synth_log_at_5hz(base: &std::path::Path, run: &str) -> PathBuf {
 fn an_interrupted_fit_leaves_the_previous_output_whole() {
     use nix::sys::signal::{Signal, kill};
     use nix::unistd::Pid;
-    let base = tmp("fit-int");
+    let base = tmp!("fit-int");
     let log = charge_log(&base);
     let out_dir = base.join("fit");
     let run = |max_iter: &str| {
@@ -380,7 +370,7 @@ fn numeric_options_must_be_finite_and_in_range() {
 /// accumulator that never takes oil, LP below zero).
 #[test]
 fn infeasible_scenarios_are_refused_with_the_field_and_the_limit() {
-    let dir = tmp("feasible");
+    let dir = tmp!("feasible");
     let base = || {
         pto_host::sim::scenario::resolve("torque-cfg1-c1")
             .unwrap()
@@ -472,7 +462,7 @@ fn infeasible_scenarios_are_refused_with_the_field_and_the_limit() {
 /// its type, and names a wrong path with the fields there.
 #[test]
 fn set_reaches_any_bench_field() {
-    let dir = tmp("set");
+    let dir = tmp!("set");
     let ok = pto()
         .args([
             "simulate",
@@ -561,7 +551,7 @@ fn every_command_help_shows_examples_and_exit_codes() {
 /// only); `--write-anyway` writes them with a first line saying so.
 #[test]
 fn an_unconverged_fit_writes_no_fitted_bench_unless_asked() {
-    let base = tmp("fit-unconverged");
+    let base = tmp!("fit-unconverged");
     let log = charge_log(&base);
     let out_dir = base.join("fit");
     let fit = |extra: &[&str]| {
@@ -619,7 +609,7 @@ fn an_unconverged_fit_writes_no_fitted_bench_unless_asked() {
 /// fails the `logs` check (exit 1), and no fitted bench is written.
 #[test]
 fn an_aperture_given_as_a_fraction_is_refused_with_a_hint() {
-    let base = tmp("fit-fraction");
+    let base = tmp!("fit-fraction");
     let path = synth_log_at_5hz(&base, "exp-9pct-101.5");
     let text = std::fs::read_to_string(&path).unwrap();
     let mut lines = text.lines();
@@ -661,7 +651,7 @@ fn an_aperture_given_as_a_fraction_is_refused_with_a_hint() {
 /// panic.
 #[test]
 fn a_fit_out_of_budget_in_an_early_stage_fails_cleanly() {
-    let base = tmp("fit-budget");
+    let base = tmp!("fit-budget");
     let charge = charge_log(&base.join("a"));
     let discharge = synth_log_at_5hz(&base.join("b"), "exp-discharge-71");
     let o = pto()
@@ -711,7 +701,7 @@ fn campaign_run<'a>(
 /// whose sidecar marks it unfinished is refused, with the way out.
 #[test]
 fn campaign_inputs_are_checked_and_named() {
-    let dir = tmp("campaign");
+    let dir = tmp!("campaign");
     let good_path =
         std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
     let good = std::fs::read_to_string(&good_path).unwrap();

@@ -43,13 +43,9 @@ fn logs_of(truth: &Bench, runs: &[&str], rate_hz: f64, seed: u64, dir: &Path) ->
         .collect()
 }
 
-fn tmp(name: &str) -> std::path::PathBuf {
-    std::env::temp_dir().join(format!("pto-fit-{name}-{}", std::process::id()))
-}
-
 #[test]
 fn fit_recovers_trapped_air_cd_and_precharge() {
-    let dir = tmp("three");
+    let dir = tmp!("three");
     let truth = bench_with(&["trapped_air=0.04", "cd=0.17", "precharge=45"].map(String::from));
     let runs = [
         "exp-charge-64.5",
@@ -92,7 +88,7 @@ fn fit_recovers_trapped_air_cd_and_precharge() {
 /// start was fitted: 0.8843 ± 0.0040 with χ² 8.6).
 #[test]
 fn leakage_fits_alone() {
-    let dir = tmp("leakage");
+    let dir = tmp!("leakage");
     let truth = bench_with(&["leakage=0.88".to_string()]);
     let logs = logs_of(
         &truth,
@@ -173,7 +169,7 @@ fn recover(k: u64, rng: &mut impl Rng, source: &Source) -> Outcome {
         .collect();
     // Apart per source: the two randomised tests run at once, and a campaign's sidecars are
     // read at fit time.
-    let dir = tmp(&format!(
+    let dir = tmp!(&format!(
         "random-{}-{k}",
         match source {
             Source::Paper => "paper",
@@ -266,7 +262,7 @@ fn randomised_benches_are_recovered_or_refused() {
 #[test]
 fn randomised_benches_from_a_planned_campaign_are_recovered() {
     let n = benches("PTO_FIT_CAMPAIGN_BENCHES", 2);
-    // `pto plan`'s campaign from the reference bench, as committed (tests/plan.rs checks that
+    // `pto plan`'s campaign from the reference bench, as committed (tests/tools/plan.rs checks that
     // the plan still gives it).
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
     let c = Campaign::load(&path, &Bench::reference()).unwrap();
@@ -403,7 +399,7 @@ fn randomised(n: u64, source: &Source) -> Table {
 /// leverage predicts that shift of trapped air within a factor 1.5. Three fits, 3–4 min: on
 /// demand (`-- --ignored`).
 #[test]
-#[ignore = "three fits, 3–4 min: cargo test -p pto-host --test fit_recovery match -- --ignored"]
+#[ignore = "three fits, 3–4 min: cargo test -p pto-host --test tools fit_recovery::a_plant_the_model_does_not_match -- --ignored"]
 fn a_plant_the_model_does_not_match_is_fitted_within_tolerance_or_refused() {
     let truth = [0.04, 0.17, 40.0, 0.90];
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");
@@ -420,7 +416,7 @@ fn a_plant_the_model_does_not_match_is_fitted_within_tolerance_or_refused() {
             .map(|(n, v)| format!("{n}={v}"))
             .collect();
         sets.push(effect.into());
-        let dir = tmp(&format!("mismatch{k}"));
+        let dir = tmp!(&format!("mismatch{k}"));
         let logs = campaign_logs(&bench_with(&sets), &c, 7, &dir);
         let o = fit::fit(
             &Bench::reference().file,
@@ -475,7 +471,7 @@ fn a_plant_the_model_does_not_match_is_fitted_within_tolerance_or_refused() {
         .find(|h| h.field == "check_valve.cracking_bar")
         .unwrap();
     let predicted = 2.0 * cracking.shift_per_unit[0];
-    let dir = tmp("mismatch-cv");
+    let dir = tmp!("mismatch-cv");
     let logs = campaign_logs(&bench_with(&sets), &c, 7, &dir);
     let o = fit::fit(&reference.file, logs, &fit::FitOptions::new(&NAMES)).unwrap();
     let _ = std::fs::remove_dir_all(&dir);

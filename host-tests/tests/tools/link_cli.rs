@@ -1,16 +1,13 @@
 //! `pto link` against ports that are not a controller: each failure is a clear error (exit 2)
 //! naming what to check, never a hang. A pseudo-terminal stands in for the serial port.
 
+use crate::common::pto;
 use nix::pty::openpty;
 use pto_model::protocol::{self, FromFirmware, Hello, MAX_FRAME, PROTOCOL_VERSION, SCHEMA_HASH};
 use std::io::{Read, Write};
 use std::os::fd::OwnedFd;
-use std::process::{Command, Output};
+use std::process::Output;
 use std::time::{Duration, Instant};
-
-fn pto() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_pto"))
-}
 
 /// A pseudo-terminal pair: the master end (ours), the slave (held open, raw, so that the
 /// master's reads do not fail between `pto`'s opens) and the slave's path (the "serial port").

@@ -1,26 +1,15 @@
 //! `pto sweep`: the matrix's expansion and its refusals, shards, resuming, merging, the tables
 //! (Parquet read back equals the CSV), failure rows, Ctrl-C.
 
+use crate::common::pto;
 use proptest::prelude::*;
 use pto_host::sweep::table::Table;
 use pto_host::sweep::{Matrix, Shard};
 use std::path::{Path, PathBuf};
-use std::process::Command;
-
-fn pto() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_pto"))
-}
-
-fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("pto-sweep-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
-}
 
 /// A fresh folder `name` holding [`SMALL`] as `m.toml`: the folder and the matrix's path.
 fn small_matrix(name: &str) -> (PathBuf, PathBuf) {
-    let dir = tmp(name);
+    let dir = tmp!(name);
     let m = dir.join("m.toml");
     std::fs::write(&m, SMALL).unwrap();
     (dir, m)
@@ -252,7 +241,7 @@ fn a_shard_does_not_hold_one_value_of_the_last_axis_alone() {
 /// bytes (an edited trace makes its runs again).
 #[test]
 fn a_run_key_follows_the_trace_not_the_folder_spelling() {
-    let dir = tmp("key");
+    let dir = tmp!("key");
     let trace = |amp: f64| {
         let mut t = String::from("time_s,shaft_angle_deg\n");
         for k in 0..=200 {
@@ -433,7 +422,7 @@ fn a_sweep_resumes_shards_merge_to_the_whole_and_parquet_reads_back_as_the_csv()
 
 #[test]
 fn a_bad_matrix_exits_2_before_any_run_and_a_foreign_folder_is_refused() {
-    let dir = tmp("refuse");
+    let dir = tmp!("refuse");
     let m = dir.join("m.toml");
     std::fs::write(
         &m,
@@ -523,7 +512,7 @@ fn a_failed_run_is_a_failure_row_and_the_sweep_exits_1_until_it_is_run_again() {
 fn ctrl_c_keeps_every_finished_row_whole_and_a_rerun_goes_on() {
     use nix::sys::signal::{Signal, kill};
     use nix::unistd::Pid;
-    let dir = tmp("interrupt");
+    let dir = tmp!("interrupt");
     let m = dir.join("m.toml");
     // Eight 400 s runs on one thread: a few seconds in all.
     std::fs::write(

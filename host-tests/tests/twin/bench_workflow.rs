@@ -6,9 +6,7 @@
 //! host copy of the controller that went through the same session, and its model-only P2 error
 //! against the plant (HP transducer wire break) drops.
 
-mod common;
-
-use common::{Reaped, field, pto, run};
+use crate::common::{Reaped, field, pto, run};
 use pto_firmware::control::{ControlConfig, Controller, NoClock};
 use pto_host::fit;
 use pto_host::hil::build::{self, Build};
@@ -36,12 +34,12 @@ const WIRE_BREAK_S: f64 = 3.0;
 
 /// The check run: the charge, the HP transducer's wire breaking at 3 s.
 fn check_run(q: Qemu, plant: &Bench) -> (Qemu, Vec<PilRow>) {
-    common::check_run(q, plant, P2_START_BAR, CHECK_S, WIRE_BREAK_S)
+    crate::common::check_run(q, plant, P2_START_BAR, CHECK_S, WIRE_BREAK_S)
 }
 
 /// RMS of the firmware's P2 estimate against the plant while the estimate runs on the model.
 fn model_only_rms_bar(rows: &[PilRow]) -> f64 {
-    common::model_only_rms_bar(rows, WIRE_BREAK_S)
+    crate::common::model_only_rms_bar(rows, WIRE_BREAK_S)
 }
 
 /// A host copy of the firmware's controller follows one closed-loop run as the firmware did
@@ -198,7 +196,7 @@ fn a_fitted_configuration_goes_from_the_bench_log_to_the_twin() {
         "fitted trapped air {fitted}"
     );
     // The upload over the pseudo-terminal, then its read-back.
-    let (model_file, up) = common::upload_fitted(&out, &pty);
+    let (model_file, up) = crate::common::upload_fitted(&out, &pty);
     let fitted_cfg = load_model(&model_file);
     assert!((f64::from(fitted_cfg.trapped_air_fraction) - fitted).abs() < 1e-6);
     let shown = run(pto()

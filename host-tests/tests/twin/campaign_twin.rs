@@ -6,9 +6,7 @@
 //! `pto link config upload` sends the fitted configuration; the firmware's model-only P2 error
 //! against the plant is measured before and after.
 
-mod common;
-
-use common::{field, pto, run};
+use crate::common::{field, pto, run};
 use pto_host::fit;
 use pto_host::hil::build::{self, Build};
 use pto_host::hil::qemu::Qemu;
@@ -69,9 +67,9 @@ fn a_planned_campaign_runs_on_the_twin_and_its_fit_goes_back_to_the_firmware() {
 
     // The model-only P2 error with the built-in configuration, on a twin of its own.
     let q = Qemu::boot_twin(&elf, false).expect("twin");
-    let (q, rows0) = common::check_run(q, &plant, CHECK_P2_BAR, CHECK_S, WIRE_BREAK_S);
+    let (q, rows0) = crate::common::check_run(q, &plant, CHECK_P2_BAR, CHECK_S, WIRE_BREAK_S);
     drop(q);
-    let err_builtin = common::model_only_rms_bar(&rows0, WIRE_BREAK_S);
+    let err_builtin = crate::common::model_only_rms_bar(&rows0, WIRE_BREAK_S);
 
     // The campaign: the runner over the pseudo-terminal, the plant following in this thread.
     let q = Qemu::boot_twin(&elf, false).expect("twin");
@@ -155,10 +153,10 @@ fn a_planned_campaign_runs_on_the_twin_and_its_fit_goes_back_to_the_firmware() {
         "fitted trapped air {fitted}"
     );
     // The upload over the pseudo-terminal, then the check on the fitted configuration.
-    common::upload_fitted(&out, &pty);
-    let (q, rows1) = common::check_run(q, &plant, CHECK_P2_BAR, CHECK_S, WIRE_BREAK_S);
+    crate::common::upload_fitted(&out, &pty);
+    let (q, rows1) = crate::common::check_run(q, &plant, CHECK_P2_BAR, CHECK_S, WIRE_BREAK_S);
     drop(q);
-    let err_fitted = common::model_only_rms_bar(&rows1, WIRE_BREAK_S);
+    let err_fitted = crate::common::model_only_rms_bar(&rows1, WIRE_BREAK_S);
     println!(
         "model-only P2 error RMS over {} s: built-in {err_builtin:.3} bar, fitted {err_fitted:.3} bar; {:.0} s wall in all",
         CHECK_S - WIRE_BREAK_S,
