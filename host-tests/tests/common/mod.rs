@@ -21,6 +21,24 @@ impl Drop for Reaped {
     }
 }
 
+/// The twins against the other QEMU tests of a crate: a twin's pseudo-terminal and its plant run
+/// against the clock, and more QEMUs beside it on a 2-core machine starved it (42 of 100 frames
+/// read by a monitor; with the tests of several files in one crate, a campaign's twin reset
+/// mid-segment and a self-test went unanswered). A twin runs alone ([`one_twin`]); the lockstep
+/// tests, which wait for each step, run beside each other ([`beside_other_qemus`]).
+static TWIN: std::sync::RwLock<()> = std::sync::RwLock::new(());
+
+/// Runs a twin alone for as long as the guard lives (a test that failed holding it passes it
+/// on).
+pub fn one_twin() -> std::sync::RwLockWriteGuard<'static, ()> {
+    TWIN.write().unwrap_or_else(|e| e.into_inner())
+}
+
+/// Runs a lockstep QEMU test while no twin runs.
+pub fn beside_other_qemus() -> std::sync::RwLockReadGuard<'static, ()> {
+    TWIN.read().unwrap_or_else(|e| e.into_inner())
+}
+
 /// The `pto` binary.
 pub fn pto() -> Command {
     Command::new(env!("CARGO_BIN_EXE_pto"))

@@ -87,6 +87,7 @@ fn wait_line(
 
 #[test]
 fn a_fitted_configuration_goes_from_the_bench_log_to_the_twin() {
+    let _twin = crate::common::one_twin();
     let dir = std::env::temp_dir().join(format!("pto-bench-workflow-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     std::fs::create_dir_all(&dir).unwrap();

@@ -25,6 +25,7 @@ const WIRE_BREAK_S: f64 = 3.0;
 
 #[test]
 fn a_planned_campaign_runs_on_the_twin_and_its_fit_goes_back_to_the_firmware() {
+    let _twin = crate::common::one_twin();
     let t0 = Instant::now();
     let dir = std::env::temp_dir().join(format!("pto-campaign-twin-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -174,6 +175,7 @@ fn a_planned_campaign_runs_on_the_twin_and_its_fit_goes_back_to_the_firmware() {
 /// segment runs (exit 2, the log named), the folder left as it was.
 #[test]
 fn a_campaign_resumes_past_complete_segments_and_refuses_a_foreign_log() {
+    let _twin = crate::common::one_twin();
     let dir = std::env::temp_dir().join(format!("pto-campaign-resume-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let campaign = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/campaign-four.toml");

@@ -7,6 +7,7 @@ use std::time::Duration;
 
 #[test]
 fn boots_logs_answers_a_ping_and_exits_zero() {
+    let _qemu = crate::common::beside_other_qemus();
     let elf = build::build(Build::Qemu).unwrap();
     let t0 = std::time::Instant::now();
     let mut q = Qemu::boot(&elf, false).unwrap();

@@ -15,14 +15,6 @@ use pto_model::protocol::{
 use pto_model::scheduler::Mode;
 use std::time::Duration;
 
-/// One twin at a time in this file: the monitor test reads a pseudo-terminal against the clock,
-/// and two more QEMUs beside it on a 2-core machine starved it (42 of 100 frames read).
-static ONE_TWIN: std::sync::Mutex<()> = std::sync::Mutex::new(());
-
-fn one_twin() -> std::sync::MutexGuard<'static, ()> {
-    ONE_TWIN.lock().unwrap_or_else(|e| e.into_inner())
-}
-
 /// `n` sensor frames on the hardware port, HP reading 60 bar, each step's output awaited.
 fn feed(q: &mut Qemu, tick: &mut u32, n: u32) {
     pto_host::hil::pil::feed_at_rest(q, tick, n).expect("a step's output");
@@ -37,7 +29,7 @@ fn refusal(e: client::ClientError) -> ConfigRefusal {
 
 #[test]
 fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
-    let _twin = one_twin();
+    let _twin = crate::common::one_twin();
     let elf = build::build(Build::Qemu).expect("QEMU build");
     let mut q = Qemu::boot_twin(&elf, false).expect("twin");
     let pty = q.pty.clone().unwrap();
@@ -201,7 +193,7 @@ fn uploads_are_checked_applied_and_stored_only_in_the_safe_state() {
 /// `.part` left), every frame it took is in it, and the exit status says no frame was missed.
 #[test]
 fn a_monitor_stopped_by_ctrl_c_keeps_its_log() {
-    let _twin = one_twin();
+    let _twin = crate::common::one_twin();
     use nix::sys::signal::{Signal, kill};
     use nix::unistd::Pid;
     use std::io::{BufRead, BufReader};
@@ -328,7 +320,7 @@ fn hands(
 /// and its outputs are not stepped (P2 unknown: the valve at its sensor-fault aperture).
 #[test]
 fn a_guided_selftest_passes_on_a_healthy_twin_and_names_what_fails() {
-    let _twin = one_twin();
+    let _twin = crate::common::one_twin();
     use std::process::Command;
     use std::sync::Arc;
     use std::sync::atomic::{AtomicBool, Ordering};
@@ -458,7 +450,7 @@ fn a_guided_selftest_passes_on_a_healthy_twin_and_names_what_fails() {
 fn a_held_sensor_fault_is_shown_and_cleared_only_when_it_agrees() {
     use pto_firmware::frontend::{LoopSpec, Transducer};
     use std::process::Command;
-    let _twin = one_twin();
+    let _twin = crate::common::one_twin();
     let elf = build::build(Build::Qemu).expect("QEMU build");
     let mut q = Qemu::boot_twin(&elf, false).expect("twin");
     let pty = q.pty.clone().unwrap().display().to_string();

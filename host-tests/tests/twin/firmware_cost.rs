@@ -9,6 +9,7 @@ use pto_host::hil::fw_cost::{self, target};
 
 #[test]
 fn firmware_cost_report() {
+    let _qemu = crate::common::beside_other_qemus();
     let r = fw_cost::measure().unwrap();
     for s in &r.step {
         println!(

@@ -51,26 +51,31 @@ fn run(check: pil::CheckFn) {
 
 #[test]
 fn pil_holds_p2_at_100_bar() {
+    let _qemu = crate::common::beside_other_qemus();
     run(pil::check_hold_p2);
 }
 
 #[test]
 fn pil_holds_motor_speed() {
+    let _qemu = crate::common::beside_other_qemus();
     run(pil::check_hold_speed);
 }
 
 #[test]
 fn pil_trips_to_the_safe_state_within_one_period() {
+    let _qemu = crate::common::beside_other_qemus();
     run(pil::check_trip);
 }
 
 #[test]
 fn pil_trip_holds_through_a_wire_break_and_refuses_a_reset() {
+    let _qemu = crate::common::beside_other_qemus();
     run(pil::check_trip_holds);
 }
 
 #[test]
 fn pil_motor_reading_behind_a_closed_valve_is_flagged_without_a_false_trip() {
+    let _qemu = crate::common::beside_other_qemus();
     run(pil::check_motor_behind_closed_valve);
 }
 
@@ -78,11 +83,13 @@ fn pil_motor_reading_behind_a_closed_valve_is_flagged_without_a_false_trip() {
 /// valve at the sensor-fault aperture from then on.
 #[test]
 fn pil_names_a_stuck_hp_transducer_and_goes_safe() {
+    let _qemu = crate::common::beside_other_qemus();
     run(pil::check_sensor_fault);
 }
 
 #[test]
 fn pil_survives_injected_faults() {
+    let _qemu = crate::common::beside_other_qemus();
     let q = boot();
     let inject = |t: f64| -> Injection {
         match t {
@@ -221,6 +228,7 @@ fn pil_survives_injected_faults() {
 
 #[test]
 fn a_stalled_control_task_trips_the_watchdog() {
+    let _qemu = crate::common::beside_other_qemus();
     let mut q = boot();
     q.link
         .request(&ToFirmware::Ping(1), |r| {

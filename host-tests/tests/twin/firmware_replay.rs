@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 
 #[test]
 fn firmware_matches_the_host_model_bit_for_bit() {
+    let _qemu = crate::common::beside_other_qemus();
     let elf = build::build(Build::Qemu).unwrap();
     let mut q = Qemu::boot(&elf, false).unwrap();
     let k = golden::coefficients().unwrap();

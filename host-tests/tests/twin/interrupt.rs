@@ -89,10 +89,12 @@ fn interrupt_while_following(signal: Signal) {
 
 #[test]
 fn ctrl_c_ends_qemu_and_removes_its_socket() {
+    let _qemu = crate::common::beside_other_qemus();
     interrupt_while_following(Signal::SIGINT);
 }
 
 #[test]
 fn sigterm_ends_qemu_and_removes_its_socket() {
+    let _qemu = crate::common::beside_other_qemus();
     interrupt_while_following(Signal::SIGTERM);
 }
