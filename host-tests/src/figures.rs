@@ -5,7 +5,7 @@ use crate::plot::{BarChart, Figure, Panel, Series};
 use crate::sim::bench::{BAR, LPM, RPM};
 use crate::sim::power::Power;
 use crate::sim::scenario::{BLOCKED_APERTURES, SETS, TEST3_APERTURES};
-use crate::sim::solver::Trace;
+use crate::sim::trace::Trace;
 
 /// Which trace column a series shows, with its display scale.
 #[derive(Clone, Copy)]

@@ -19,7 +19,8 @@ use crate::sim::bench::{BAR, Bench};
 use crate::sim::motion::MotionSpec;
 use crate::sim::plant::Plant;
 use crate::sim::scenario::{Prepared, ScenarioError};
-use crate::sim::solver::{self, Initial, Run, SimError, SolverOptions, ValveSchedule};
+use crate::sim::schedule::ValveSchedule;
+use crate::sim::solver::{self, Initial, Run, SimError, SolverOptions};
 use std::path::Path;
 
 /// Longest the twin waits, in simulated time, for the runner to energise a segment's cylinders
@@ -247,7 +248,7 @@ mod tests {
     use super::*;
     use crate::sim::bench::apply_override;
     use crate::sim::plant::Eval;
-    use crate::sim::solver::ValveController;
+    use crate::sim::schedule::ValveController;
 
     /// The valve held closed at the firmware's period.
     struct Closed;

@@ -1,15 +1,14 @@
 //! The scheduler in closed loop with the full simulation: the model crate (or, in `hil::pil`, the
 //! firmware) as the plant's valve controller in a Test III-like run, and the checks that judge it.
 
-use super::validate::target;
+use super::target;
 use super::{ModelError, duty_mask, model_config};
 use crate::model::sensors::{SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::Eval;
 use crate::sim::scenario::ScenarioError;
-use crate::sim::solver::{
-    self, Initial, Run, SimError, SolverOptions, ValveController, ValveSchedule,
-};
+use crate::sim::schedule::{ValveController, ValveSchedule};
+use crate::sim::solver::{self, Initial, Run, SimError, SolverOptions};
 use crate::sim::trace::Truth;
 use pto_model::estimator::{self, Estimate, State};
 use pto_model::fx::{Aperture, Pressure, Rpm};

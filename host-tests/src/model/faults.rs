@@ -10,7 +10,7 @@ use super::sensors::{SensorSpec, SensorSynth};
 use super::{ModelError, controller_config, duty_mask, model_config};
 use crate::sim::bench::Bench;
 use crate::sim::plant::Eval;
-use crate::sim::solver::ValveController;
+use crate::sim::schedule::ValveController;
 use crate::sim::trace::Truth;
 use pto_firmware::control::{Controller, NoClock, SetupError, StepOut};
 use pto_firmware::frontend::Transducer;

@@ -25,6 +25,7 @@ pub mod faults;
 pub mod golden;
 pub mod reference;
 pub mod sensors;
+pub mod target;
 pub mod validate;
 
 use crate::sim::scenario::{Scenario, ValveSpec};

@@ -3,7 +3,8 @@
 use crate::runner::Outcome;
 use crate::sim::bench::{BAR, Bench, LPM, RPM};
 use crate::sim::scenario::{BLOCKED_APERTURES, SETS, TEST3_APERTURES};
-use crate::sim::solver::{SimResult, Trace};
+use crate::sim::solver::SimResult;
+use crate::sim::trace::Trace;
 use serde::Serialize;
 use std::collections::HashMap;
 

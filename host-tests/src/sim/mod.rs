@@ -2,9 +2,10 @@
 //! the model nor the firmware, and knows no terminal (progress goes through callbacks).
 //!
 //! Layers: [`bench`](mod@bench) (the validated parameter file and its SI values) → [`physics`]
-//! (component laws) → [`plant`] (the ODE) → [`solver`] (diffsol BDF driver, sampling, balances)
-//! → [`scenario`] (named runs and scenario files, over [`motion`]) → [`trace`] (plant values at
-//! an instant). [`benchlog`] is the bench-log format.
+//! (component laws) → [`plant`] (the ODE) → [`solver`] (diffsol BDF driver, over the valve's
+//! [`schedule`]) → its [`trace`] (sampled outputs, plant values at an instant), [`balance`] and
+//! [`power`] → [`scenario`] (named runs and scenario files, over [`motion`]). [`benchlog`] is the
+//! bench-log format.
 //!
 //! A run of a built-in scenario, shortened to 20 s:
 //!
@@ -30,11 +31,13 @@
 /// The bench parameter file (its own crate, `pto-bench`, which the firmware's build script uses
 /// too).
 pub use pto_bench as bench;
+pub mod balance;
 pub mod benchlog;
 pub mod motion;
 pub mod physics;
 pub mod plant;
 pub mod power;
 pub mod scenario;
+pub mod schedule;
 pub mod solver;
 pub mod trace;

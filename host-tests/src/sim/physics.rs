@@ -2,7 +2,7 @@
 //!
 //! Pure functions of the bench parameters: the plant's right-hand side is assembled from them.
 
-use crate::sim::bench::{Accumulator, Bench, CheckValve, Geometry, Oil, P_ATM};
+use crate::sim::bench::{Accumulator, Bench, CheckValve, Geometry, Load, Oil, P_ATM};
 
 /// Equation of state of oil with trapped air.
 ///
@@ -384,6 +384,152 @@ impl Lever {
     pub fn side(&self) -> f64 {
         self.side
     }
+}
+
+/// Penetration of a rod's free play, m: the eye `gap` (m) ahead of its rod against a play of
+/// half-width `half` (m); positive past the far face, negative past the near one, 0 within.
+pub fn free_play_penetration(gap: f64, half: f64) -> f64 {
+    if gap > half {
+        gap - half
+    } else if gap < -half {
+        gap + half
+    } else {
+        0.0
+    }
+}
+
+/// Penetration of a cylinder's end stops by its rod at `x` (m) of `stroke` (m): positive below
+/// 0, negative past the stroke, 0 between.
+pub fn end_stop_penetration(x: f64, stroke: f64) -> f64 {
+    if x < 0.0 {
+        -x
+    } else if x > stroke {
+        stroke - x
+    } else {
+        0.0
+    }
+}
+
+/// A rod's stops and seal: each stop a spring of `k` (N/m) with a damper of `d` (N·s/m), the
+/// seal's viscous friction `c_seal` (N·s/m).
+#[derive(Debug, Clone, Copy)]
+pub struct RodStops {
+    /// Stop stiffness, N/m.
+    pub k: f64,
+    /// Stop damping, N·s/m.
+    pub d: f64,
+    /// Seal friction, N·s/m.
+    pub c_seal: f64,
+}
+
+impl RodStops {
+    /// The bench's.
+    pub fn of(b: &Bench) -> RodStops {
+        RodStops {
+            k: b.stop_stiffness_n_per_m,
+            d: b.stop_damping_n_s_per_m,
+            c_seal: b.seal_friction_n_s_per_m,
+        }
+    }
+
+    /// The massless rod's speed (m/s) and the force its eye's contact takes (N), from
+    /// 0 = F_contact + F_hyd + F_end − c·ẋ: `f_hyd` the chambers' force (N), `pen` the free
+    /// play's and `pen_end` the end stops' penetration (m), the eye at `v_eye` (m/s). `engaged`:
+    /// the rod rides its eye on a rigid face (the stops as located events), so ẋ is the eye's
+    /// speed.
+    pub fn rod_motion(
+        &self,
+        f_hyd: f64,
+        pen: f64,
+        pen_end: f64,
+        v_eye: f64,
+        engaged: bool,
+    ) -> (f64, f64) {
+        let RodStops { k, d, c_seal } = *self;
+        let (contact, end) = (pen != 0.0, pen_end != 0.0);
+        let mut num = f_hyd + k * pen_end;
+        let mut den = c_seal;
+        if contact {
+            num += k * pen + d * v_eye;
+            den += d;
+        }
+        if end {
+            den += d;
+        }
+        if engaged {
+            let f_end = k * pen_end - if end { d * v_eye } else { 0.0 };
+            (v_eye, c_seal * v_eye - f_hyd - f_end)
+        } else {
+            let x_dot = num / den;
+            let f = if contact {
+                k * pen + d * (v_eye - x_dot)
+            } else {
+                0.0
+            };
+            (x_dot, f)
+        }
+    }
+}
+
+/// A chamber's pressure rate before its unit (Pa/s): oil of modulus `e` (Pa) and specific
+/// volume `v` (m³ per m³ of reference volume) in a volume `vol` (m³) that grows at `vol_dot`
+/// (m³/s), with `m_net` (m³/s of reference volume) flowing in.
+pub fn chamber_pressure_rate(e: f64, vol: f64, v: f64, m_net: f64, vol_dot: f64) -> f64 {
+    e / vol * (v * m_net - vol_dot)
+}
+
+/// The motor's flow, m³/s: its displacement at `omega` (rad/s) and its internal leakage under
+/// `dp` (Pa).
+pub fn motor_flow(b: &Bench, omega: f64, dp: f64) -> f64 {
+    b.motor_disp_m3_per_rad * omega + b.motor_leak_m3_per_s_pa * dp
+}
+
+/// The motor's shaft torque under `dp` (Pa), N·m.
+pub fn motor_torque(b: &Bench, dp: f64) -> f64 {
+    b.motor_disp_m3_per_rad * dp * b.motor_eta_mech
+}
+
+/// A constant load's torque rises over the first rpm of speed (tanh(ω / 1 rpm)), rad/s: a load
+/// that opposes motion without a step at standstill, which the solver could not take.
+pub const LOAD_SMOOTHING_RAD_S: f64 = 0.104_719_755;
+
+/// The load's torque at `omega` (rad/s), N·m.
+pub fn load_torque(b: &Bench, omega: f64) -> f64 {
+    match b.load {
+        Load::Viscous(c) => c * omega,
+        Load::Constant(tq) => tq * (omega / LOAD_SMOOTHING_RAD_S).tanh(),
+    }
+}
+
+/// Steady motor state (inlet pressure Pa, speed rad/s) for P2, LP and aperture.
+pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture_pct: f64) -> (f64, f64) {
+    let dp_of = |w: f64| match bench.load {
+        Load::Viscous(c) => c * w / (bench.motor_disp_m3_per_rad * bench.motor_eta_mech),
+        Load::Constant(t) => t / (bench.motor_disp_m3_per_rad * bench.motor_eta_mech),
+    };
+    let resid = |w: f64| {
+        let dpm = dp_of(w);
+        valve_flow(bench, aperture_pct, p2 - lp - dpm)
+            - bench.motor_disp_m3_per_rad * w
+            - bench.motor_leak_m3_per_s_pa * dpm
+    };
+    if aperture_pct <= 0.0 || resid(0.0) <= 0.0 {
+        return (lp, 0.0);
+    }
+    let (mut lo, mut hi) = (0.0, 1.0);
+    while resid(hi) > 0.0 && hi < 1e5 {
+        hi *= 2.0;
+    }
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if resid(mid) > 0.0 {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    let w = 0.5 * (lo + hi);
+    (lp + dp_of(w), w)
 }
 
 #[cfg(test)]

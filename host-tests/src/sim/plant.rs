@@ -7,7 +7,7 @@
 //! Over 600 lines on purpose: the state layout and the right-hand side that indexes it
 //! (`Plant::evaluate`) are read together; split, every index would cross a file.
 
-use crate::sim::bench::{BAR, Bench, Load};
+use crate::sim::bench::{BAR, Bench};
 use crate::sim::motion::Motion;
 use crate::sim::physics::{self, Fluid, GasAccumulator, Lever, check_flow};
 use std::cell::Cell;
@@ -39,10 +39,23 @@ pub const QUAD_NAMES: [&str; N_QUAD] = [
 /// Length of the integrated balance vector.
 pub const N_QUAD: usize = 17;
 
-/// Indices of the energy terms in [`QUAD_NAMES`]: into the circuit, dissipated by cause, to the
-/// generator, and two that split the path without entering the balance (the active cylinders'
-/// net hydraulic exergy out of LP into HP, and the motor's shaft work).
+/// Indices of the terms in [`QUAD_NAMES`]: the oil flows; the energy into the circuit,
+/// dissipated by cause, to the generator, and two that split the path without entering the
+/// balance (the active cylinders' net hydraulic exergy out of LP into HP, and the motor's shaft
+/// work).
 pub mod quad {
+    /// Oil into the HP side from the cylinders' check valves.
+    pub const INTO_HP: usize = 0;
+    /// Oil through the control valve.
+    pub const VALVE_FLOW: usize = 1;
+    /// Oil through the relief valve.
+    pub const RELIEF_FLOW: usize = 2;
+    /// Oil through the make-up check valve.
+    pub const MAKEUP_FLOW: usize = 3;
+    /// Oil through the motor.
+    pub const MOTOR_FLOW: usize = 4;
+    /// Oil from the LP side into the cylinders' chambers.
+    pub const LP_TO_CHAMBERS: usize = 5;
     /// Mechanical work into the cylinders' eyes (the shaft's input).
     pub const INPUT: usize = 6;
     /// Seal friction and the free-play and end-stop dampers.
@@ -513,11 +526,6 @@ impl Plant {
         let b = &self.bench;
         let c = &self.active[j];
         let half = 0.5 * b.free_play_m;
-        let (k, d, c_seal) = (
-            b.stop_stiffness_n_per_m,
-            b.stop_damping_n_s_per_m,
-            b.seal_friction_n_s_per_m,
-        );
         let events = self.contact_events.get();
         let p_cap = y[c.at] * BAR;
         let p_rod = y[c.at + 1] * BAR;
@@ -529,47 +537,13 @@ impl Plant {
         let engaged = events && self.contacts.get()[j] != Contact::Free;
         let pen = if events {
             0.0
-        } else if gap > half {
-            gap - half
-        } else if gap < -half {
-            gap + half
         } else {
-            0.0
+            physics::free_play_penetration(gap, half)
         };
-        let contact = pen != 0.0;
-        // Cylinder end stops.
-        let pen_end = if x < 0.0 {
-            -x
-        } else if x > c.stroke {
-            c.stroke - x
-        } else {
-            0.0
-        };
-        let end = pen_end != 0.0;
+        let pen_end = physics::end_stop_penetration(x, c.stroke);
         let f_hyd = p_cap * c.area_cap - p_rod * c.area_ann;
-        // Massless rod: 0 = F_contact + F_hyd + F_end − c·ẋ, solved for ẋ.
-        let mut num = f_hyd + k * pen_end;
-        let mut den = c_seal;
-        if contact {
-            num += k * pen + d * v_eye;
-            den += d;
-        }
-        if end {
-            den += d;
-        }
-        let (x_dot, f_contact) = if engaged {
-            // 0 = F_contact + F_hyd + F_end − c·ẋ with ẋ = the eye's speed.
-            let f_end = k * pen_end - if end { d * v_eye } else { 0.0 };
-            (v_eye, c_seal * v_eye - f_hyd - f_end)
-        } else {
-            let x_dot = num / den;
-            let f = if contact {
-                k * pen + d * (v_eye - x_dot)
-            } else {
-                0.0
-            };
-            (x_dot, f)
-        };
+        let (x_dot, f_contact) =
+            physics::RodStops::of(b).rod_motion(f_hyd, pen, pen_end, v_eye, engaged);
         RodForces {
             p_cap,
             p_rod,
@@ -695,11 +669,7 @@ impl Plant {
             aperture_pct,
             ..Eval::default()
         };
-        let (k, d, c_seal) = (
-            b.stop_stiffness_n_per_m,
-            b.stop_damping_n_s_per_m,
-            b.seal_friction_n_s_per_m,
-        );
+        let physics::RodStops { k, d, c_seal } = physics::RodStops::of(b);
         let mut m_into_hp = 0.0;
         let mut m_from_lp = 0.0;
         let mut dy = dy;
@@ -729,8 +699,20 @@ impl Plant {
             if let Some(dy) = dy.as_deref_mut() {
                 let vdot_cap = c.area_cap * x_dot;
                 let vdot_rod = -c.area_ann * x_dot;
-                dy[c.at] = e_cap / vol_cap * (v_cap * (suc_cap - del_cap) - vdot_cap) / BAR;
-                dy[c.at + 1] = e_rod / vol_rod * (v_rod * (suc_rod - del_rod) - vdot_rod) / BAR;
+                dy[c.at] = physics::chamber_pressure_rate(
+                    e_cap,
+                    vol_cap,
+                    v_cap,
+                    suc_cap - del_cap,
+                    vdot_cap,
+                ) / BAR;
+                dy[c.at + 1] = physics::chamber_pressure_rate(
+                    e_rod,
+                    vol_rod,
+                    v_rod,
+                    suc_rod - del_rod,
+                    vdot_rod,
+                ) / BAR;
                 dy[c.at + 2] = x_dot * 1e3;
             }
             m_into_hp += del_cap + del_rod;
@@ -740,13 +722,13 @@ impl Plant {
             e.p_rod_pa[ci] = p_rod;
             e.q_into_hp_m3_s[ci] = (del_cap + del_rod) * v_hm;
             e.torque_nm[ci] = self.levers[ci].side() * arm * f_contact;
-            e.quad[6] += f_contact * v_eye;
+            e.quad[quad::INPUT] += f_contact * v_eye;
             if want_quad {
                 let v_rel = v_eye - x_dot;
-                e.quad[7] += c_seal * x_dot * x_dot
+                e.quad[quad::MECHANICAL] += c_seal * x_dot * x_dot
                     + if contact { d * v_rel * v_rel } else { 0.0 }
                     + if end { d * x_dot * x_dot } else { 0.0 };
-                e.quad[8] += suc_cap * (g_lm - g_cap)
+                e.quad[quad::CHECK_VALVES] += suc_cap * (g_lm - g_cap)
                     + del_cap * (g_cap - g_hm)
                     + suc_rod * (g_lm - g_rod)
                     + del_rod * (g_rod - g_hm);
@@ -768,22 +750,19 @@ impl Plant {
             e.p_cap_pa[*ci] = p_lm;
             e.p_rod_pa[*ci] = p_lm;
             e.torque_nm[*ci] = self.levers[*ci].side() * arm * f_contact;
-            e.quad[6] += f_contact * v_eye;
+            e.quad[quad::INPUT] += f_contact * v_eye;
         }
         let q_valve = physics::valve_flow(b, aperture_pct, p2 - pm);
         let q_relief = physics::relief_flow(b, p2, lp);
         let q_makeup = check_flow(oil, &b.makeup, lp - pm);
         let dp_motor = pm - lp;
-        let q_motor = b.motor_disp_m3_per_rad * omega + b.motor_leak_m3_per_s_pa * dp_motor;
+        let q_motor = physics::motor_flow(b, omega, dp_motor);
         let m_valve = mref(q_valve, v_hp, v_pm);
         let m_relief = mref(q_relief, v_hp, v_lp);
         let m_makeup = mref(q_makeup, v_lp, v_pm);
         let m_motor = mref(q_motor, v_pm, v_lp);
-        let t_load = match b.load {
-            Load::Viscous(c) => c * omega,
-            Load::Constant(tq) => tq * (omega / 0.104_719_755).tanh(),
-        };
-        let t_motor = b.motor_disp_m3_per_rad * dp_motor * b.motor_eta_mech;
+        let t_load = physics::load_torque(b, omega);
+        let t_motor = physics::motor_torque(b, dp_motor);
         // Line flows manifold <-> accumulator (pass-through when lumped).
         let m_hline = match self.i_hm {
             Some(_) => mref((p_hm - p2) / b.hp_line_resistance_pa_s_per_m3, v_hm, v_hp),
@@ -823,16 +802,16 @@ impl Plant {
         e.q_motor_m3_s = q_motor;
         e.motor_torque_nm = t_motor;
         e.load_torque_nm = t_load;
-        e.quad[0] = m_into_hp;
-        e.quad[1] = m_valve;
-        e.quad[2] = m_relief;
-        e.quad[3] = m_makeup;
-        e.quad[4] = m_motor;
-        e.quad[5] = m_from_lp;
+        e.quad[quad::INTO_HP] = m_into_hp;
+        e.quad[quad::VALVE_FLOW] = m_valve;
+        e.quad[quad::RELIEF_FLOW] = m_relief;
+        e.quad[quad::MAKEUP_FLOW] = m_makeup;
+        e.quad[quad::MOTOR_FLOW] = m_motor;
+        e.quad[quad::LP_TO_CHAMBERS] = m_from_lp;
         if want_quad {
-            e.quad[8] += m_makeup * (g_lp - g_pm);
-            e.quad[9] = m_valve * (g_hp - g_pm);
-            e.quad[10] = m_relief * (g_hp - g_lp);
+            e.quad[quad::CHECK_VALVES] += m_makeup * (g_lp - g_pm);
+            e.quad[quad::CONTROL_VALVE] = m_valve * (g_hp - g_pm);
+            e.quad[quad::RELIEF] = m_relief * (g_hp - g_lp);
             // The motor's exergy drop split between its leakage and its displacement flow (both
             // at the density `mref` took for the whole flow); the displacement share not turned
             // into shaft work is friction.
@@ -841,8 +820,8 @@ impl Plant {
             e.quad[quad::MOTOR_LEAKAGE] = m_leak * (g_pm - g_lp);
             e.quad[quad::MOTOR_FRICTION] = (m_motor - m_leak) * (g_pm - g_lp) - t_motor * omega;
             e.quad[quad::MOTOR_SHAFT] = t_motor * omega;
-            e.quad[12] = t_load * omega;
-            e.quad[13] = m_hline * (g_hm - g_hp) + m_lline * (g_lp - g_lm);
+            e.quad[quad::GENERATOR] = t_load * omega;
+            e.quad[quad::LINES] = m_hline * (g_hm - g_hp) + m_lline * (g_lp - g_lm);
         }
         e
     }

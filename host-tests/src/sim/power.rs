@@ -5,8 +5,8 @@
 //! generator's power plus the rate of storage, to the balance's own error (≤ 1e-4 of the
 //! throughput, [`Power::closure_rel`]).
 
+use crate::sim::balance::Balance;
 use crate::sim::plant::{Stored, quad};
-use crate::sim::solver::Balance;
 use serde::Serialize;
 
 /// Mean dissipation by cause over a run, W.

@@ -1,11 +1,17 @@
-//! The solver driver: diffsol BDF over the plant, valve schedules, sampling and balances.
+//! The solver driver: diffsol BDF over the plant, segment by segment between the valve's
+//! events ([`schedule`](crate::sim::schedule)), the stops' contacts as located roots, sampling
+//! into a [`Trace`] and the run's [`Balance`].
 //!
-//! Over 600 lines on purpose: one integration loop (segments between valve events, roots,
-//! sampling, balances) whose parts share its state; the trace and balance types sit with it.
+//! Over 500 lines on purpose: one integration loop (segments, roots, sampling, balances) whose
+//! parts share its state.
 
-use crate::sim::bench::{BAR, Bench, LPM, RPM};
-use crate::sim::plant::{Eval, N_CYL, N_QUAD, Plant, QUAD_NAMES, Stored, quad};
+use crate::sim::balance::{Balance, balances};
+use crate::sim::bench::BAR;
+use crate::sim::physics::steady_motor;
+use crate::sim::plant::{Eval, N_QUAD, Plant};
 use crate::sim::power::Power;
+use crate::sim::schedule::{EVENT_TOL_S, ValveController, ValveSchedule, table_at};
+use crate::sim::trace::Trace;
 use diffsol::{
     NalgebraLU, NalgebraMat, NalgebraVec, OdeBuilder, OdeSolverMethod, OdeSolverStopReason, Vector,
 };
@@ -14,104 +20,6 @@ use std::cell::RefCell;
 use std::time::Instant;
 
 type M = NalgebraMat<f64>;
-
-/// A valve controller plugged into the plant: called every `period` seconds with the time and the
-/// plant's instantaneous values; returns the commanded aperture (%, 0..100).
-pub trait ValveController {
-    /// Control period, s.
-    fn period(&self) -> f64;
-    /// New aperture command from the plant's values at time `t`.
-    fn update(&mut self, t: f64, plant: &Eval) -> f64;
-    /// Whether the run should end here, before its duration (asked after each update; the
-    /// result then ends at the update's time).
-    fn finished(&self) -> bool {
-        false
-    }
-}
-
-/// How the control valve is driven.
-pub enum ValveSchedule {
-    /// Fixed aperture, %.
-    Constant(f64),
-    /// Closed until P2 reaches `threshold_pa`, then `aperture_pct` for the rest of the run.
-    Threshold {
-        /// P2 threshold, Pa.
-        threshold_pa: f64,
-        /// Aperture after the threshold, %.
-        aperture_pct: f64,
-    },
-    /// Step changes (time s, aperture %), sorted by time; before the first, closed.
-    Table(Vec<(f64, f64)>),
-    /// External controller.
-    Controller(Box<dyn ValveController>),
-}
-
-impl std::fmt::Debug for ValveSchedule {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            ValveSchedule::Constant(a) => write!(f, "Constant({a})"),
-            ValveSchedule::Threshold {
-                threshold_pa,
-                aperture_pct,
-            } => {
-                write!(f, "Threshold({threshold_pa} Pa -> {aperture_pct} %)")
-            }
-            ValveSchedule::Table(t) => write!(f, "Table({t:?})"),
-            ValveSchedule::Controller(c) => write!(f, "Controller(period {} s)", c.period()),
-        }
-    }
-}
-
-impl ValveSchedule {
-    /// Aperture commanded at the start.
-    fn initial(&mut self, plant0: &Eval) -> f64 {
-        match self {
-            ValveSchedule::Constant(a) => *a,
-            ValveSchedule::Threshold {
-                threshold_pa,
-                aperture_pct,
-            } => {
-                if plant0.p2_pa >= *threshold_pa {
-                    *aperture_pct
-                } else {
-                    0.0
-                }
-            }
-            ValveSchedule::Table(t) => table_at(t, 0.0),
-            ValveSchedule::Controller(c) => c.update(0.0, plant0),
-        }
-    }
-
-    /// Next time after `t` at which the command may change (besides threshold roots).
-    fn next_event(&self, t: f64) -> f64 {
-        match self {
-            ValveSchedule::Table(tab) => tab
-                .iter()
-                .map(|e| e.0)
-                .find(|&te| te > t + EVENT_TOL_S)
-                .unwrap_or(f64::INFINITY),
-            ValveSchedule::Controller(c) => {
-                let p = c.period();
-                (((t + EVENT_TOL_S) / p).floor() + 1.0) * p
-            }
-            _ => f64::INFINITY,
-        }
-    }
-}
-
-/// Two instants closer than this are one event, s. diffsol's BDF reports a stop time as reached
-/// within 100 ε (|t| + |h|) of it (`handle_tstop`): 4·10⁻¹² s at 200 s, more than a fixed 10⁻¹²
-/// s or 10⁻⁹ of a 2⁻¹⁰ s period. An event taken as still ahead from there is set as the next
-/// stop time and refused ("Stop time is at the current state time": closed loops of 150–200 s
-/// failed so). 1 ns is far above that rounding and far below any period or table step.
-pub(crate) const EVENT_TOL_S: f64 = 1e-9;
-
-fn table_at(t: &[(f64, f64)], time: f64) -> f64 {
-    t.iter()
-        .take_while(|e| e.0 <= time + EVENT_TOL_S)
-        .last()
-        .map_or(0.0, |e| e.1)
-}
 
 /// Solver settings.
 #[derive(Debug, Clone, Copy)]
@@ -165,212 +73,6 @@ pub struct Initial {
     pub p2_pa: f64,
     /// LP, Pa.
     pub lp_pa: f64,
-}
-
-/// Sampled outputs on the user grid (SI units internally; CSV headers carry display units).
-#[derive(Debug, Clone, Default, Serialize)]
-pub struct Trace {
-    /// s.
-    pub t_s: Vec<f64>,
-    /// Shaft angle, rad.
-    pub theta_rad: Vec<f64>,
-    /// Shaft speed, rad/s.
-    pub theta_dot_rad_s: Vec<f64>,
-    /// Rod positions per cylinder, m.
-    pub rod_m: [Vec<f64>; N_CYL],
-    /// Cap pressures, Pa.
-    pub p_cap_pa: [Vec<f64>; N_CYL],
-    /// Rod-side pressures, Pa.
-    pub p_rod_pa: [Vec<f64>; N_CYL],
-    /// Flow into HP per cylinder, m³/s.
-    pub q_cyl_m3_s: [Vec<f64>; N_CYL],
-    /// Total flow into HP, m³/s.
-    pub q_inj_m3_s: Vec<f64>,
-    /// Flow through the motor, m³/s.
-    pub q_motor_m3_s: Vec<f64>,
-    /// Flow through the control valve, m³/s.
-    pub q_valve_m3_s: Vec<f64>,
-    /// Relief flow, m³/s.
-    pub q_relief_m3_s: Vec<f64>,
-    /// Motor speed, rad/s.
-    pub omega_rad_s: Vec<f64>,
-    /// P2, Pa.
-    pub p2_pa: Vec<f64>,
-    /// LP, Pa.
-    pub lp_pa: Vec<f64>,
-    /// Motor inlet, Pa.
-    pub p_motor_pa: Vec<f64>,
-    /// Spool aperture, %.
-    pub aperture_pct: Vec<f64>,
-    /// Restraining torque (input must supply it), N·m.
-    pub torque_nm: Vec<f64>,
-    /// Per cylinder, N·m.
-    pub torque_cyl_nm: [Vec<f64>; N_CYL],
-    /// Mechanical input power at the shaft, W.
-    pub input_power_w: Vec<f64>,
-    /// Hydraulic power into the control valve, P2 · valve flow, W (what the controller's
-    /// estimator reports).
-    pub valve_power_w: Vec<f64>,
-    /// Power into the load (the generator), W.
-    pub generator_power_w: Vec<f64>,
-}
-
-impl Trace {
-    fn push(&mut self, t: f64, e: &Eval) {
-        self.t_s.push(t);
-        self.theta_rad.push(e.theta_rad);
-        self.theta_dot_rad_s.push(e.theta_dot_rad_s);
-        for i in 0..N_CYL {
-            self.rod_m[i].push(e.rod_m[i]);
-            self.p_cap_pa[i].push(e.p_cap_pa[i]);
-            self.p_rod_pa[i].push(e.p_rod_pa[i]);
-            self.q_cyl_m3_s[i].push(e.q_into_hp_m3_s[i]);
-            self.torque_cyl_nm[i].push(e.torque_nm[i]);
-        }
-        self.q_inj_m3_s.push(e.q_into_hp_m3_s.iter().sum());
-        self.q_motor_m3_s.push(e.q_motor_m3_s);
-        self.q_valve_m3_s.push(e.q_valve_m3_s);
-        self.q_relief_m3_s.push(e.q_relief_m3_s);
-        self.omega_rad_s.push(e.omega_rad_s);
-        self.p2_pa.push(e.p2_pa);
-        self.lp_pa.push(e.lp_pa);
-        self.p_motor_pa.push(e.p_motor_pa);
-        self.aperture_pct.push(e.aperture_pct);
-        self.torque_nm.push(e.torque_nm.iter().sum());
-        self.input_power_w.push(e.quad[quad::INPUT]);
-        self.valve_power_w.push(e.p2_pa * e.q_valve_m3_s);
-        self.generator_power_w
-            .push(e.load_torque_nm * e.omega_rad_s);
-    }
-
-    /// Number of samples.
-    pub fn len(&self) -> usize {
-        self.t_s.len()
-    }
-
-    /// True when empty.
-    pub fn is_empty(&self) -> bool {
-        self.t_s.is_empty()
-    }
-
-    /// Indices of samples with `from <= t <= to`.
-    pub fn window(&self, from: f64, to: f64) -> std::ops::Range<usize> {
-        let a = self.t_s.partition_point(|&x| x < from - 1e-9);
-        let b = self.t_s.partition_point(|&x| x <= to + 1e-9);
-        a..b
-    }
-
-    /// Writes the trace as CSV with units in the headers (to a temporary file renamed at the
-    /// end, so an interrupted write leaves nothing half-written).
-    pub fn write_csv(
-        &self,
-        path: &std::path::Path,
-        names: &[String; N_CYL],
-    ) -> std::io::Result<()> {
-        let tmp = path.with_extension("csv.tmp");
-        self.write_csv_to(&tmp, names)?;
-        std::fs::rename(&tmp, path)
-    }
-
-    fn write_csv_to(&self, path: &std::path::Path, names: &[String; N_CYL]) -> std::io::Result<()> {
-        let mut w = csv::Writer::from_path(path)?;
-        let mut header: Vec<String> = [
-            "time_s",
-            "shaft_angle_deg",
-            "shaft_speed_rpm",
-            "p2_bar",
-            "lp_bar",
-            "motor_inlet_bar",
-            "injected_flow_lpm",
-            "motor_flow_lpm",
-            "valve_flow_lpm",
-            "relief_flow_lpm",
-            "motor_speed_rpm",
-            "valve_aperture_pct",
-            "restraining_torque_nm",
-            "input_power_w",
-            "valve_power_w",
-            "generator_power_w",
-        ]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
-        for n in names {
-            let n = n.replace('.', "_").to_lowercase();
-            header.extend([
-                format!("{n}_rod_mm"),
-                format!("{n}_cap_bar"),
-                format!("{n}_rod_side_bar"),
-                format!("{n}_flow_lpm"),
-                format!("{n}_torque_nm"),
-            ]);
-        }
-        w.write_record(&header)?;
-        for k in 0..self.len() {
-            let mut row = vec![
-                self.t_s[k],
-                self.theta_rad[k].to_degrees(),
-                self.theta_dot_rad_s[k] * RPM,
-                self.p2_pa[k] / BAR,
-                self.lp_pa[k] / BAR,
-                self.p_motor_pa[k] / BAR,
-                self.q_inj_m3_s[k] * LPM,
-                self.q_motor_m3_s[k] * LPM,
-                self.q_valve_m3_s[k] * LPM,
-                self.q_relief_m3_s[k] * LPM,
-                self.omega_rad_s[k] * RPM,
-                self.aperture_pct[k],
-                self.torque_nm[k],
-                self.input_power_w[k],
-                self.valve_power_w[k],
-                self.generator_power_w[k],
-            ];
-            for i in 0..N_CYL {
-                row.extend([
-                    self.rod_m[i][k] * 1e3,
-                    self.p_cap_pa[i][k] / BAR,
-                    self.p_rod_pa[i][k] / BAR,
-                    self.q_cyl_m3_s[i][k] * LPM,
-                    self.torque_cyl_nm[i][k],
-                ]);
-            }
-            w.write_record(row.iter().map(|v| format!("{v:.6}")))?;
-        }
-        w.flush()
-    }
-}
-
-/// Oil-volume and energy balance of a run.
-#[derive(Debug, Clone, Serialize)]
-pub struct Balance {
-    /// Integrated flows (L) and energies (kJ), named by [`QUAD_NAMES`].
-    pub integrals: Vec<(String, f64)>,
-    /// Relative oil (mass) balance error per node (HP, motor inlet, LP, chambers) and of the
-    /// whole closed circuit.
-    pub volume_rel_error: [f64; 5],
-    /// Relative energy error of the whole circuit.
-    pub energy_rel_error: f64,
-    /// Energy into storage (oil, accumulator gas, motor inertia, hard stops), kJ.
-    pub stored_kj: f64,
-    /// That change by where it is stored, J.
-    pub stored: Stored,
-}
-
-impl Balance {
-    /// An integrated term by its index in [`QUAD_NAMES`] (L or kJ).
-    pub fn integral(&self, i: usize) -> f64 {
-        self.integrals[i].1
-    }
-}
-
-impl Balance {
-    /// Worst of the volume and energy relative errors.
-    pub fn worst(&self) -> f64 {
-        self.volume_rel_error
-            .iter()
-            .copied()
-            .fold(self.energy_rel_error, f64::max)
-    }
 }
 
 /// Solver statistics.
@@ -540,38 +242,6 @@ pub fn simulate_with<C: ValveController + 'static>(
         Err(_) => unreachable!("the run that held the other handle has been dropped"),
     };
     (res, controller)
-}
-
-/// Steady motor state (inlet pressure Pa, speed rad/s) for P2, LP and aperture.
-pub fn steady_motor(bench: &Bench, p2: f64, lp: f64, aperture_pct: f64) -> (f64, f64) {
-    use crate::sim::bench::Load;
-    let dp_of = |w: f64| match bench.load {
-        Load::Viscous(c) => c * w / (bench.motor_disp_m3_per_rad * bench.motor_eta_mech),
-        Load::Constant(t) => t / (bench.motor_disp_m3_per_rad * bench.motor_eta_mech),
-    };
-    let resid = |w: f64| {
-        let dpm = dp_of(w);
-        crate::sim::physics::valve_flow(bench, aperture_pct, p2 - lp - dpm)
-            - bench.motor_disp_m3_per_rad * w
-            - bench.motor_leak_m3_per_s_pa * dpm
-    };
-    if aperture_pct <= 0.0 || resid(0.0) <= 0.0 {
-        return (lp, 0.0);
-    }
-    let (mut lo, mut hi) = (0.0, 1.0);
-    while resid(hi) > 0.0 && hi < 1e5 {
-        hi *= 2.0;
-    }
-    for _ in 0..200 {
-        let mid = 0.5 * (lo + hi);
-        if resid(mid) > 0.0 {
-            lo = mid;
-        } else {
-            hi = mid;
-        }
-    }
-    let w = 0.5 * (lo + hi);
-    (lp + dp_of(w), w)
 }
 
 /// The first step's size, s (and a restarted run's).
@@ -864,60 +534,6 @@ pub fn simulate(mut run: Run<'_>) -> Result<SimResult, SimError> {
         valve_opened_at,
         power,
     })
-}
-
-fn balances(plant: &Plant, (t0, y0): (f64, &[f64]), (t1, y1): (f64, &[f64]), g: &[f64]) -> Balance {
-    let (m0, e0) = plant.storage(t0, y0);
-    let (m1, e1) = plant.storage(t1, y1);
-    let q = |i: usize| g[i] * 1e-3; // L -> m³ of reference volume
-    let w = |i: usize| g[i] * 1e3; // kJ -> J
-    // Oil (mass, as reference volume) per node: Δcontent = ∫ inflow − ∫ outflow.
-    let flows = [
-        (q(0), q(1) + q(2)),
-        (q(1) + q(3), q(4)),
-        (q(4) + q(2), q(3) + q(5)),
-        (q(5), q(0)),
-    ];
-    // Each node's error is relative to its own throughput plus 0.1 % of all the oil that moved
-    // (a node that barely moves, like the chambers of a blocked run, is not judged on noise).
-    let moved: f64 = (0..6).map(|i| q(i).abs()).sum();
-    let mut volume_rel_error = [0.0; 5];
-    for k in 0..4 {
-        let (inflow, outflow) = flows[k];
-        let dm = m1[k] - m0[k];
-        let scale = inflow.abs() + outflow.abs() + dm.abs() + 1e-3 * moved;
-        volume_rel_error[k] = if scale > 0.0 {
-            (dm - (inflow - outflow)).abs() / scale
-        } else {
-            0.0
-        };
-    }
-    // The circuit is closed: total oil is constant (a check on the solver alone).
-    // Normalised by the oil that moved (or, in a run where nothing moved, by the oil present).
-    let total = m1.iter().sum::<f64>() - m0.iter().sum::<f64>();
-    let scale = if moved > 0.0 { moved } else { m0.iter().sum() };
-    volume_rel_error[4] = total.abs() / scale;
-    let stored_by = e1.since(&e0);
-    let stored = stored_by.total();
-    let losses: f64 = quad::OUT.iter().map(|&i| w(i)).sum();
-    let input = w(quad::INPUT);
-    let resid = input - losses - stored;
-    let scale = input.abs() + losses.abs() + stored.abs();
-    Balance {
-        integrals: QUAD_NAMES
-            .iter()
-            .zip(g)
-            .map(|(n, v)| (n.to_string(), *v))
-            .collect(),
-        volume_rel_error,
-        energy_rel_error: if scale > 0.0 {
-            resid.abs() / scale
-        } else {
-            0.0
-        },
-        stored_kj: stored * 1e-3,
-        stored: stored_by,
-    }
 }
 
 #[cfg(test)]

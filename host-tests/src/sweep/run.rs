@@ -1,12 +1,14 @@
 //! One run of a sweep: its scenario on its bench, the valve driven by the scenario's schedule or
 //! by the fixed-point controller, and the figures that make its row.
 
-use super::{RunKey, RunSpec};
+use super::key::RunKey;
+use super::matrix::RunSpec;
 use crate::model::closed_loop::ModelController;
 use crate::model::{controller_config, duty_mask, model_config};
 use crate::sim::bench::{BAR, RPM};
 use crate::sim::scenario::Prepared;
-use crate::sim::solver::{self, Run, SimResult, ValveSchedule};
+use crate::sim::schedule::ValveSchedule;
+use crate::sim::solver::{self, Run, SimResult};
 use pto_model::scheduler::Mode;
 use serde::{Deserialize, Serialize};
 

@@ -1,9 +1,11 @@
 //! A sweep's rows as a table of typed columns — the run, its axis values, its status and
 //! figures, units in the column names — written as CSV and Parquet, and read back.
 
+use super::expand::point_of;
+use super::key::RunKey;
+use super::matrix::value_text;
 use super::run::{Figures, Row};
 use super::store::Identity;
-use super::{RunKey, point_of, value_text};
 use arrow_array::{
     Array, ArrayRef, Float64Array, Int64Array, RecordBatch, StringArray, UInt64Array,
 };

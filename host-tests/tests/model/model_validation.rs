@@ -16,7 +16,7 @@
 //! `pto validate` (see `docs/model.md`), and why two of them cannot meet it with these sensors is
 //! measured on the full simulation below.
 
-use pto_host::model::validate::{self, target};
+use pto_host::model::{target, validate};
 use pto_host::sim::bench::Bench;
 
 /// `pto validate`'s rows for the named built-in scenarios (every one must exist and run).

@@ -4,7 +4,8 @@
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::motion::{Motion, MotionSpec};
 use crate::sim::plant::{N_CYL, Plant};
-use crate::sim::solver::{self, Initial, Run, SimError, SimResult, SolverOptions, ValveSchedule};
+use crate::sim::schedule::ValveSchedule;
+use crate::sim::solver::{self, Initial, Run, SimError, SimResult, SolverOptions};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
@@ -425,7 +426,7 @@ fn steady_p2(
     }
     let q = q * (1.0 - 0.016);
     let motor_flow = |p2: f64| {
-        let (pm, w) = solver::steady_motor(bench, p2, lp, aperture_pct);
+        let (pm, w) = crate::sim::physics::steady_motor(bench, p2, lp, aperture_pct);
         bench.motor_disp_m3_per_rad * w + bench.motor_leak_m3_per_s_pa * (pm - lp)
     };
     let (mut lo, mut hi) = (lp, bench.relief_setting_pa);
