@@ -1,14 +1,148 @@
 //! `pto qemu`, `pil` and `fw-cost`: the firmware under QEMU.
 
-use super::{load_bench, write_atomic};
+use super::{finite_in, load_bench, write_atomic};
 use anyhow::Result;
-use std::path::{Path, PathBuf};
+use pto_host::hil::build::{self, Sources};
+use std::path::PathBuf;
 
-pub(crate) fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
-    use pto_host::hil::build::{self, Build};
+/// `pto qemu`'s options.
+#[derive(clap::Args)]
+pub(crate) struct QemuArgs {
+    /// Print the log lines as they arrive and keep the firmware running until Ctrl-C (which
+    /// stops QEMU and removes its socket; exit status 130).
+    #[arg(long)]
+    pub follow: bool,
+    /// Machine-readable output (the firmware's Hello, its status and the host's link
+    /// counts; the log goes to stderr).
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub fw: FirmwareArgs,
+}
+
+/// `pto pil`'s options.
+#[derive(clap::Args)]
+pub(crate) struct PilArgs {
+    /// Bench parameter file (default: the reference bench).
+    #[arg(long)]
+    pub bench: Option<PathBuf>,
+    /// Instead of the standard checks, inject this sensor fault into the firmware's
+    /// readings and check that it is flagged, named and made safe (repeatable):
+    /// SENSOR:KIND with SENSOR hp, lp, motor or encoder and KIND stuck (at its reading),
+    /// stuck=VALUE (bar, rpm, counts), drift=RATE (per s) or gain=FACTOR; from 20 s, or
+    /// from the time after an @ (hp:drift=0.5@10).
+    #[arg(long, value_name = "SENSOR:KIND")]
+    pub fault: Vec<pto_host::model::faults::Fault>,
+    /// Machine-readable output.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub fw: FirmwareArgs,
+}
+
+/// `pto twin`'s options.
+#[derive(clap::Args)]
+pub(crate) struct TwinArgs {
+    /// The plant's bench file (default: the reference bench).
+    #[arg(long)]
+    pub bench: Option<PathBuf>,
+    /// Override a value of the plant's bench (as for `pto simulate`).
+    #[arg(long = "set", value_name = "FIELD=VALUE")]
+    pub set: Vec<String>,
+    /// P2 at the start, bar (default 60; with `--campaign`, its first segment's start).
+    #[arg(long, value_parser = finite_in(10.0, 125.0, "bar"))]
+    p2_start: Option<f64>,
+    /// Valve aperture, % (the firmware's mode `fixed`).
+    #[arg(long, default_value_t = 10.0, value_parser = finite_in(0.0, 100.0, "%"))]
+    pub aperture: f64,
+    /// Simulated time, s.
+    #[arg(long, default_value_t = 60.0, value_parser = finite_in(1.0, 3600.0, "s"))]
+    pub duration: f64,
+    /// Wall-clock seconds between printing the bench link and starting the plant (time to
+    /// start `pto link … monitor`).
+    #[arg(long, default_value_t = 3.0, value_parser = finite_in(0.0, 600.0, "s"))]
+    pub start_after: f64,
+    /// Follow a campaign instead (`pto link … campaign run` drives the firmware): the lever
+    /// held between segments, each segment's motion and cylinders from when the controller
+    /// energises them until it de-energises them. `--aperture` and `--duration` are then
+    /// the campaign's.
+    #[arg(long)]
+    pub campaign: Option<PathBuf>,
+    #[command(flatten)]
+    pub fw: FirmwareArgs,
+}
+
+/// `pto fw-cost`'s options.
+#[derive(clap::Args)]
+pub(crate) struct FwCostArgs {
+    /// Machine-readable output.
+    #[arg(long)]
+    pub json: bool,
+    /// Also write the four-cylinder run's cost step by step (CSV: step, instructions,
+    /// background units, each cylinder's phase) to this file, to see which steps set the
+    /// maximum.
+    #[arg(long, value_name = "CSV")]
+    pub trace: Option<PathBuf>,
+    #[command(flatten)]
+    pub src: WorkspaceArgs,
+}
+
+/// Where a command that runs the QEMU firmware takes it from.
+#[derive(clap::Args, Debug, Clone)]
+pub(crate) struct FirmwareArgs {
+    /// Run this QEMU build of the firmware instead of building one (`cargo fw` in the source
+    /// tree writes target/thumbv7em-none-eabihf/firmware/pto-firmware): for a pto installed
+    /// away from its source tree.
+    #[arg(long, value_name = "FILE", conflicts_with = "workspace")]
+    pub elf: Option<PathBuf>,
+    /// Build the firmware in this pto source tree (default: the one pto was compiled in).
+    #[arg(long, value_name = "DIR")]
+    pub workspace: Option<PathBuf>,
+}
+
+impl FirmwareArgs {
+    /// Makes these the process's sources.
+    pub(crate) fn apply(&self) {
+        build::use_sources(Sources {
+            elf: self.elf.clone(),
+            workspace: self.workspace.clone(),
+        });
+    }
+}
+
+/// Where a command that measures builds of the sources (`fw-cost`, `model-cost`) finds them.
+#[derive(clap::Args, Debug, Clone)]
+pub(crate) struct WorkspaceArgs {
+    /// The pto source tree to build and measure (default: the one pto was compiled in).
+    #[arg(long, value_name = "DIR")]
+    pub workspace: Option<PathBuf>,
+}
+
+impl WorkspaceArgs {
+    /// Makes this the process's source tree.
+    pub(crate) fn apply(&self) {
+        build::use_sources(Sources {
+            elf: None,
+            workspace: self.workspace.clone(),
+        });
+    }
+}
+
+/// Says what the QEMU firmware is about to come from.
+fn say_firmware(fw: &FirmwareArgs) {
+    match &fw.elf {
+        Some(elf) => eprintln!("the QEMU firmware: {}", elf.display()),
+        None => eprintln!("building the QEMU firmware…"),
+    }
+}
+
+pub(crate) fn qemu_cmd(a: &QemuArgs) -> Result<bool> {
+    let (fw, follow, json) = (&a.fw, a.follow, a.json);
+    use pto_host::hil::build::Build;
     use pto_host::hil::qemu::Qemu;
     use pto_model::protocol::{FromFirmware, ToFirmware};
-    eprintln!("building the QEMU firmware…");
+    fw.apply();
+    say_firmware(fw);
     let elf = build::build(Build::Qemu)?;
     let mut q = Qemu::boot(&elf, follow)?;
     let t0 = std::time::Instant::now();
@@ -16,6 +150,10 @@ pub(crate) fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
         matches!(r, FromFirmware::Pong(1)).then_some(())
     })?;
     let ping = t0.elapsed();
+    let hello = q.link.request(&ToFirmware::Hello, |r| match r {
+        FromFirmware::Hello(h) => Some(*h),
+        _ => None,
+    })?;
     let st = pto_host::hil::pil::status(&mut q)?;
     let host = q.link.counts();
     if follow {
@@ -45,31 +183,37 @@ pub(crate) fn qemu_cmd(follow: bool, json: bool) -> Result<bool> {
             "{}",
             serde_json::to_string_pretty(&serde_json::json!({
                 "ping_ms": ping.as_secs_f64() * 1e3,
+                "hello": hello,
                 "status": st,
                 "host_link": host,
                 "exit_code": code,
             }))?
         );
     } else {
-        println!("ping answered in {:.2} ms", ping.as_secs_f64() * 1e3);
+        println!(
+            "pto-firmware {}.{}, protocol v{}, dt = 2^-{} s; ping answered in {:.2} ms",
+            hello.firmware >> 8,
+            hello.firmware & 0xff,
+            hello.protocol,
+            hello.dt_log2,
+            ping.as_secs_f64() * 1e3
+        );
         print!("{}", pto_host::hil::qemu::status_table(&st, &host));
         println!("QEMU exit code {code}");
     }
     Ok(code == 0)
 }
 
-pub(crate) fn pil_cmd(
-    bench: Option<&PathBuf>,
-    faults: &[pto_host::model::faults::Fault],
-    json: bool,
-) -> Result<bool> {
-    use pto_host::hil::build::{self, Build};
+pub(crate) fn pil_cmd(a: &PilArgs) -> Result<bool> {
+    let (fw, bench, faults, json) = (&a.fw, a.bench.as_ref(), a.fault.as_slice(), a.json);
+    use pto_host::hil::build::Build;
     use pto_host::hil::pil::{self, Check, PilError};
     use pto_host::hil::qemu::Qemu;
     use pto_host::sim::bench::Bench;
     type Run = Box<dyn Fn(Qemu, &Bench) -> Result<(Qemu, Check), PilError>>;
     let bench = load_bench(bench)?;
-    eprintln!("building the QEMU firmware…");
+    fw.apply();
+    say_firmware(fw);
     let elf = build::build(Build::Qemu)?;
     let checks: Vec<(String, Run)> = if faults.is_empty() {
         let standard: [(&str, pil::CheckFn); 6] = [
@@ -136,7 +280,11 @@ pub(crate) fn pil_cmd(
     Ok(pass)
 }
 
-pub(crate) fn fw_cost_cmd(json: bool, trace: Option<&Path>) -> Result<bool> {
+pub(crate) fn fw_cost_cmd(a: &FwCostArgs) -> Result<bool> {
+    let (src, json, trace) = (&a.src, a.json, a.trace.as_deref());
+    src.apply();
+    // Both builds come from the tree (a QEMU ELF alone would measure half).
+    build::workspace_root("pto fw-cost (it builds both firmwares)")?;
     eprintln!(
         "building both firmwares and replaying the golden vectors (and a four-cylinder run) under QEMU…"
     );
@@ -206,16 +354,19 @@ pub(crate) fn fw_cost_cmd(json: bool, trace: Option<&Path>) -> Result<bool> {
     Ok(r.pass)
 }
 
-pub(crate) fn twin_cmd(
-    bench: Option<&PathBuf>,
-    set: &[String],
-    p2_start: Option<f64>,
-    aperture: f64,
-    duration: f64,
-    start_after: f64,
-    campaign: Option<&PathBuf>,
-) -> Result<bool> {
-    use pto_host::hil::build::{self, Build};
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn twin_cmd(a: &TwinArgs) -> Result<bool> {
+    let (fw, bench, set, p2_start, aperture, duration, start_after, campaign) = (
+        &a.fw,
+        a.bench.as_ref(),
+        a.set.as_slice(),
+        a.p2_start,
+        a.aperture,
+        a.duration,
+        a.start_after,
+        a.campaign.as_ref(),
+    );
+    use pto_host::hil::build::Build;
     use pto_host::hil::pil;
     use pto_host::hil::qemu::Qemu;
     use pto_host::model::sensors::SensorSpec;
@@ -235,7 +386,8 @@ pub(crate) fn twin_cmd(
                 .and_then(|s| s.run.initial_hp_bar)
         })
         .unwrap_or(60.0);
-    eprintln!("building the QEMU firmware…");
+    fw.apply();
+    say_firmware(fw);
     let elf = build::build(Build::Qemu)?;
     let q = Qemu::boot_twin(&elf, false)?;
     let pty = q

@@ -1,23 +1,118 @@
 //! `pto synth-logs` and `fit`: bench logs and the fit to them.
 
-use super::{count_bar, load_bench, load_bench_with};
+use super::{count_bar, finite_in, load_bench, load_bench_with, name_value};
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use pto_host::sim::bench::Bench;
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 
+/// `pto synth-logs`'s options.
+#[derive(clap::Args)]
+pub(crate) struct SynthLogsArgs {
+    /// Bench parameter file (default: the reference bench).
+    #[arg(long)]
+    pub bench: Option<PathBuf>,
+    /// Override a bench value: any field of the bench file by its dotted path
+    /// (`--set hp_accumulator.precharge_bar=45 --set cylinder[0].bore_mm=50`; lists count
+    /// from 0, `cylinder[0]` is HC3.1), or a fit parameter's short name (`trapped_air=0.04`,
+    /// `cd=0.17`, `precharge=45`).
+    #[arg(long = "set", value_name = "NAME=VALUE")]
+    pub set: Vec<String>,
+    /// Built-in scenarios to log (default: the seven experimental runs).
+    #[arg(long, value_delimiter = ',', conflicts_with = "campaign")]
+    pub runs: Vec<String>,
+    /// A campaign file (`pto plan`): one log per segment, at the segment's rate.
+    #[arg(long)]
+    pub campaign: Option<PathBuf>,
+    /// Sample rate, 0.1 to 1000 Hz.
+    #[arg(long, allow_hyphen_values = true, default_value_t = 10.0, value_parser = finite_in(0.1, 1000.0, "Hz"))]
+    pub rate: f64,
+    /// Noise seed.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Output directory.
+    #[arg(long, default_value = "out/logs")]
+    pub out: PathBuf,
+    /// Machine-readable output.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `pto fit`'s options.
+#[derive(clap::Args)]
+pub(crate) struct FitArgs {
+    /// Bench log CSV files.
+    #[arg(required = true)]
+    pub logs: Vec<PathBuf>,
+    /// Bench parameter file to start from (default: the reference bench).
+    #[arg(long)]
+    pub bench: Option<PathBuf>,
+    /// Parameters: trapped_air, cd, cd_slope (pressure-dependent Cd), precharge, hp_volume,
+    /// leakage, area_table.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "trapped_air,cd,precharge"
+    )]
+    pub params: Vec<String>,
+    /// Residual samples every this many seconds of each log, 0 (every sample) to 60 s
+    /// (default: 0.5 s, and every sample of a campaign's log: one with a complete
+    /// `.segment.toml` sidecar).
+    #[arg(long, allow_hyphen_values = true, value_parser = finite_in(0.0, 60.0, "s"))]
+    pub spacing: Option<f64>,
+    /// Iteration limit (Levenberg–Marquardt patience, × parameters + 1 evaluations), 1 to
+    /// 10 000.
+    #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=10_000))]
+    pub max_iter: u32,
+    /// Simulations the fit may run, 10 to 10 000 000 (its time limit, reproducible: ≈ 60 s
+    /// on 2 cores for the seven experimental runs); past it the fit stops and fails.
+    #[arg(long, default_value_t = pto_host::fit::DEFAULT_MAX_SIMULATIONS as u64, value_parser = clap::value_parser!(u64).range(10..=10_000_000))]
+    pub max_simulations: u64,
+    /// Output folder: fitted bench, model configuration, figures, fit.json (replaced whole;
+    /// a folder of other files is refused).
+    #[arg(long, default_value = "out/fit")]
+    pub out: PathBuf,
+    /// P2 sensor noise σ, bar (default: estimated from the logs).
+    #[arg(long, value_parser = finite_in(0.001, 50.0, "bar"))]
+    noise_p2: Option<f64>,
+    /// Motor speed sensor noise σ, rpm (default: estimated from the logs).
+    #[arg(long, value_parser = finite_in(0.01, 500.0, "rpm"))]
+    pub noise_rpm: Option<f64>,
+    /// LP sensor noise σ, bar (default: estimated from the logs).
+    #[arg(long, value_parser = finite_in(0.001, 50.0, "bar"))]
+    pub noise_lp: Option<f64>,
+    /// Largest reduced χ² of the residuals against the noise that passes (raise it knowingly
+    /// when the model's own error exceeds the sensors' noise), 1 to 10 000.
+    #[arg(long, default_value_t = pto_host::fit::DEFAULT_LIMITS.max_chi2, value_parser = finite_in(1.0, 10_000.0, ""))]
+    max_chi2: f64,
+    /// Precision a parameter needs, in its unit (repeatable; e.g. `--precision
+    /// trapped_air=0.01`): the fit fails its `precision` check when the parameter's 3σ
+    /// exceeds it. Defaults: trapped_air 0.005, cd 3 %, precharge 2 bar, leakage 0.01,
+    /// hp_volume 5 %, cd_slope 0.05, area-table factors 10 %.
+    #[arg(long, value_name = "NAME=VALUE", value_parser = name_value)]
+    pub precision: Vec<(String, f64)>,
+    /// Write the fitted bench and model configuration even when a check failed (their first
+    /// line then says which); without it they are written only when every check passed.
+    #[arg(long)]
+    pub write_anyway: bool,
+    /// Machine-readable output.
+    #[arg(long)]
+    pub json: bool,
+}
+
 #[allow(clippy::too_many_arguments)]
-pub(crate) fn synth_logs_cmd(
-    bench: Option<&PathBuf>,
-    set: &[String],
-    runs: &[String],
-    campaign: Option<&Path>,
-    rate: f64,
-    seed: u64,
-    out: &Path,
-    json: bool,
-) -> Result<bool> {
+pub(crate) fn synth_logs_cmd(a: &SynthLogsArgs) -> Result<bool> {
+    let (bench, set, runs, campaign, rate, seed, out, json) = (
+        a.bench.as_ref(),
+        a.set.as_slice(),
+        a.runs.as_slice(),
+        a.campaign.as_deref(),
+        a.rate,
+        a.seed,
+        a.out.as_path(),
+        a.json,
+    );
     use pto_host::fit;
     use pto_host::sim::scenario::{Scenario, builtin_named};
     let b = load_bench_with(bench, set)?;
@@ -108,14 +203,34 @@ pub(crate) fn synth_logs_cmd(
     Ok(true)
 }
 
-pub(crate) fn fit_cmd(
-    log_paths: &[PathBuf],
-    bench_path: Option<&PathBuf>,
-    mut opts: pto_host::fit::FitOptions,
-    out: &Path,
-    write_anyway: bool,
-    json: bool,
-) -> Result<bool> {
+pub(crate) fn fit_cmd(a: &FitArgs) -> Result<bool> {
+    let (log_paths, bench_path, out, write_anyway, json) = (
+        a.logs.as_slice(),
+        a.bench.as_ref(),
+        a.out.as_path(),
+        a.write_anyway,
+        a.json,
+    );
+    let mut opts = pto_host::fit::FitOptions {
+        params: a.params.clone(),
+        spacing_s: a.spacing.unwrap_or(0.5),
+        dense_logs: if a.spacing.is_some() {
+            pto_host::fit::DenseLogs::None
+        } else {
+            pto_host::fit::DenseLogs::Campaign
+        },
+        max_iter: a.max_iter as usize,
+        max_simulations: a.max_simulations as usize,
+        noise_p2_bar: a.noise_p2,
+        noise_rpm: a.noise_rpm,
+        noise_lp_bar: a.noise_lp,
+        limits: pto_host::fit::Limits {
+            max_chi2: a.max_chi2,
+            ..pto_host::fit::DEFAULT_LIMITS
+        },
+        precision: a.precision.clone(),
+        progress: None,
+    };
     use pto_host::fit;
     use pto_host::sim::benchlog::BenchLog;
     let bench = load_bench(bench_path)?;

@@ -1,6 +1,7 @@
 //! `pto link`: the bench engineer's tool, over a serial port to the controller or the QEMU
 //! twin's pseudo-terminal.
 
+use super::finite_in;
 use anyhow::{Context, Result, bail};
 use pto_host::hil::client::{self, LogWriter, Units};
 use pto_host::hil::link::{self, Link};
@@ -9,6 +10,170 @@ use pto_model::protocol::{FromFirmware, Hello, Stored, config_fingerprint};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
+
+/// `pto link`'s options.
+#[derive(clap::Args)]
+pub(crate) struct LinkArgs {
+    /// Serial port of the controller (`/dev/ttyUSB0`, `COM3`), the QEMU twin's
+    /// pseudo-terminal, or `unix:PATH` for a QEMU USART's socket.
+    #[arg(long)]
+    pub port: String,
+    /// Baud rate (the firmware's: 230400 8N1).
+    #[arg(long, default_value_t = pto_host::hil::link::DEFAULT_BAUD)]
+    pub baud: u32,
+    /// Machine-readable output.
+    #[arg(long, global = true)]
+    pub json: bool,
+    #[command(subcommand)]
+    pub cmd: LinkCmd,
+}
+
+#[derive(clap::Subcommand)]
+pub(crate) enum LinkCmd {
+    /// Firmware version, running configuration, link and health counters.
+    Status,
+    /// Scheduler mode: `fixed PCT`, `hold-pressure BAR`, `hold-speed RPM`, `max-autonomy RPM`.
+    Mode {
+        /// fixed, hold-pressure, hold-speed or max-autonomy.
+        kind: String,
+        /// Aperture %, P2 bar, or motor speed rpm.
+        #[arg(allow_negative_numbers = true)]
+        value: f64,
+    },
+    /// Cylinders on duty and geometry.
+    Duty {
+        /// HC3.1..HC3.4 as four 0/1 characters, e.g. 1001.
+        #[arg(long)]
+        on: String,
+        /// Geometry 1..=4.
+        #[arg(long, default_value_t = 1)]
+        config: u8,
+    },
+    /// Restart the estimator from known pressures (refused while the overpressure trip holds).
+    Reset {
+        /// P2, bar.
+        #[arg(long, allow_negative_numbers = true)]
+        p2: f64,
+        /// LP, bar.
+        #[arg(long, allow_negative_numbers = true)]
+        lp: f64,
+    },
+    /// The model configuration: upload (from `pto fit`'s *.model.toml or a bench file), show,
+    /// clear the stored one.
+    Config {
+        #[command(subcommand)]
+        cmd: ConfigCmd,
+    },
+    /// Live view of the estimates, command, faults and counters; `--log` writes the bench log
+    /// `pto fit` reads (the sensors as the firmware saw them), the estimates in extra columns.
+    Monitor {
+        /// Bench log CSV to write (written as FILE.part, renamed when the monitor stops).
+        #[arg(long)]
+        log: Option<PathBuf>,
+        /// Telemetry rate, Hz, up to 1024 (default 64, set at every start: a rate an earlier
+        /// monitor set does not stay; the bench firmware goes no faster than 128 and says so).
+        #[arg(long)]
+        rate: Option<f64>,
+        /// Stop after this much firmware time, s (default: at Ctrl-C).
+        #[arg(long)]
+        duration: Option<f64>,
+    },
+    /// Release the sensors the controller holds faulted (its residuals named them: the valve
+    /// went to its sensor-fault aperture), each only if its reading agrees with the model now.
+    ClearFaults,
+    /// Guided bring-up of a freshly flashed controller: each input's reading and verdict
+    /// (loop currents, ADC reference, clock, brown-out level), the encoder and the motor
+    /// pickup while you move them by hand, then each output one at a time from the safe
+    /// state (valve to a few % with the dump valve open, the dump valve closed, each
+    /// solenoid), read back. A pass/fail checklist; `--json`.
+    #[command(
+        after_help = "Examples:\n  pto link --port /dev/ttyUSB0 selftest\n  pto link --port /dev/ttyUSB0 selftest --skip motor\n  pto link --port /dev/pts/3 selftest --yes --window 10 --json\n\nThe outputs are stepped only from the firmware's safe state (trip armed, mode fixed 0 %, valve\nclosed); the trip stays armed throughout and ends the self-test if it latches.\n\nExit status:\n  0 every check passed (n/a: what this board cannot show)\n  1 a check failed or was skipped\n  2 bad input, no answer, or a protocol mismatch\n  130 interrupted (the outputs are returned to the controller first)"
+    )]
+    Selftest {
+        /// Unattended: no questions (instructions on stderr; motions must happen within
+        /// each window). Needed when stdin is not a terminal.
+        #[arg(long)]
+        yes: bool,
+        /// Seconds for each motion by hand (the lever, the motor's shaft).
+        #[arg(long, default_value_t = 20.0)]
+        window: f64,
+        /// Seconds each output is held for you to see or hear it.
+        #[arg(long, default_value_t = 2.0)]
+        hold: f64,
+        /// The valve's test aperture, % (at most 10).
+        #[arg(long, default_value_t = 5.0)]
+        valve: f32,
+        /// Checks to skip (each is reported as skipped, and the run does not pass).
+        #[arg(long, value_enum, value_delimiter = ',')]
+        skip: Vec<pto_host::hil::selftest::Skippable>,
+    },
+    /// A planned campaign (`pto plan`): each segment's cylinders, mode and log, the lever set
+    /// by the operator.
+    Campaign {
+        #[command(subcommand)]
+        cmd: CampaignCmd,
+    },
+}
+
+#[derive(clap::Subcommand)]
+pub(crate) enum CampaignCmd {
+    /// Runs the campaign's segments in order: the cylinders de-energised and the valve closed
+    /// while you change the set-up and stop the lever; the estimator restarted from the
+    /// readings; HP let down to the segment's start through the valve (mode hold-pressure; HP
+    /// below it is named and the segment skipped); the segment's aperture reached; then the
+    /// cylinders energised and the log started together while you start the lever, which must
+    /// show the planned motion (amplitude and period within 10 %) within max(4 periods, 20 s).
+    /// One bench log per segment (the monitor's, at the segment's rate, its planned length)
+    /// with a sidecar saying how it came out: complete, unfinished or mismatch (motion off,
+    /// frames lost, a trip, a restart, a sensor held faulted, the start not reached). Running
+    /// it again skips the complete segments. `pto fit DIR/*.csv` takes the folder as it is.
+    #[command(
+        after_help = "Examples:\n  pto plan --params trapped_air,cd,precharge,leakage --out day.toml\n  pto link --port /dev/ttyUSB0 campaign run day.toml --log-dir day\n  pto fit day/*.csv --params trapped_air,cd,precharge,leakage --out day-fit\n\nCtrl-C keeps the finished segments' logs, marks the one under way unfinished and leaves the\ncontroller in its safe state (cylinders de-energised, valve closed); running the command again\nresumes at the first segment not complete. Under the twin: `pto twin --campaign day.toml`.\n\nExit status:\n  0 every segment complete\n  1 a segment marked mismatch or unfinished (named)\n  2 bad input, no answer, or a protocol mismatch\n  130 interrupted"
+    )]
+    Run {
+        /// The campaign file (`pto plan --out`).
+        file: PathBuf,
+        /// Folder of the segments' logs and sidecars (made if missing).
+        #[arg(long)]
+        log_dir: PathBuf,
+        /// The bench file the campaign was planned for (its geometry gives the lever angles
+        /// the encoder must show; default: the reference bench).
+        #[arg(long)]
+        bench: Option<PathBuf>,
+        /// Unattended: no questions (instructions on stderr, a mismatched segment is not
+        /// rerun). Needed when stdin is not a terminal.
+        #[arg(long)]
+        yes: bool,
+        /// Wall-clock seconds to wait, per segment, for HP to come down to the segment's
+        /// start (the lever gets max(4 periods, 20 s) of the log to show its motion).
+        #[arg(long, default_value_t = 300.0, value_parser = finite_in(1.0, 3600.0, "s"))]
+        prepare_wait: f64,
+    },
+}
+
+#[derive(clap::Subcommand)]
+pub(crate) enum ConfigCmd {
+    /// Send a configuration; the firmware checks it (every field's range) and, in the declared
+    /// safe state (mode `fixed 0`, valve closed, trip armed, a valid HP reading), applies it
+    /// (estimator restarted from its last P2, uncertain as at boot) and, with `--store`, keeps
+    /// it in flash for the next boot.
+    Upload {
+        /// `pto fit`'s *.model.toml, or a bench file.
+        file: PathBuf,
+        /// Also store it for the next boot.
+        #[arg(long)]
+        store: bool,
+    },
+    /// Erase the stored configuration: the next boot runs the built-in one (the running one
+    /// is unchanged). Needs the declared safe state, as `upload`.
+    Clear,
+    /// The configuration the controller runs, and where it came from.
+    Show {
+        /// Write it to this file (TOML) instead of printing it.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+}
 
 /// The monitor's telemetry rate unless `--rate` says otherwise, Hz.
 const DEFAULT_RATE_HZ: f64 = 64.0;
@@ -21,6 +186,53 @@ pub(crate) struct Target<'a> {
 
 fn connect(t: &Target) -> Result<(Link, Hello)> {
     Ok(link::connect(t.port, t.baud, Duration::from_secs(3))?)
+}
+
+/// `pto link`: one of its commands on the port.
+pub(crate) fn link(a: &LinkArgs) -> Result<bool> {
+    let t = Target {
+        port: &a.port,
+        baud: a.baud,
+    };
+    let json = a.json;
+    match &a.cmd {
+        LinkCmd::Status => status_cmd(&t, json),
+        LinkCmd::Mode { kind, value } => mode_cmd(&t, kind, *value),
+        LinkCmd::Duty { on, config } => duty_cmd(&t, on, *config),
+        LinkCmd::Reset { p2, lp } => reset_cmd(&t, *p2, *lp),
+        LinkCmd::Config {
+            cmd: ConfigCmd::Upload { file, store },
+        } => config_upload_cmd(&t, file, *store, json),
+        LinkCmd::Config {
+            cmd: ConfigCmd::Show { out },
+        } => config_show_cmd(&t, out.as_ref(), json),
+        LinkCmd::Config {
+            cmd: ConfigCmd::Clear,
+        } => config_clear_cmd(&t),
+        LinkCmd::Monitor {
+            log,
+            rate,
+            duration,
+        } => monitor_cmd(&t, log.as_ref(), *rate, *duration, json),
+        LinkCmd::ClearFaults => clear_faults_cmd(&t, json),
+        LinkCmd::Campaign {
+            cmd:
+                CampaignCmd::Run {
+                    file,
+                    log_dir,
+                    bench,
+                    yes,
+                    prepare_wait,
+                },
+        } => campaign_run_cmd(&t, file, log_dir, bench.as_ref(), *yes, *prepare_wait, json),
+        LinkCmd::Selftest {
+            yes,
+            window,
+            hold,
+            valve,
+            skip,
+        } => selftest_cmd(&t, *yes, *window, *hold, *valve, skip.clone(), json),
+    }
 }
 
 pub(crate) fn status_cmd(t: &Target, json: bool) -> Result<bool> {

@@ -132,3 +132,42 @@ impl pto_host::runner::RunProgress for ScenarioBars {
         self.overall.inc(1);
     }
 }
+
+/// A clap parser for a finite number in [lo, hi] (`unit` for the message): NaN, infinities and
+/// values out of range are argument errors (exit 2), never a hang or a solver failure.
+pub(crate) fn finite_in(
+    lo: f64,
+    hi: f64,
+    unit: &'static str,
+) -> impl Fn(&str) -> Result<f64, String> + Clone {
+    move |v: &str| {
+        let x: f64 = v.parse().map_err(|_| format!("{v:?} is not a number"))?;
+        if x.is_finite() && (lo..=hi).contains(&x) {
+            Ok(x)
+        } else {
+            Err(format!(
+                "{v} outside [{lo:e}, {hi:e}]{}{unit}",
+                if unit.is_empty() { "" } else { " " }
+            ))
+        }
+    }
+}
+
+/// `K/N` with 1 ≤ K ≤ N.
+pub(crate) fn parse_shard(v: &str) -> Result<pto_host::sweep::Shard, String> {
+    v.parse()
+}
+
+/// `NAME=VALUE` with a finite, positive value.
+pub(crate) fn name_value(v: &str) -> Result<(String, f64), String> {
+    let (n, x) = v
+        .split_once('=')
+        .ok_or_else(|| format!("{v:?}: want NAME=VALUE, e.g. trapped_air=0.01"))?;
+    let x: f64 = x
+        .trim()
+        .parse()
+        .ok()
+        .filter(|x: &f64| x.is_finite() && *x > 0.0)
+        .ok_or_else(|| format!("{v:?}: the value must be a positive number"))?;
+    Ok((n.trim().to_string(), x))
+}

@@ -3,15 +3,39 @@
 use super::load_bench;
 use anyhow::{Result, bail};
 use pto_host::sim::scenario;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-pub(crate) fn validate_cmd(
-    bench_path: Option<&PathBuf>,
-    filter: &str,
-    with_loop: bool,
-    json: bool,
-) -> Result<bool> {
-    use pto_host::model::validate::{self, target};
+/// `pto validate`'s options.
+#[derive(clap::Args)]
+pub(crate) struct ValidateArgs {
+    /// Bench parameter file (default: the reference bench).
+    #[arg(long)]
+    pub bench: Option<PathBuf>,
+    /// Only scenarios whose name contains this.
+    #[arg(long, default_value = "")]
+    pub filter: String,
+    /// Skip the closed-loop runs.
+    #[arg(long)]
+    pub no_loop: bool,
+    /// Machine-readable output.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `pto model-cost`'s options.
+#[derive(clap::Args)]
+pub(crate) struct ModelCostArgs {
+    /// Machine-readable output.
+    #[arg(long)]
+    pub json: bool,
+    #[command(flatten)]
+    pub src: super::firmware::WorkspaceArgs,
+}
+
+pub(crate) fn validate_cmd(a: &ValidateArgs) -> Result<bool> {
+    let (bench_path, filter, with_loop, json) =
+        (a.bench.as_ref(), a.filter.as_str(), !a.no_loop, a.json);
+    use pto_host::model::{target, validate};
     let bench = load_bench(bench_path)?;
     let sel: Vec<_> = scenario::every_builtin()
         .into_iter()
@@ -230,8 +254,10 @@ pub(crate) fn validate_cmd(
     Ok(rep.pass)
 }
 
-pub(crate) fn model_cost_cmd(json: bool) -> Result<bool> {
-    let workspace = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+pub(crate) fn model_cost_cmd(a: &ModelCostArgs) -> Result<bool> {
+    let json = a.json;
+    a.src.apply();
+    let workspace = pto_host::hil::build::workspace_root("pto model-cost (it builds pto-model)")?;
     let cost = pto_host::model::cost::measure(&workspace)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&cost)?);

@@ -1,32 +1,58 @@
 //! `pto plan`: the campaign that determines the fit's parameters.
 
-use super::{count_bar, load_bench_with, write_atomic};
+use super::{count_bar, finite_in, load_bench_with, name_value, write_atomic};
 use anyhow::{Result, bail};
 use pto_host::fit;
 use pto_host::plan::{self, Goal, Menu};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::Arc;
 
-/// `pto plan`'s arguments.
-pub(crate) struct PlanArgs<'a> {
-    pub bench: Option<&'a PathBuf>,
-    pub set: &'a [String],
-    pub params: &'a [String],
-    pub precision: &'a [(String, f64)],
+/// `pto plan`'s options.
+#[derive(clap::Args)]
+pub(crate) struct PlanArgs {
+    /// Bench parameter file: the current best guess (default: the reference bench).
+    #[arg(long)]
+    pub bench: Option<PathBuf>,
+    /// Override a bench value (as `pto simulate --set`).
+    #[arg(long = "set", value_name = "NAME=VALUE")]
+    pub set: Vec<String>,
+    /// Parameters to determine (the fit's names).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "trapped_air,cd,precharge,leakage"
+    )]
+    pub params: Vec<String>,
+    /// Precision a parameter needs, in its unit (repeatable; as `pto fit --precision`).
+    #[arg(long, value_name = "NAME=VALUE", value_parser = name_value)]
+    pub precision: Vec<(String, f64)>,
+    /// Bench time the campaign may take, 1 to 1440 min.
+    #[arg(long, default_value_t = 45.0, value_parser = finite_in(1.0, 1440.0, "min"))]
     pub budget_min: f64,
+    /// Log rate of the segments, 1 to 128 Hz (the link's telemetry).
+    #[arg(long, default_value_t = 64.0, value_parser = finite_in(1.0, 128.0, "Hz"))]
     pub rate: f64,
-    pub configs: &'a [u8],
-    pub noise_from: &'a [PathBuf],
-    pub out: &'a Path,
+    /// Geometries the candidates use (1 to 4).
+    #[arg(long, value_delimiter = ',', default_value = "1", value_parser = clap::value_parser!(u8).range(1..=4))]
+    pub configs: Vec<u8>,
+    /// Bench logs to estimate the sensors' noise from (default: the sensor model's, HP 0.5
+    /// bar, motor 2 rpm, LP 0.2 bar).
+    #[arg(long, value_name = "FILE")]
+    pub noise_from: Vec<PathBuf>,
+    /// The campaign file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Machine-readable output.
+    #[arg(long)]
     pub json: bool,
 }
 
 pub(crate) fn plan_cmd(a: &PlanArgs) -> Result<bool> {
     let t0 = std::time::Instant::now();
-    let bench = load_bench_with(a.bench, a.set)?;
+    let bench = load_bench_with(a.bench.as_ref(), &a.set)?;
     let start = bench.file.clone();
-    let params = fit::params(a.params, &start)?;
-    for (n, v) in a.precision {
+    let params = fit::params(&a.params, &start)?;
+    for (n, v) in &a.precision {
         if !params.iter().any(|p| p.name == *n) {
             bail!(
                 "--precision {n}={v}: `{n}` is not among --params ({})",
@@ -39,7 +65,7 @@ pub(crate) fn plan_cmd(a: &PlanArgs) -> Result<bool> {
     }
     let needed: Vec<f64> = params
         .iter()
-        .map(|p| p.needed_at((p.get)(&start), a.precision))
+        .map(|p| p.needed_at((p.get)(&start), &a.precision))
         .collect();
     let noise = if a.noise_from.is_empty() {
         fit::sensor_noise()
@@ -86,6 +112,7 @@ pub(crate) fn plan_cmd(a: &PlanArgs) -> Result<bool> {
         "pto plan: {} from {}, budget {} min, {} Hz; predicted {}",
         a.params.join(", "),
         a.bench
+            .as_ref()
             .map_or("the reference bench".into(), |b| b.display().to_string()),
         a.budget_min,
         a.rate,
@@ -109,7 +136,7 @@ pub(crate) fn plan_cmd(a: &PlanArgs) -> Result<bool> {
     }
     p.campaign.validate(&a.out.display().to_string(), &bench)?;
     let text = p.campaign.to_toml(&header)?;
-    write_atomic(a.out, text.as_bytes())?;
+    write_atomic(&a.out, text.as_bytes())?;
     // Advice on the campaign written: a failure here costs the advice, not the campaign.
     let n_held = p.campaign.segment.len()
         * plan::simulations_per_candidate(params.len() + fit::held_params(&params, &start).len());

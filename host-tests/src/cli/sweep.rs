@@ -1,7 +1,7 @@
 //! `pto sweep` and `pto sweep merge`: a design matrix run into one row per run, and the rows of
 //! a sweep's shards joined.
 
-use super::count_bar;
+use super::{count_bar, parse_shard};
 use anyhow::{Context, Result, anyhow};
 use pto_host::output::{StagedDir, stop_on_interrupt, stop_requested};
 use pto_host::sweep::run::{self, Row, Status};
@@ -14,6 +14,74 @@ use serde::Serialize;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
+
+/// `pto sweep`'s options.
+#[derive(clap::Args)]
+pub(crate) struct SweepArgs {
+    #[command(subcommand)]
+    pub cmd: Option<SweepCmd>,
+    /// The design matrix (TOML): a base scenario, `[set]` fields and `[[axis]]` entries
+    /// (docs/sweep.md).
+    #[arg(required = true)]
+    pub matrix: Option<PathBuf>,
+    /// Bench parameter file (default: the matrix's `bench`, else the reference bench).
+    #[arg(long)]
+    pub bench: Option<PathBuf>,
+    /// Output folder: sweep.json, runs.jsonl (a row per finished run, kept across
+    /// reruns), sweep.csv, sweep.parquet, heatmap-*.png/svg.
+    #[arg(long, default_value = "out/sweep")]
+    pub out: PathBuf,
+    /// Run only shard K of N: the runs whose number minus one is K − 1 modulo N (for a job
+    /// array; `pto sweep merge` joins the shards' folders).
+    #[arg(long, value_name = "K/N", value_parser = parse_shard)]
+    pub shard: Option<pto_host::sweep::Shard>,
+    /// Worker threads, 1 to 1024 (default: one per core).
+    #[arg(long, value_parser = clap::value_parser!(u16).range(1..=1024))]
+    pub jobs: Option<u16>,
+    /// The heat maps' axes, two fields: X,Y (default: the matrix's `heatmap`, else its
+    /// first two axes of more than one value).
+    #[arg(long, value_name = "X,Y", value_delimiter = ',')]
+    pub heatmap: Option<Vec<String>>,
+    /// Run failed runs again (they are otherwise finished: their failure rows stay).
+    #[arg(long)]
+    pub retry_failed: bool,
+    /// Check the matrix and count the runs (and those already finished in --out); run
+    /// nothing.
+    #[arg(long)]
+    pub dry_run: bool,
+    /// Skip the heat maps.
+    #[arg(long)]
+    pub no_plots: bool,
+    /// Machine-readable summary on stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(clap::Subcommand)]
+pub(crate) enum SweepCmd {
+    /// Join the folders of one sweep's shards into one table: checks they are of one matrix,
+    /// names the runs missing and those found twice.
+    #[command(
+        after_help = "Examples:\n  pto sweep merge shards/* --out sweep\n\nExit status:\n  0 every run of the matrix has a row, none failed and every balance closed within 1e-4\n  1 runs are missing (listed, with the shards not given), failed or missed the balance target\n  2 bad input (a folder not a sweep's, folders of different matrices, an --out sweep folder with rows of its own or in use)"
+    )]
+    Merge {
+        /// The shards' output folders.
+        #[arg(required = true)]
+        dirs: Vec<PathBuf>,
+        /// Output folder (replaced whole; a folder of other files is refused).
+        #[arg(long, default_value = "out/sweep")]
+        out: PathBuf,
+        /// The heat maps' axes, two fields: X,Y (default: as the sweep chose).
+        #[arg(long, value_name = "X,Y", value_delimiter = ',')]
+        heatmap: Option<Vec<String>>,
+        /// Skip the heat maps.
+        #[arg(long)]
+        no_plots: bool,
+        /// Machine-readable summary on stdout.
+        #[arg(long)]
+        json: bool,
+    },
+}
 
 /// What `pto sweep` was asked.
 pub(crate) struct SweepOptions<'a> {
@@ -103,6 +171,31 @@ fn choose_heatmap(m: &Matrix, asked: Option<&[String]>) -> Result<Option<(usize,
         Some(h) => Some(heatmap_axes(&m.axes, h).map_err(|e| anyhow!("--{e}"))?),
         None => m.heatmap.or_else(|| default_heatmap(&m.axes)),
     })
+}
+
+/// `pto sweep`, or `pto sweep merge`.
+pub(crate) fn sweep(a: &SweepArgs) -> Result<bool> {
+    match &a.cmd {
+        Some(SweepCmd::Merge {
+            dirs,
+            out,
+            heatmap,
+            no_plots,
+            json,
+        }) => merge_cmd(dirs, out, heatmap.as_deref(), !no_plots, *json),
+        None => sweep_cmd(SweepOptions {
+            matrix: a.matrix.as_deref().unwrap_or(std::path::Path::new("")),
+            bench: a.bench.as_ref(),
+            out: &a.out,
+            shard: a.shard,
+            jobs: a.jobs.map(usize::from),
+            heatmap: a.heatmap.as_deref(),
+            retry_failed: a.retry_failed,
+            dry_run: a.dry_run,
+            plots: !a.no_plots,
+            json: a.json,
+        }),
+    }
 }
 
 pub(crate) fn sweep_cmd(o: SweepOptions) -> Result<bool> {

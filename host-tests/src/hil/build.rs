@@ -1,6 +1,11 @@
 //! Building the firmware from the host (inside `cargo test` too): the QEMU build and the
 //! bench build, each in a target directory of its own, for the reference bench or for a bench
 //! file (`PTO_BENCH`).
+//!
+//! The sources are the workspace `pto` was compiled in, unless the command line says otherwise
+//! ([`use_sources`]): a `pto` installed with `cargo install --path host-tests` runs the QEMU
+//! firmware from an ELF (`--elf FILE`) or builds it in a source tree (`--workspace DIR`), and says
+//! which of the two it needs when the tree it was compiled in is gone.
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -13,6 +18,38 @@ pub enum BuildError {
     /// Cargo could not be started.
     #[error("cannot run cargo to build the firmware")]
     Cargo(#[source] Arc<std::io::Error>),
+    /// No source tree to build in (nor a firmware ELF given, where one would do).
+    #[error(
+        "{what} needs {needs}, and the source tree pto was compiled in ({compiled}) is not \
+         there: {hint}"
+    )]
+    NoWorkspace {
+        /// What needed it.
+        what: &'static str,
+        /// What it needs.
+        needs: &'static str,
+        /// The tree pto was compiled in.
+        compiled: String,
+        /// What to give.
+        hint: &'static str,
+    },
+    /// `--workspace` names a folder that is not a pto source tree.
+    #[error(
+        "--workspace {0}: not a pto source tree (no firmware/Cargo.toml in it); give the folder \
+         holding the top-level Cargo.toml"
+    )]
+    NotAWorkspace(String),
+    /// `--elf` names a file that is missing or not an ELF.
+    #[error(
+        "--elf {path}: {why}; give the QEMU build of the firmware (`cargo fw` in the source tree \
+         writes target/thumbv7em-none-eabihf/firmware/pto-firmware)"
+    )]
+    BadElf {
+        /// The path given.
+        path: String,
+        /// What is wrong with it.
+        why: String,
+    },
     /// The build failed (the last 30 lines of its output kept).
     #[error(
         "firmware build ({build}) failed (is the target installed? `rustup target add \
@@ -46,31 +83,108 @@ impl Build {
     }
 }
 
-/// The workspace root.
-pub fn workspace_root() -> PathBuf {
+/// Where the firmware and the sources come from (the command line's `--elf`, `--workspace`).
+#[derive(Debug, Clone, Default)]
+pub struct Sources {
+    /// A QEMU build of the firmware to run instead of building one.
+    pub elf: Option<PathBuf>,
+    /// The pto source tree to build in instead of the one pto was compiled in.
+    pub workspace: Option<PathBuf>,
+}
+
+static SOURCES: OnceLock<Sources> = OnceLock::new();
+
+/// Sets where the firmware and the sources come from, for the whole process (the first call
+/// wins; without one, the workspace `pto` was compiled in).
+pub fn use_sources(s: Sources) {
+    let _ = SOURCES.set(s);
+}
+
+fn sources() -> &'static Sources {
+    SOURCES.get_or_init(Sources::default)
+}
+
+/// The workspace `pto` was compiled in.
+fn compiled_workspace() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .parent()
         .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
 }
 
+/// The workspace root: `--workspace`, else the one `pto` was compiled in while it is there.
+/// `what` names the command or step that needs it, for the error.
+pub fn workspace_root(what: &'static str) -> Result<PathBuf, BuildError> {
+    let is_tree = |d: &Path| d.join("firmware").join("Cargo.toml").is_file();
+    if let Some(w) = &sources().workspace {
+        return if is_tree(w) {
+            Ok(w.clone())
+        } else {
+            Err(BuildError::NotAWorkspace(w.display().to_string()))
+        };
+    }
+    let compiled = compiled_workspace();
+    if is_tree(&compiled) {
+        Ok(compiled)
+    } else {
+        Err(BuildError::NoWorkspace {
+            what,
+            needs: "the pto source tree",
+            compiled: compiled.display().to_string(),
+            hint: "give --workspace DIR (a pto source tree)",
+        })
+    }
+}
+
+/// The `--elf` file, checked: there, and an ELF.
+fn given_elf(path: &Path) -> Result<PathBuf, BuildError> {
+    let bad = |why: String| BuildError::BadElf {
+        path: path.display().to_string(),
+        why,
+    };
+    let mut head = [0u8; 4];
+    let mut f = std::fs::File::open(path).map_err(|e| bad(e.to_string()))?;
+    std::io::Read::read_exact(&mut f, &mut head).map_err(|_| bad("too short for an ELF".into()))?;
+    if head != *b"\x7fELF" {
+        return Err(bad("not an ELF file".into()));
+    }
+    Ok(path.to_path_buf())
+}
+
 static BUILT: [OnceLock<Result<PathBuf, BuildError>>; 2] = [OnceLock::new(), OnceLock::new()];
 
-/// Builds the firmware (profile `firmware`, `thumbv7em-none-eabihf`, its own target directory so that it
-/// can run inside `cargo test`) once per process and returns the ELF path.
+/// The firmware's ELF: for the QEMU build, the `--elf` file when one was given; otherwise
+/// built (profile `firmware`, `thumbv7em-none-eabihf`, its own target directory so that it can
+/// run inside `cargo test`) once per process.
 pub fn build(which: Build) -> Result<PathBuf, BuildError> {
+    if let (Build::Qemu, Some(elf)) = (which, &sources().elf) {
+        return given_elf(elf);
+    }
     BUILT[which as usize]
         .get_or_init(|| build_uncached(which))
         .clone()
 }
 
 fn build_uncached(which: Build) -> Result<PathBuf, BuildError> {
+    let root = workspace_root(match which {
+        Build::Qemu => "the QEMU firmware",
+        Build::Bench => "the bench firmware",
+    })
+    .map_err(|e| match e {
+        BuildError::NoWorkspace { what, compiled, .. } if which == Build::Qemu => {
+            BuildError::NoWorkspace {
+                what,
+                needs: "a firmware ELF or the pto source tree to build one in",
+                compiled,
+                hint: "give --elf FILE (a QEMU build of the firmware) or --workspace DIR (a pto \
+                   source tree)",
+            }
+        }
+        e => e,
+    })?;
     build_into(
         which,
         None,
-        &workspace_root()
-            .join("target")
-            .join("fw")
-            .join(which.name()),
+        &root.join("target").join("fw").join(which.name()),
     )
 }
 
@@ -91,7 +205,7 @@ fn build_into(
     bench: Option<&Path>,
     target_dir: &Path,
 ) -> Result<PathBuf, BuildError> {
-    let root = workspace_root();
+    let root = workspace_root("building the firmware")?;
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let mut cmd = Command::new(cargo);
     cmd.current_dir(&root).args([

@@ -266,11 +266,14 @@ fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
 pub fn measure() -> Result<Report, FwCostError> {
     let qemu_elf = build::build(Build::Qemu)?;
     let bench_elf = build::build(Build::Bench)?;
-    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join(golden::FILE))
-        .map_err(|source| FwCostError::Read {
-            path: golden::FILE.into(),
-            source,
-        })?;
+    // The golden vectors of the tree the firmware was built from.
+    let golden_file = build::workspace_root("pto fw-cost (the golden vectors)")?
+        .join("host-tests")
+        .join(golden::FILE);
+    let text = std::fs::read_to_string(&golden_file).map_err(|source| FwCostError::Read {
+        path: golden_file.clone(),
+        source,
+    })?;
     let (p2, lp, inputs) = golden::parse(&text)?;
     let start = (
         inputs.as_slice(),

@@ -854,3 +854,51 @@ fn campaign_inputs_are_checked_and_named() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_firmware_elf_or_source_tree_that_is_not_one_is_named() {
+    let dir = tmp!("sources");
+    let not_elf = dir.join("pto-firmware");
+    std::fs::write(&not_elf, "#!/bin/sh\n").unwrap();
+    let cases: [(&[&str], String); 6] = [
+        (
+            &["qemu", "--elf", "/no/such/pto-firmware"],
+            "--elf /no/such/pto-firmware: No such file".into(),
+        ),
+        (
+            &["pil", "--elf", not_elf.to_str().unwrap()],
+            format!("--elf {}: not an ELF file", not_elf.display()),
+        ),
+        (
+            &["model-cost", "--workspace", dir.to_str().unwrap()],
+            format!(
+                "--workspace {}: not a pto source tree (no firmware/Cargo.toml in it)",
+                dir.display()
+            ),
+        ),
+        (
+            &["fw-cost", "--workspace", dir.to_str().unwrap()],
+            "not a pto source tree".into(),
+        ),
+        (
+            &["fw-cost", "--elf", "x"],
+            "unexpected argument '--elf'".into(),
+        ),
+        (
+            &["twin", "--elf", "a", "--workspace", "b"],
+            "cannot be used with".into(),
+        ),
+    ];
+    for (args, expect) in cases {
+        let out = pto().args(args).output().unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {err}");
+        assert!(err.contains(&expect), "{args:?}: {err}");
+    }
+    // What a missing firmware says it needs (`cargo fw` writes one).
+    let out = pto()
+        .args(["qemu", "--elf", not_elf.to_str().unwrap()])
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("`cargo fw`"));
+}

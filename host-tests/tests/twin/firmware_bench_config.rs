@@ -22,7 +22,10 @@ fn bench_with(key_old: &str, key_new: &str) -> String {
 #[test]
 fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
     let _qemu = crate::common::beside_other_qemus();
-    let dir = build::workspace_root().join("target").join("fw-bench-file");
+    let dir = build::workspace_root("the test")
+        .unwrap()
+        .join("target")
+        .join("fw-bench-file");
     std::fs::create_dir_all(&dir).unwrap();
     // A bench whose trapped air differs from the reference's.
     let path = dir.join("more-air.toml");

@@ -48,3 +48,29 @@ fn boots_logs_answers_a_ping_and_exits_zero() {
     );
     assert!(log.iter().any(|l| l.text == "exit 0 on command"));
 }
+
+/// A `pto` away from its source tree runs a firmware ELF it is given (`--elf`): a copy of the
+/// QEMU build, in a folder of its own.
+#[test]
+fn pto_qemu_runs_a_firmware_elf_it_is_given() {
+    let _qemu = crate::common::beside_other_qemus();
+    let elf = build::build(Build::Qemu).unwrap();
+    let dir = tmp!("elf");
+    let copy = dir.join("pto-firmware");
+    std::fs::copy(&elf, &copy).unwrap();
+    let out = crate::common::pto()
+        .current_dir(&dir)
+        .args(["qemu", "--json", "--elf"])
+        .arg(&copy)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(0), "{err}");
+    assert!(
+        err.contains(&format!("the QEMU firmware: {}", copy.display())),
+        "{err}"
+    );
+    assert!(!err.contains("building"), "{err}");
+    let hello = crate::common::field(&String::from_utf8_lossy(&out.stdout), "/hello/firmware");
+    assert_eq!(hello.as_u64(), Some(u64::from(pto_firmware::VERSION)));
+}
