@@ -2,6 +2,126 @@
 //! their work units, the free play, the delivered and sucked flows and the torque.
 
 use super::*;
+use crate::coeffs::{ARM_RANGE_RAD, N_NODE, P_MAX_BAR, arm_m, ext_mm, fx, modulus_bar};
+use crate::config::ModelConfig;
+
+/// Per-cylinder constants.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CylinderCoeffs {
+    /// ±1.
+    pub side: Fx,
+    /// Cap-side flow per rod speed, L/min per mm/s.
+    pub q_cap: Fx,
+    /// Rod-side flow per rod speed, L/min per mm/s.
+    pub q_ann: Fx,
+    /// Cap-side force per bar, kN/bar.
+    pub f_cap: Fx,
+    /// Rod-side force per bar, kN/bar.
+    pub f_ann: Fx,
+    /// Cap-chamber dead volume (with hose) as a length of cap area, mm.
+    pub dead_cap_mm: Fx,
+    /// Rod-chamber dead volume (with hose) as a length of annulus area, mm.
+    pub dead_rod_mm: Fx,
+    /// Stroke, mm.
+    pub stroke_mm: Fx,
+    /// A_ann / A_cap (new/old area after a reversal to extending).
+    pub ratio_ext: Fx,
+    /// A_cap / A_ann (new/old area after a reversal to retracting).
+    pub ratio_ret: Fx,
+}
+
+/// The cylinders stage's coefficients (`estimator::cylinder`): per cylinder, the lever
+/// geometry's tables and the oil's strain law in the chambers.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PumpCoeffs {
+    /// Cylinders.
+    pub cyl: [CylinderCoeffs; 4],
+    /// Lever arm d (mm) vs s·θ (rad), per geometry. In mm so that d·F stays exact to
+    /// 0.01 N·m (in m, Q16.16 would quantise the arm to 1e-4 of itself).
+    pub arm: [Table1<N_ARM>; 4],
+    /// Rod-eye extension x (mm) vs s·θ (rad), per geometry.
+    pub ext: [Table1<N_ARM>; 4],
+    /// Oil strain ∫_0^p dp/E in milli-strain vs p (0..160 bar).
+    pub ms_of_p: Table1<N_NODE>,
+    /// Its inverse: p (bar) vs milli-strain.
+    pub p_of_ms: Table1<N_NODE>,
+    /// Rod-fixation free play, mm.
+    pub play_mm: Fx,
+    /// Seal friction, kN per mm/s (2 kN·s/m = 0.002 kN per mm/s on the reference bench: 131
+    /// LSB, 0.05 % resolution).
+    pub seal_kn_per_mm_s: Fx,
+    /// Open check-valve pressure drop, bar.
+    pub check_drop_bar: Fx,
+}
+
+impl PumpCoeffs {
+    /// The cylinders' coefficients for `cfg`: their areas and volumes, the lever's arm and
+    /// extension tables per geometry, the oil's strain tables.
+    #[inline(never)]
+    pub(crate) fn of(cfg: &ModelConfig) -> PumpCoeffs {
+        let cyl = core::array::from_fn(|i| {
+            let c = &cfg.cylinders[i];
+            let a_cap = core::f32::consts::PI / 4.0 * c.bore_mm * c.bore_mm * 1e-6;
+            let a_ann = a_cap - core::f32::consts::PI / 4.0 * c.rod_mm * c.rod_mm * 1e-6;
+            CylinderCoeffs {
+                side: fx(f32::from(c.side)),
+                q_cap: fx(a_cap * 60.0),
+                q_ann: fx(a_ann * 60.0),
+                f_cap: fx(a_cap * 100.0),
+                f_ann: fx(a_ann * 100.0),
+                dead_cap_mm: fx(cfg.chamber_dead_volume_cm3 * 1e-6 / a_cap * 1e3),
+                dead_rod_mm: fx(cfg.chamber_dead_volume_cm3 * 1e-6 / a_ann * 1e3),
+                stroke_mm: fx(c.stroke_mm),
+                ratio_ext: fx(a_ann / a_cap),
+                ratio_ret: fx(a_cap / a_ann),
+            }
+        });
+        let stroke = cfg.cylinders[0].stroke_mm;
+        let arm = core::array::from_fn(|g| {
+            let geo = cfg.geometries[g];
+            Table1::sample(-ARM_RANGE_RAD, ARM_RANGE_RAD, move |th| {
+                1e3 * arm_m(&geo, stroke, th)
+            })
+        });
+        let ext = core::array::from_fn(|g| {
+            let geo = cfg.geometries[g];
+            Table1::sample(-ARM_RANGE_RAD, ARM_RANGE_RAD, move |th| {
+                ext_mm(&geo, stroke, th)
+            })
+        });
+        // Milli-strain on a fine pressure grid (0.25 bar, accumulated once), then both tables
+        // by linear interpolation of it: the strain law is monotone, so its inverse is too.
+        const FINE: usize = 641;
+        let step = P_MAX_BAR / (FINE - 1) as f32;
+        let mut fine = [0.0f32; FINE];
+        for i in 1..FINE {
+            let mid = (i as f32 - 0.5) * step;
+            fine[i] = fine[i - 1] + 1e3 * step / modulus_bar(cfg, mid);
+        }
+        let ms_at = |p: f32| {
+            let u = (p / step).clamp(0.0, (FINE - 1) as f32);
+            let i = (u as usize).min(FINE - 2);
+            fine[i] + (u - i as f32) * (fine[i + 1] - fine[i])
+        };
+        let p_at = |ms: f32| {
+            let i = fine.partition_point(|&v| v <= ms).clamp(1, FINE - 1);
+            let (a, b) = (fine[i - 1], fine[i]);
+            step * ((i - 1) as f32 + ((ms - a) / (b - a)).clamp(0.0, 1.0))
+        };
+        let ms_of_p = Table1::sample(0.0, P_MAX_BAR, ms_at);
+        let p_of_ms = Table1::sample(0.0, fine[FINE - 1], p_at);
+        PumpCoeffs {
+            cyl,
+            arm,
+            ext,
+            ms_of_p,
+            p_of_ms,
+            play_mm: fx(cfg.free_play_mm),
+            seal_kn_per_mm_s: fx(cfg.seal_friction_n_s_per_m * 1e-6),
+            check_drop_bar: fx(cfg.check_valve_drop_bar),
+        }
+    }
+}
 
 /// Pressures of the new (compressing) and old (relaxing) chambers after `u` mm of rod travel
 /// since the reversal, bar: the strain moves by u·(strain per mm) from its value at the reversal.

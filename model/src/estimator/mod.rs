@@ -20,10 +20,7 @@
 //! (the Kalman update of P2), `fine` (values kept below the Q16.16 LSB); [`step`] here runs them
 //! in order.
 
-use crate::coeffs::{
-    BranchCoeffs, Coefficients, CylinderCoeffs, N_ARM, ObserverCoeffs, PumpCoeffs, ReadingCoeffs,
-    TRACKER_STARTUP, TRACKER_STARTUP_MAX, tracker_startup_gains,
-};
+use crate::coeffs::{Coefficients, N_ARM};
 use crate::fx::{
     Angle, AngularSpeed, Aperture, Flow, Fx, HydraulicPower, ONE, Pressure, PressureVariance, QMul,
     Rpm, Seconds, Torque, W_PER_BAR_LPM, ZERO, clamp, mul_bounded, mul_dt, mul_frac, mul_q24,
@@ -311,17 +308,20 @@ mod tests;
 mod tracker;
 
 use cylinder::*;
-pub use cylinder::{FLOAT_BAND, FLOAT_RAMP};
+pub use cylinder::{CylinderCoeffs, FLOAT_BAND, FLOAT_RAMP, PumpCoeffs};
 use fine::*;
 use motor::*;
-pub use motor::{BranchState, ReadingState};
-pub use observer::NodeState;
+pub use motor::{BranchCoeffs, BranchState, ReadingCoeffs, ReadingState};
 use observer::*;
+pub use observer::{NodeState, ObserverCoeffs};
 pub use residual::{
     LP_ALLOW_BAR, MOTOR_SHIFT, PRESSURE_SHIFT, ResidualState, SHADOW_STEPS, motor_allowance,
 };
-pub use tracker::TrackerState;
 use tracker::*;
+pub use tracker::{
+    TRACKER_STARTUP, TRACKER_STARTUP_MAX, TrackerCoeffs, TrackerState, expanding_memory_gains,
+    tracker_startup_gains,
+};
 
 /// P2 · valve flow in W, floored at 0 (no power flows back through the valve into HP: its flow
 /// is 0 unless P2 is above the motor inlet) and saturating at the Q16.16 range: two saturating

@@ -2,6 +2,143 @@
 //! to correct P2 without the HP transducer.
 
 use super::*;
+use crate::coeffs::{MOTOR_GAIN_VALVE_CAP, N_APERTURE, N_PRESSURE, P_MAX_BAR, fx};
+use crate::config::ModelConfig;
+use crate::table::Table2;
+
+/// The valve/motor branch's coefficients (`estimator::motor`): the spool, the rotor's flow
+/// and the relief.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BranchCoeffs {
+    /// Valve (= motor) flow, L/min, vs (aperture %, P2 − LP bar), motor on its load line.
+    pub valve_flow: Table2<N_APERTURE, N_PRESSURE>,
+    /// Spool lag gain per step, dt/τ (1 = ideal valve).
+    pub spool_gain: Fx,
+    /// The valve/motor flow's relaxation per step toward the steady flow, from the motor's own
+    /// load line: dt·β/L (≈ dt/τ with τ = J/c the rotor's time constant, 0.134 s on the
+    /// reference bench). See [`ModelConfig::motor_inductance`].
+    pub motor_gain0: Fx,
+    /// The valve's share of that relaxation per L/min of flow at the valve table's aperture
+    /// nodes (read with [`Table2::at_with`]): dt/(L·K(a)²), held to [`MOTOR_GAIN_VALVE_CAP`]
+    /// near the closed valve. The step's gain is `motor_gain0 + (Q_ss + Q)·motor_gain_valve(a)`
+    /// (≤ 1).
+    pub motor_gain_valve: [Fx; N_APERTURE],
+    /// Motor speed per valve flow, rpm per L/min (Eq. 9 with the load line).
+    pub rpm_per_lpm: Fx,
+    /// Motor flow per rpm, L/min per rpm, Q8.24 (1/[`Self::rpm_per_lpm`]: 0.0086 on the
+    /// reference bench, to 6·10^−8).
+    pub lpm_per_rpm_q24: i32,
+    /// Relief setting, bar.
+    pub relief_setting_bar: Fx,
+    /// Relief gain, L/min per bar.
+    pub relief_gain_lpm_per_bar: Fx,
+    /// Steps after which a rotor behind a closed valve has spun down (five of its time
+    /// constants J/c): a motor still turning faster than `ReadingCoeffs::min_rpm` then contradicts
+    /// the model.
+    pub spin_down_steps: u16,
+}
+
+impl BranchCoeffs {
+    /// The branch's coefficients for `cfg` at the step `dt` s, the rotor's inductance
+    /// `inductance` ([`ModelConfig::motor_inductance`]).
+    #[inline(never)]
+    pub(crate) fn of(cfg: &ModelConfig, dt: f32, inductance: f32) -> BranchCoeffs {
+        let valve_flow = Table2::sample((0.0, 100.0), (0.0, P_MAX_BAR), |a, dp| {
+            cfg.steady_flow(a, dp)
+        });
+        let spool_gain = if cfg.spool_time_constant_ms <= 0.0 {
+            1.0
+        } else {
+            (dt / (cfg.spool_time_constant_ms * 1e-3)).min(1.0)
+        };
+        BranchCoeffs {
+            valve_flow,
+            spool_gain: fx(spool_gain),
+            motor_gain0: fx(dt * cfg.motor_bar_per_lpm() / inductance),
+            // Sampled on the valve table's aperture rows (0..100 %, N_APERTURE nodes).
+            motor_gain_valve: Table1::<N_APERTURE>::sample(0.0, 100.0, |a| {
+                let kv = cfg.valve_k(a);
+                if kv <= 0.0 {
+                    MOTOR_GAIN_VALVE_CAP
+                } else {
+                    (dt / (inductance * kv * kv)).min(MOTOR_GAIN_VALVE_CAP)
+                }
+            })
+            .y,
+            rpm_per_lpm: fx(cfg.rpm_per_lpm()),
+            // Float-to-integer casts saturate; ≥ 1/10 000 rpm per L/min by validation.
+            lpm_per_rpm_q24: (16_777_216.0 / cfg.rpm_per_lpm()) as i32,
+            relief_setting_bar: fx(cfg.relief_setting_bar),
+            relief_gain_lpm_per_bar: fx(cfg.relief_gain_lpm_per_bar),
+            spin_down_steps: (5.0 * cfg.rotor_time_constant_s() / dt).clamp(1.0, 60_000.0) as u16,
+        }
+    }
+}
+
+/// The motor reading's coefficients (`estimator::motor_reading`), used without the HP
+/// transducer.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ReadingCoeffs {
+    /// Low-pass gain of the motor reading's filters (`estimator::motor_reading`), per second
+    /// step: 2·dt/τ.
+    pub filter: Fx,
+    /// The rotor's inductance per step, L/dt, bar per L/min (the branch's dF/dQ is the step's
+    /// relaxation gain times this).
+    pub ldt: Fx,
+    /// L/τ: the reading's pressure per L/min of measured flow above its low-passed value.
+    pub lt: Fx,
+    /// P2's gain toward the reading, per second step: 2·dt/T (0: the reading is not used).
+    pub gain: Fx,
+    /// Largest dF/dQ at which the reading is used, bar per L/min.
+    pub max_slope: Fx,
+    /// Smallest measured motor flow at which the reading is used, L/min.
+    pub min_lpm: Fx,
+    /// Largest |command − spool| at which the reading is used, %.
+    pub spool_tol: Fx,
+    /// The reading's dead band as a fraction of ΔP.
+    pub band: Fx,
+    /// Correction steps (every second step) the reading's filters run before P2 takes it:
+    /// three filter time constants.
+    pub warm_steps: u16,
+    /// The reading is used only while both the commanded and the modelled aperture are at
+    /// least this, %.
+    pub min_aperture: Fx,
+    /// Minimum motor speed for the reading, rpm (also: a motor turning faster than this behind
+    /// a closed valve contradicts the model).
+    pub min_rpm: Fx,
+    /// Variance of the reading's noise, bar².
+    pub r: Fx,
+    /// Highest P2 a plausible reading implies (beyond its band), bar: the relief setting plus
+    /// the gate's worth of the reading's noise.
+    pub p2_max: Fx,
+}
+
+impl ReadingCoeffs {
+    /// The motor reading's coefficients for `cfg` at the step `dt` s, the rotor's inductance
+    /// `inductance`. Its filters run every second step (`estimator::motor_reading`).
+    #[inline(never)]
+    pub(crate) fn of(cfg: &ModelConfig, dt: f32, inductance: f32) -> ReadingCoeffs {
+        ReadingCoeffs {
+            filter: fx((2.0 * dt / (cfg.motor_reading_filter_ms * 1e-3)).min(1.0)),
+            ldt: fx(inductance / dt),
+            lt: fx(inductance / (cfg.motor_reading_filter_ms * 1e-3)),
+            gain: if cfg.motor_reading_time_constant_ms > 0.0 {
+                fx((2.0 * dt / (cfg.motor_reading_time_constant_ms * 1e-3)).min(1.0))
+            } else {
+                Fx::ZERO
+            },
+            max_slope: fx(cfg.motor_reading_max_slope_bar_per_lpm),
+            min_lpm: fx(cfg.motor_reading_min_rpm / cfg.rpm_per_lpm()),
+            spool_tol: fx(cfg.motor_reading_spool_tolerance_pct),
+            band: fx(cfg.motor_reading_band_pct * 1e-2),
+            warm_steps: (1.5 * cfg.motor_reading_filter_ms * 1e-3 / dt).clamp(1.0, 60_000.0) as u16,
+            min_aperture: fx(cfg.motor_reading_min_aperture_pct),
+            min_rpm: fx(cfg.motor_reading_min_rpm),
+            r: fx(cfg.motor_reading_noise_bar * cfg.motor_reading_noise_bar),
+            p2_max: fx(cfg.relief_setting_bar + cfg.gate_sigma * cfg.motor_reading_noise_bar),
+        }
+    }
+}
 
 /// The motor reading's state: its filters and its phase.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]

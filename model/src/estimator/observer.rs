@@ -4,6 +4,117 @@
 //! precharge, and LP's fixed-gain correction.
 
 use super::*;
+use crate::coeffs::{LP_MAX_BAR, N_LP, N_NODE, P_MAX_BAR, capacitance, capacitance_node, fx};
+use crate::config::ModelConfig;
+use libm::sqrtf;
+
+/// The observer's coefficients (`estimator::observer`): the nodes' prediction, the Kalman
+/// update of P2 with the HP transducer and the fixed-gain correction of LP.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ObserverCoeffs {
+    /// dP2/dt per net HP inflow, bar/s per L/min, vs P2.
+    pub inv_c_hp: Table1<N_NODE>,
+    /// dLP/dt per net LP inflow, bar/s per L/min, vs LP.
+    pub inv_c_lp: Table1<N_LP>,
+    /// Process noise added to the P2 variance per step vs P2, bar²: the model's flow
+    /// uncertainty times the node's dP2/dV, so an empty accumulator (tiny capacitance) makes the
+    /// filter follow the transducer.
+    pub q_step: Table1<N_NODE>,
+    /// Process noise added to the P2 variance per step while P2 is at or above the relief
+    /// setting and the HP transducer corrects it, bar²: the reduced relief law's own error
+    /// (`ModelConfig::relief_process_noise_bar_per_sqrt_s`).
+    pub q_relief: Fx,
+    /// Relief setting, bar (where [`Self::q_relief`] starts).
+    pub relief_setting_bar: Fx,
+    /// Measurement variance, bar².
+    pub r: Fx,
+    /// Kalman gain vs prior variance on [0, r].
+    pub gain_fine: Table1<33>,
+    /// Kalman gain vs prior variance on [0, 32 r].
+    pub gain_coarse: Table1<33>,
+    /// Steady-state Kalman gain used for LP.
+    pub gain_lp: Fx,
+    /// Gate², in σ².
+    pub gate_sq: Fx,
+    /// Consecutive rejected steps before the estimate is reset to the sensor.
+    pub gate_reset_steps: u16,
+    /// Ceiling of the variance a rejected reading adds (fading memory): 16 r, i.e. a P2 σ of
+    /// 4 measurement σ, so the gate never opens wider than ≈ 20 measurement σ.
+    pub var_fade_max: Fx,
+    /// HP sensor range, bar.
+    pub hp_range_bar: (Fx, Fx),
+    /// LP sensor range, bar.
+    pub lp_range_bar: (Fx, Fx),
+    /// Top of the band above the HP precharge where model-only P2 may fall at any moment, bar.
+    pub precharge_band_top_bar: Fx,
+    /// Least model-only P2 variance in that band, bar².
+    pub var_precharge: Fx,
+}
+
+impl ObserverCoeffs {
+    /// The observer's coefficients for `cfg` at the step `dt` s.
+    #[inline(never)]
+    pub(crate) fn of(cfg: &ModelConfig, dt: f32) -> ObserverCoeffs {
+        let lp_nom = cfg.nominal_lp_bar;
+        let (h_hp, h_lp) = (
+            Table1::<N_NODE>::spacing(0.0, P_MAX_BAR),
+            Table1::<N_LP>::spacing(0.0, LP_MAX_BAR),
+        );
+        let inv_c_hp = Table1::sample(0.0, P_MAX_BAR, |p| {
+            1.0 / (60.0 * capacitance_node(cfg, &cfg.hp_accumulator, p, h_hp))
+        });
+        let inv_c_lp = Table1::sample(0.0, LP_MAX_BAR, |p| {
+            1.0 / (60.0 * capacitance_node(cfg, &cfg.lp_accumulator, p, h_lp))
+        });
+        let r = cfg.pressure_noise_bar * cfg.pressure_noise_bar;
+        // LP: steady-state gain for the flow uncertainty at nominal LP.
+        let ic_lp = 1.0 / (60.0 * capacitance(cfg, &cfg.lp_accumulator, lp_nom));
+        let qf = cfg.process_noise_lpm_per_sqrt_s * ic_lp;
+        let q = qf * qf * dt;
+        let gain = |v: f32| v / (v + r);
+        let pp = 0.5 * (q + sqrtf(q * q + 4.0 * q * r));
+        ObserverCoeffs {
+            inv_c_hp,
+            inv_c_lp,
+            q_step: Table1::sample(0.0, P_MAX_BAR, |p| {
+                let ic = 1.0 / (60.0 * capacitance_node(cfg, &cfg.hp_accumulator, p, h_hp));
+                let qf = cfg.process_noise_lpm_per_sqrt_s * ic;
+                (qf * qf * dt).max(1.0 / 65_536.0)
+            }),
+            q_relief: fx(cfg.relief_process_noise_bar_per_sqrt_s
+                * cfg.relief_process_noise_bar_per_sqrt_s
+                * dt),
+            relief_setting_bar: fx(cfg.relief_setting_bar),
+            r: fx(r),
+            gain_fine: Table1::sample(0.0, r, gain),
+            gain_coarse: Table1::sample(0.0, 32.0 * r, gain),
+            gain_lp: fx(pp / (pp + r)),
+            gate_sq: fx(cfg.gate_sigma * cfg.gate_sigma),
+            gate_reset_steps: (cfg.gate_reset_ms * 1e-3 / dt).clamp(1.0, 60_000.0) as u16,
+            var_fade_max: fx(16.0 * r),
+            hp_range_bar: (fx(cfg.hp_sensor_range_bar.0), fx(cfg.hp_sensor_range_bar.1)),
+            lp_range_bar: (fx(cfg.lp_sensor_range_bar.0), fx(cfg.lp_sensor_range_bar.1)),
+            precharge_band_top_bar: fx(cfg.hp_accumulator.precharge_bar + cfg.precharge_band_bar),
+            var_precharge: fx(cfg.precharge_sigma_bar * cfg.precharge_sigma_bar),
+        }
+    }
+
+    /// Kalman gain for the prior variance `var` with its 16 bits below the LSB (`var_lo`), in
+    /// units of 2^−32, held to [0, 1]. A Q16.16 gain near its steady ≈ 0.008 is good to 0.2 %:
+    /// times a 2 bar innovation that was 2.5 P2 LSBs a step, and the variance's own rounding
+    /// to its LSB another 7 (the gain table's slope there is ≈ 4 per bar²); this one leaves the
+    /// step within 2 LSB of its f64 form (`tests/model/model_validation.rs`).
+    /// (1 is returned as 1 − 2^−32, so the gain is one 32-bit word.)
+    #[inline]
+    pub fn gain_q32(&self, var: Fx, var_lo: u16) -> u32 {
+        let t = if var < self.r {
+            &self.gain_fine
+        } else {
+            &self.gain_coarse
+        };
+        t.at_q32(var, var_lo).clamp(0, i64::from(u32::MAX)) as u32
+    }
+}
 
 /// The nodes' state: P2 and LP, P2's variance, each kept to 16 bits below its Q16.16 LSB
 /// (see `node_step`), and the gate's count of rejections.

@@ -2,7 +2,131 @@
 //! expanding-memory start-up.
 
 use super::*;
-use crate::coeffs::TrackerCoeffs;
+use crate::config::ModelConfig;
+use libm::expf;
+
+/// ⌊2π · 2^32⌋: a full turn in the tracker's Q32.32 angle.
+const TWO_PI_Q32: u64 = 26_986_075_409;
+
+/// Length of the shaft tracker's start-up gain table (a power of two: the index is masked).
+pub const TRACKER_STARTUP_MAX: usize = 64;
+
+/// The shaft tracker's start-up gains for the n-th residual after its first encoder reading,
+/// n = 1 ..= [`TRACKER_STARTUP_MAX`], as D_n = 1/((n + 1)(n + 2)) in Q0.32 (entry n − 1): the
+/// expanding-memory α–β filter (the least-squares line through every reading so far) has
+/// α_n = 2(2n + 1)·D_n and β_n = 6·D_n (Brookner, *Tracking and Kalman Filtering Made Easy*,
+/// §1.2.10; α_1 = β_1 = 1: the line through the first two readings), so one word per step
+/// holds both. They do not depend on the configuration: a constant in flash (256 B), built at
+/// compile time. Started from ω = 0 with the fading-memory gains instead, a shaft already
+/// turning at 0.26 rad/s (a Test I start) read 0 % of its speed at first, 18 % at 16 ms and
+/// 125 % at 0.1 s, and the model's pump flow and rod travel with it.
+pub static TRACKER_STARTUP: [u32; TRACKER_STARTUP_MAX] = tracker_startup_table();
+
+const fn tracker_startup_table() -> [u32; TRACKER_STARTUP_MAX] {
+    let mut t = [0u32; TRACKER_STARTUP_MAX];
+    let mut i = 0;
+    while i < TRACKER_STARTUP_MAX {
+        let n = i as u64 + 1;
+        let d = (n + 1) * (n + 2);
+        // Rounded to nearest; D_1 = 1/6 < 1.
+        t[i] = (((1u64 << 32) + d / 2) / d) as u32;
+        i += 1;
+    }
+    t
+}
+
+/// The expanding-memory α–β gains (α_n, β_n) of the n-th update, n ≥ 1, in f64: the formula
+/// [`TRACKER_STARTUP`] tabulates, for f64 models of the tracker (the host's reference model,
+/// tests); not used by the step or by the coefficients (no f64 arithmetic in the firmware).
+pub fn expanding_memory_gains(n: u32) -> (f64, f64) {
+    let n = f64::from(n);
+    let d = 1.0 / ((n + 1.0) * (n + 2.0));
+    (2.0 * (2.0 * n + 1.0) * d, 6.0 * d)
+}
+
+/// α_n and β_n (both Q1.31, ≤ 2^31) of the tracker's n-th start-up update from
+/// [`TRACKER_STARTUP`]'s D_n (Q0.32): 2(2n + 1)·D_n and 6·D_n.
+#[inline]
+pub fn tracker_startup_gains(n: usize, d_q32: u32) -> (u32, u32) {
+    // α_n·2^31 = (2n + 1)·D_n·2^32 and β_n·2^31 = 3·D_n·2^32. n ≤ 2^8 and D_n < 2^32: < 2^42;
+    // held to 2^31 (n = 1, where the rounded D_1 makes them one LSB over).
+    let d = u64::from(d_q32);
+    (
+        ((2 * n as u64 + 1) * d).min(1 << 31) as u32,
+        (3 * d).min(1 << 31) as u32,
+    )
+}
+
+/// The shaft tracker's coefficients (`estimator::tracker`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrackerCoeffs {
+    /// Encoder count → rad, as the fraction bits of Q32.32 so a 16 384-count encoder keeps full
+    /// precision (< 2^29: ≥ 64 counts per revolution).
+    pub rad_per_count_q32: i32,
+    /// α of the α–β–γ shaft tracker, Q1.31 (< 1). The tracker runs in Q32.32: at 1 kHz a shaft
+    /// at 0.2 rad/s advances 2e-4 rad per step, 13 LSB of Q16.16, and truncating that every step
+    /// biased the speed by +0.026 rad/s (10 %).
+    pub alpha_q31: i32,
+    /// β/dt of the α–β–γ shaft tracker, 1/s, Q16.16 (< 2^23 over the validated bandwidth and dt).
+    pub beta_over_dt_q16: i32,
+    /// 2γ/dt² of the α–β–γ shaft tracker, 1/s², Q16.16 (< 2^28 likewise).
+    pub gamma_over_dt2_q16: i32,
+    /// Number of steps after the tracker's first encoder reading that take the
+    /// expanding-memory gains [`TRACKER_STARTUP`] (≤ [`TRACKER_STARTUP_MAX`]; 53 at 4 Hz and
+    /// 2^−10 s): while both exceed the fading-memory gains above.
+    pub tracker_startup_len: u8,
+    /// The rounding term of the tracker's × dt in Q32.32: 2^(dt_log2 − 1) (a run-time 64-bit
+    /// shift to build it costs ≈ 14 Cortex-M4 instructions a step).
+    pub round_dt_q32: i64,
+    /// The rounding term of its × dt²/2: 2^(2·dt_log2).
+    pub round_dt2_q32: i64,
+    /// Steps without an encoder change after which the encoder is suspected stuck.
+    pub stuck_steps: u16,
+}
+
+impl TrackerCoeffs {
+    /// The tracker's coefficients for `cfg` at the step 2^−`k` = `dt` s.
+    #[inline(never)]
+    pub(crate) fn of(cfg: &ModelConfig, k: u8, dt: f32) -> TrackerCoeffs {
+        // 2π·2^32 / counts, floored, in integers (no f64 arithmetic in the firmware image: the
+        // soft-float double routines cost ≈ 3 KB of flash). ≥ 64 counts (validated): < 2^29.
+        let rad_per_count_q32 =
+            (TWO_PI_Q32 / u64::from(cfg.encoder_counts_per_rev)).min(i32::MAX as u64) as i32;
+        // Fading-memory α–β–γ tracker (a triple pole at r = exp(−2π·bw·dt)): α = 1 − r³,
+        // β = 1.5(1 − r)²(1 + r), γ = ½(1 − r)³. Its constant-acceleration model follows the
+        // sinusoidal shaft with ≈0.3 % speed error at 4 Hz, where an α–β tracker lags by
+        // 1/(π·bw) and shifts every stroke reversal of the torque estimate by as much.
+        let rr = expf(-2.0 * core::f32::consts::PI * cfg.encoder_bandwidth_hz * dt);
+        let om = 1.0 - rr;
+        let alpha = 1.0 - rr * rr * rr;
+        let beta = 1.5 * om * om * (1.0 + rr);
+        let gamma = 0.5 * om * om * om;
+        // The expanding-memory start-up gains while both exceed the fading-memory ones (they
+        // fall as 4/n and 6/n²; after TRACKER_STARTUP_MAX steps the fading-memory gains take
+        // over in any case).
+        let tracker_startup_len = TRACKER_STARTUP
+            .iter()
+            .enumerate()
+            .take_while(|(i, d)| {
+                let (a, b) = tracker_startup_gains(i + 1, **d);
+                let q31 = |x: u32| x as f32 / 2_147_483_648.0;
+                q31(a) > alpha && q31(b) > beta
+            })
+            .count() as u8;
+        TrackerCoeffs {
+            rad_per_count_q32,
+            // (Scaling an f32 by a power of two is exact, and float-to-integer casts
+            // saturate: α rounds to at most i32::MAX = 1 − 2^−31.)
+            tracker_startup_len,
+            alpha_q31: (alpha * 2_147_483_648.0) as i32,
+            beta_over_dt_q16: (beta / dt * 65_536.0) as i32,
+            gamma_over_dt2_q16: (2.0 * gamma / (dt * dt) * 65_536.0) as i32,
+            round_dt_q32: 1i64 << (k - 1),
+            round_dt2_q32: 1i64 << (2 * k),
+            stuck_steps: (2.0 / dt).min(60_000.0) as u16,
+        }
+    }
+}
 
 /// The shaft tracker's state.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
