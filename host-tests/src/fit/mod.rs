@@ -87,12 +87,12 @@ pub enum FitError {
         .0.campaign,
         format!("{:?}", .0.status).to_lowercase(),
         .0.note,
-        crate::plan::Record::path_for(.1).display()
+        crate::plan::record::Record::path_for(.1).display()
     )]
-    Segment(Box<crate::plan::Record>, PathBuf),
+    Segment(Box<crate::plan::record::Record>, PathBuf),
     /// A campaign file or a segment's sidecar that does not read.
     #[error(transparent)]
-    Campaign(#[from] crate::plan::CampaignError),
+    Campaign(#[from] crate::plan::record::CampaignError),
     /// `pto synth-logs --runs` names no built-in scenario.
     #[error("unknown scenario `{0}` (see `pto scenarios`)")]
     UnknownScenario(String),
@@ -191,7 +191,7 @@ pub struct FitOptions {
 pub enum DenseLogs {
     /// None: every log at `spacing_s`.
     None,
-    /// The logs of a campaign (with a complete `.segment.toml` sidecar, [`crate::plan::Record`]):
+    /// The logs of a campaign (with a complete `.segment.toml` sidecar, [`crate::plan::record::Record`]):
     /// their rate was planned for residuals at every sample, and `pto plan` predicted its σ
     /// from them.
     Campaign,
@@ -458,9 +458,9 @@ pub fn fit(
     for l in &logs {
         spacing.push(match opts.dense_logs {
             DenseLogs::None => opts.spacing_s,
-            DenseLogs::Campaign => match crate::plan::Record::read_for(&l.path)? {
+            DenseLogs::Campaign => match crate::plan::record::Record::read_for(&l.path)? {
                 None => opts.spacing_s,
-                Some(r) if r.status == crate::plan::Status::Complete => 0.0,
+                Some(r) if r.status == crate::plan::record::Status::Complete => 0.0,
                 Some(r) => return Err(FitError::Segment(Box::new(r), l.path.clone())),
             },
         });

@@ -1,7 +1,7 @@
 //! A run's place in the matrix: its value index on each axis (the last axis varies fastest),
 //! and its axis values as text for messages.
 
-use super::matrix::Axis;
+use super::axis::Axis;
 
 /// The value index on each axis of run `index` (the last axis varies fastest).
 pub fn point_of(axes: &[Axis], mut index: usize) -> Vec<usize> {

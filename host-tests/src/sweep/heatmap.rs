@@ -3,7 +3,6 @@
 //! (`plot::write_both`).
 
 use super::expand::point_of;
-use super::matrix::Axis;
 use super::run::Status;
 use super::store::Identity;
 use super::table::{Cells, Table};
@@ -300,47 +299,6 @@ impl Render for HeatMap {
             )
         }))?;
         Ok(root.present()?)
-    }
-}
-
-/// The heat maps' axes when the matrix names none: the first two axes of more than one value.
-pub fn default_heatmap(axes: &[Axis]) -> Option<(usize, usize)> {
-    let mut many = (0..axes.len()).filter(|&i| axes[i].values.len() > 1);
-    Some((many.next()?, many.next()?))
-}
-
-/// The axes of a `heatmap = [X, Y]` list: each a field of an axis, two different axes.
-pub fn heatmap_axes(axes: &[Axis], names: &[String]) -> Result<(usize, usize), String> {
-    let find = |n: &str| {
-        axes.iter()
-            .position(|a| a.fields.iter().any(|f| f == n) || a.name() == n)
-            .ok_or_else(|| {
-                let have: Vec<String> = axes.iter().map(Axis::name).collect();
-                format!(
-                    "heatmap: `{n}` is not an axis (axes: {})",
-                    if have.is_empty() {
-                        "none".into()
-                    } else {
-                        have.join(", ")
-                    }
-                )
-            })
-    };
-    match names {
-        [x, y] => {
-            let (x, y) = (find(x)?, find(y)?);
-            if x == y {
-                return Err(format!(
-                    "heatmap: `{}` twice: want two different axes",
-                    axes[x].name()
-                ));
-            }
-            Ok((x, y))
-        }
-        _ => Err(format!(
-            "heatmap: want two axes, X and Y, got {}",
-            names.len()
-        )),
     }
 }
 

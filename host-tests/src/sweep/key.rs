@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 
-/// A run's identity ([`RunSpec::key`](super::RunSpec::key)); 16 hex digits as text.
+/// A run's identity ([`RunSpec::key`](super::spec::RunSpec::key)); 16 hex digits as text.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct RunKey(pub u64);
 

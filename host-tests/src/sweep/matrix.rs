@@ -1,17 +1,16 @@
 //! The matrix file: its schema, its expansion into runs (each a [`RunSpec`]), and their
 //! checks, every problem named with the file, the field and the run.
 
+use super::axis::{Axis, heatmap_axes};
 use super::expand::{describe, point_of};
-use super::heatmap::heatmap_axes;
-use super::key::{RunKey, fnv1a};
+use super::key::RunKey;
 use super::run;
-use crate::model::closed_loop::{MODES, parse_mode};
+use super::spec::{ControllerSpec, RunSpec, trace_digest};
 use crate::sim::bench::{Bench, BenchError, OverrideError, apply_override, set_value};
 use crate::sim::scenario::{Scenario, resolve};
 use crate::sim::solver::SolverOptions;
-use pto_model::scheduler::Mode;
 use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
@@ -19,9 +18,6 @@ use std::path::{Path, PathBuf};
 pub const MAX_RUNS: usize = 10_000_000;
 /// The most problems a refused matrix lists (then how many more).
 const MAX_PROBLEMS: usize = 20;
-/// Bumped when a run's figures change meaning: rows of an older format are run again.
-pub const ROW_FORMAT: u32 = 3;
-
 /// Why a matrix was refused: every problem, each named with the matrix file.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MatrixError {
@@ -44,196 +40,6 @@ impl std::fmt::Display for MatrixError {
 }
 
 impl std::error::Error for MatrixError {}
-
-/// One axis: a field, or fields set together, and its values.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct Axis {
-    /// The dotted paths it sets (`bench.hp_accumulator.volume_l`).
-    pub fields: Vec<String>,
-    /// Its values: one per field each (in JSON as TOML text: `"5.0"`, `"\"HC3.1\""`).
-    #[serde(with = "toml_text")]
-    pub values: Vec<Vec<toml::Value>>,
-}
-
-/// TOML values as their TOML text in JSON (`sweep.json`): a TOML value read back from JSON
-/// would not keep its type (an integer-valued float becomes an integer), nor survive
-/// `serde_json`'s `arbitrary_precision`, which a dependency turns on.
-mod toml_text {
-    use serde::{Deserialize, Deserializer, Serializer, de::Error};
-
-    pub fn serialize<S: Serializer>(v: &[Vec<toml::Value>], s: S) -> Result<S::Ok, S::Error> {
-        let text: Vec<Vec<String>> = v
-            .iter()
-            .map(|r| r.iter().map(toml::Value::to_string).collect())
-            .collect();
-        serde::Serialize::serialize(&text, s)
-    }
-
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<Vec<toml::Value>>, D::Error> {
-        let text = Vec::<Vec<String>>::deserialize(d)?;
-        text.into_iter()
-            .map(|r| {
-                r.into_iter()
-                    .map(|t| {
-                        let mut table: toml::Table =
-                            toml::from_str(&format!("v = {t}")).map_err(D::Error::custom)?;
-                        table
-                            .remove("v")
-                            .ok_or_else(|| D::Error::custom("no value"))
-                    })
-                    .collect()
-            })
-            .collect()
-    }
-}
-
-impl Axis {
-    /// `bench.hp_accumulator.volume_l`, or linked fields joined by ` / `.
-    pub fn name(&self) -> String {
-        self.fields.join(" / ")
-    }
-
-    /// Value `i` as text (`4`, `HC3.1+HC3.4`, `30 / 8`).
-    pub fn label(&self, i: usize) -> String {
-        self.values[i]
-            .iter()
-            .map(value_text)
-            .collect::<Vec<_>>()
-            .join(" / ")
-    }
-}
-
-/// A value as a table cell: a number or string as is, a list of strings joined by `+`
-/// (`HC3.1+HC3.4`), anything else as inline TOML.
-pub fn value_text(v: &toml::Value) -> String {
-    match v {
-        toml::Value::String(s) => s.clone(),
-        toml::Value::Integer(i) => i.to_string(),
-        toml::Value::Float(x) => x.to_string(),
-        toml::Value::Array(a) if a.iter().all(|x| x.is_str()) => a
-            .iter()
-            .filter_map(|x| x.as_str())
-            .collect::<Vec<_>>()
-            .join("+"),
-        other => other.to_string(),
-    }
-}
-
-/// How the valve is driven in a run: the scenario's schedule, or the fixed-point controller
-/// (`pto-model`'s estimator and scheduler, through `sim::schedule::ValveController`) in a mode.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ControllerSpec {
-    /// `scenario`, `fixed`, `hold-pressure`, `hold-speed` or `max-autonomy`.
-    #[serde(default = "scenario_mode")]
-    pub mode: String,
-    /// The mode's setpoint: % (`fixed`), bar (`hold-pressure`), rpm (the speed modes).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub setpoint: Option<f64>,
-    /// Seed of the controller's sensor noise.
-    #[serde(default = "default_seed")]
-    pub seed: u64,
-    /// The controller's step, 2^−dt_log2 s (6..=12; default the bench's model configuration,
-    /// 10: 1024 Hz, as the firmware; 8 runs about three times faster).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub dt_log2: Option<u8>,
-}
-
-fn scenario_mode() -> String {
-    SCENARIO_MODE.into()
-}
-fn default_seed() -> u64 {
-    7
-}
-
-/// [`ControllerSpec::mode`] of a run whose valve follows the scenario's schedule.
-pub const SCENARIO_MODE: &str = "scenario";
-
-impl Default for ControllerSpec {
-    fn default() -> Self {
-        ControllerSpec {
-            mode: scenario_mode(),
-            setpoint: None,
-            seed: default_seed(),
-            dt_log2: None,
-        }
-    }
-}
-
-impl ControllerSpec {
-    /// The scheduler mode, or `None` for the scenario's own schedule.
-    pub fn scheduler_mode(&self) -> Result<Option<Mode>, String> {
-        match (self.mode.as_str(), self.setpoint) {
-            (SCENARIO_MODE, None) => Ok(None),
-            (SCENARIO_MODE, Some(v)) => Err(format!(
-                "controller.setpoint = {v}: controller.mode `scenario` (the scenario's own valve \
-                 schedule) takes no setpoint; set controller.mode to one of {MODES}"
-            )),
-            (m, None) => Err(format!(
-                "controller.setpoint: missing: controller.mode `{m}` needs one (modes: {MODES})"
-            )),
-            (m, Some(v)) => parse_mode(m, v)
-                .map(Some)
-                .map_err(|e| format!("controller: {e} (or `scenario`)")),
-        }
-    }
-}
-
-/// Everything one run needs: the bench, the scenario and the valve's driver.
-#[derive(Debug, Clone)]
-pub struct RunSpec {
-    /// The bench with the run's values.
-    pub bench: Bench,
-    /// The scenario with the run's values.
-    pub scenario: Scenario,
-    /// Where the scenario's relative files are.
-    pub scenario_dir: PathBuf,
-    /// How the valve is driven.
-    pub controller: ControllerSpec,
-    /// Solver settings.
-    pub solver: SolverOptions,
-}
-
-impl RunSpec {
-    /// The run's identity: a hash of everything that decides its result (the bench file, the
-    /// scenario, the controller, the solver tolerance, [`ROW_FORMAT`] and `pto`'s version),
-    /// however the matrix wrote it. A rerun skips a run whose key has a row.
-    pub fn key(&self) -> RunKey {
-        self.key_with(&trace_digest)
-    }
-
-    /// [`RunSpec::key`], the recorded motion's part given by `digest` (of the trace's path):
-    /// [`Matrix::keys`] reads a trace once for all the runs that share it.
-    fn key_with(&self, digest: &(dyn Fn(&Path) -> String + Sync)) -> RunKey {
-        // A recorded motion's content decides the run, not where its file is or how the
-        // matrix's path was typed (the folder was in the key: a rerun from another working
-        // directory made every run again, and an edited trace made none).
-        let trace = match &self.scenario.motion {
-            crate::sim::motion::MotionSpec::Trace { file } => digest(&self.scenario_dir.join(file)),
-            _ => String::new(),
-        };
-        let text = format!(
-            "{ROW_FORMAT} {}\n{}\n{}\n{}\n{}\n{:e} {:e}",
-            env!("CARGO_PKG_VERSION"),
-            toml::to_string(&self.bench.file).unwrap_or_default(),
-            toml::to_string(&self.scenario).unwrap_or_default(),
-            trace,
-            serde_json::to_string(&self.controller).unwrap_or_default(),
-            self.solver.rtol,
-            self.solver.atol_scale
-        );
-        RunKey(fnv1a(text.as_bytes()))
-    }
-}
-
-/// A recorded motion's part of a run's key: the hash of the trace file's content, or why it
-/// cannot be read.
-fn trace_digest(path: &Path) -> String {
-    match std::fs::read(path) {
-        Ok(bytes) => format!("trace {:016x}", fnv1a(&bytes)),
-        Err(e) => format!("trace unreadable: {e}"),
-    }
-}
 
 /// The matrix as written.
 #[derive(Deserialize)]

@@ -2,7 +2,8 @@
 //! all cores into one row per run (CSV and Parquet), resumable and shardable.
 //!
 //! - [`matrix`]: the matrix file, its expansion into runs and their validation (every run is
-//!   built, and every run to be made prepares, before any runs);
+//!   built, and every run to be made prepares, before any runs), over its [`axis`] entries;
+//! - [`spec`]: a run's full specification and its key;
 //! - [`expand`]: a run's place on the axes, for messages;
 //! - [`key`]: a run's identity (its key) and shards;
 //! - [`run`]: one run and its row of figures;
@@ -38,20 +39,20 @@
 //! `hold-speed`, `max-autonomy` with its `setpoint` in %, bar or rpm, driving the valve through
 //! the fixed-point controller; `seed`: its sensor noise; `dt_log2`: its step, 2^−dt_log2 s).
 
+pub mod axis;
 pub mod expand;
 pub mod heatmap;
 pub mod key;
 pub mod matrix;
 pub mod run;
+pub mod spec;
 pub mod store;
 pub mod table;
 pub mod write;
 
+pub use axis::{Axis, default_heatmap, heatmap_axes, value_text};
 pub use expand::{describe, point_of};
-pub use heatmap::{default_heatmap, heatmap_axes};
 pub use key::{RunKey, Shard, fnv1a};
-pub use matrix::{
-    Axis, ControllerSpec, MAX_RUNS, Matrix, MatrixError, ROW_FORMAT, RunSpec, SCENARIO_MODE,
-    value_text,
-};
+pub use matrix::{MAX_RUNS, Matrix, MatrixError};
+pub use spec::{ControllerSpec, ROW_FORMAT, RunSpec, SCENARIO_MODE};
 pub use write::{WriteError, Written, write_tables};

@@ -2,7 +2,7 @@
 //! by the fixed-point controller, and the figures that make its row.
 
 use super::key::RunKey;
-use super::matrix::RunSpec;
+use super::spec::RunSpec;
 use crate::model::closed_loop::ModelController;
 use crate::model::{controller_config, duty_mask, model_config};
 use crate::sim::bench::{BAR, RPM};

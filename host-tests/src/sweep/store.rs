@@ -8,8 +8,9 @@
 //! [`RunKey`], so a rerun skips finished runs whatever the shard, and a matrix given more
 //! values keeps the rows it already has.
 
+use super::axis::Axis;
 use super::key::{RunKey, Shard, fnv1a};
-use super::matrix::{Axis, Matrix};
+use super::matrix::Matrix;
 use super::run::{Row, Status};
 use crate::output::MARKER;
 use serde::{Deserialize, Serialize};

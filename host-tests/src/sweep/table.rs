@@ -1,9 +1,9 @@
 //! A sweep's rows as a table of typed columns — the run, its axis values, its status and
 //! figures, units in the column names — written as CSV and Parquet, and read back.
 
+use super::axis::value_text;
 use super::expand::point_of;
 use super::key::RunKey;
-use super::matrix::value_text;
 use super::run::{Figures, Row};
 use super::store::Identity;
 use arrow_array::{
