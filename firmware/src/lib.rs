@@ -46,6 +46,9 @@ pub mod trip;
 pub mod upload;
 pub mod watchdog;
 
+/// The QEMU twin's board name (in its boot log; `pto --elf` checks a firmware for it).
+pub const QEMU_BOARD: &str = "qemu-netduinoplus2";
+
 /// Firmware version, major·256 + minor (reported in `Hello`).
 pub const VERSION: u16 = 0x0300;
 

@@ -33,7 +33,7 @@ use pto_model::protocol::BoardInfo;
 use stm32_metapac as pac;
 
 /// Board name in the boot log.
-pub const NAME: &str = "qemu-netduinoplus2";
+pub const NAME: &str = pto_firmware::QEMU_BOARD;
 /// The twin's samples come from its host, which may pause or replay: the control task beats
 /// without them, and `Replay` is taken.
 pub const SAMPLES_ITSELF: bool = false;

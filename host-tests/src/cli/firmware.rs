@@ -1,4 +1,5 @@
-//! `pto qemu`, `pil` and `fw-cost`: the firmware under QEMU.
+//! `pto qemu`, `pil`, `twin` and `fw-cost`: the firmware under QEMU; where its ELF or its source
+//! tree comes from (`--elf`, `--workspace`).
 
 use super::{finite_in, load_bench, write_atomic};
 use anyhow::Result;

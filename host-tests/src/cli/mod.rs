@@ -1,4 +1,5 @@
-//! Shared by the commands: loading the bench file, progress bars, atomic writes.
+//! The commands, a module per family with each command's options beside its code; shared here:
+//! loading the bench file, progress bars, atomic writes, the options' value parsers.
 
 pub(crate) mod firmware;
 pub(crate) mod fit;

@@ -41,8 +41,9 @@ pub enum BuildError {
     NotAWorkspace(String),
     /// `--elf` names a file that is missing or not an ELF.
     #[error(
-        "--elf {path}: {why}; give the QEMU build of the firmware (`cargo fw` in the source tree \
-         writes target/thumbv7em-none-eabihf/firmware/pto-firmware)"
+        "--elf {path}: {why}; give the QEMU build of the firmware (`cargo fw` in the source tree, \
+         with PTO_BENCH unset for the reference bench, writes \
+         target/thumbv7em-none-eabihf/firmware/pto-firmware)"
     )]
     BadElf {
         /// The path given.
@@ -114,17 +115,26 @@ fn compiled_workspace() -> PathBuf {
 /// The workspace root: `--workspace`, else the one `pto` was compiled in while it is there.
 /// `what` names the command or step that needs it, for the error.
 pub fn workspace_root(what: &'static str) -> Result<PathBuf, BuildError> {
+    resolve_workspace(sources().workspace.as_deref(), &compiled_workspace(), what)
+}
+
+/// [`workspace_root`] from the `--workspace` given and the tree pto was compiled in. A
+/// relative `--workspace` is made absolute here: cargo runs inside the tree, and a relative
+/// `--target-dir` would be taken from there.
+fn resolve_workspace(
+    given: Option<&Path>,
+    compiled: &Path,
+    what: &'static str,
+) -> Result<PathBuf, BuildError> {
     let is_tree = |d: &Path| d.join("firmware").join("Cargo.toml").is_file();
-    if let Some(w) = &sources().workspace {
-        return if is_tree(w) {
-            Ok(w.clone())
-        } else {
-            Err(BuildError::NotAWorkspace(w.display().to_string()))
+    if let Some(w) = given {
+        return match std::path::absolute(w) {
+            Ok(abs) if is_tree(&abs) => Ok(abs),
+            _ => Err(BuildError::NotAWorkspace(w.display().to_string())),
         };
     }
-    let compiled = compiled_workspace();
-    if is_tree(&compiled) {
-        Ok(compiled)
+    if is_tree(compiled) {
+        Ok(compiled.to_path_buf())
     } else {
         Err(BuildError::NoWorkspace {
             what,
@@ -135,17 +145,23 @@ pub fn workspace_root(what: &'static str) -> Result<PathBuf, BuildError> {
     }
 }
 
-/// The `--elf` file, checked: there, and an ELF.
+/// The `--elf` file, checked: there, an ELF, and the QEMU build (its board's name in it; a
+/// bench build would boot on no twin).
 fn given_elf(path: &Path) -> Result<PathBuf, BuildError> {
     let bad = |why: String| BuildError::BadElf {
         path: path.display().to_string(),
         why,
     };
-    let mut head = [0u8; 4];
-    let mut f = std::fs::File::open(path).map_err(|e| bad(e.to_string()))?;
-    std::io::Read::read_exact(&mut f, &mut head).map_err(|_| bad("too short for an ELF".into()))?;
-    if head != *b"\x7fELF" {
+    let bytes = std::fs::read(path).map_err(|e| bad(e.to_string()))?;
+    if !bytes.starts_with(b"\x7fELF") {
         return Err(bad("not an ELF file".into()));
+    }
+    let board = pto_firmware::QEMU_BOARD.as_bytes();
+    if !bytes.windows(board.len()).any(|w| w == board) {
+        return Err(bad(format!(
+            "not the QEMU build (no `{}` in it: a bench build?)",
+            pto_firmware::QEMU_BOARD
+        )));
     }
     Ok(path.to_path_buf())
 }
@@ -241,4 +257,48 @@ fn build_into(
         .join("thumbv7em-none-eabihf")
         .join("firmware")
         .join("pto-firmware"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_relative_workspace_is_made_absolute_and_a_missing_tree_is_named() {
+        let compiled = compiled_workspace();
+        // The tests run in host-tests/: ".." is the tree.
+        let w = resolve_workspace(Some(Path::new("..")), Path::new("/nowhere"), "x").unwrap();
+        assert!(w.is_absolute(), "{}", w.display());
+        assert!(w.join("firmware").join("Cargo.toml").is_file());
+        let e = resolve_workspace(Some(Path::new("src")), &compiled, "x").unwrap_err();
+        assert!(
+            matches!(e, BuildError::NotAWorkspace(ref p) if p == "src"),
+            "{e}"
+        );
+        let e = resolve_workspace(None, Path::new("/nowhere"), "pto model-cost").unwrap_err();
+        let text = e.to_string();
+        assert!(
+            text.starts_with("pto model-cost needs the pto source tree")
+                && text.contains("/nowhere")
+                && text.contains("--workspace DIR"),
+            "{text}"
+        );
+        assert_eq!(resolve_workspace(None, &compiled, "x").unwrap(), compiled);
+    }
+
+    #[test]
+    fn an_elf_that_is_not_the_qemu_build_is_named() {
+        let dir = std::env::temp_dir().join(format!("pto-elf-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let bench_like = dir.join("bench.elf");
+        std::fs::write(&bench_like, b"\x7fELF\x01\x01 stm32f405 bench image").unwrap();
+        let e = given_elf(&bench_like).unwrap_err().to_string();
+        assert!(e.contains("not the QEMU build"), "{e}");
+        let qemu_like = dir.join("qemu.elf");
+        let mut bytes = b"\x7fELF\x01\x01".to_vec();
+        bytes.extend_from_slice(pto_firmware::QEMU_BOARD.as_bytes());
+        std::fs::write(&qemu_like, bytes).unwrap();
+        assert_eq!(given_elf(&qemu_like).unwrap(), qemu_like);
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }
