@@ -902,3 +902,24 @@ fn a_firmware_elf_or_source_tree_that_is_not_one_is_named() {
         .unwrap();
     assert!(String::from_utf8_lossy(&out.stderr).contains("`cargo fw`"));
 }
+
+/// The motor line kept as a patch for a decision (docs/model.md, known limits) still applies to
+/// the tree: a change that moves the code under it must carry the patch along.
+#[test]
+fn the_kept_motor_line_patch_still_applies() {
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    if !root.join(".git").exists() {
+        println!("not a git checkout: the patch is not checked here");
+        return;
+    }
+    let out = std::process::Command::new("git")
+        .current_dir(&root)
+        .args(["apply", "--check", "docs/motor-line.patch"])
+        .output()
+        .expect("git runs");
+    assert!(
+        out.status.success(),
+        "docs/motor-line.patch no longer applies:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
