@@ -7,8 +7,10 @@
 //!   it imports neither the model nor the firmware.
 //! - [`paper`]: the paper's facts and figures, on the simulation.
 //! - [`fit`]: bench parameters fitted to bench logs, on the simulation.
-//! - [`model`]: the fixed-point model against the simulation (configuration from the bench,
-//!   sensors, the f64 mirror, `pto validate`, golden vectors, code cost).
+//! - [`validation`]: the fixed-point model (`pto-model`) validated against the simulation: its
+//!   configuration from the bench, the sensor model, the f64 mirror, `pto validate`, the
+//!   closed loop and the sensor faults, golden vectors, code cost. (Named for what it does:
+//!   "model" is the crate.)
 //! - [`hil`]: the firmware built from the host, run under QEMU, processor-in-the-loop, firmware cost.
 //! - [`runner`]: scenarios run in parallel on all cores; [`perf`]: the solver's timing
 //!   (`pto perf`); [`sweep`]: a design matrix over bench, scenario and controller fields, one
@@ -19,7 +21,6 @@
 pub mod figures;
 pub mod fit;
 pub mod hil;
-pub mod model;
 pub mod output;
 pub mod paper;
 pub mod perf;
@@ -28,6 +29,7 @@ pub mod plot;
 pub mod runner;
 pub mod sim;
 pub mod sweep;
+pub mod validation;
 
 /// An error and its causes on one line, `error: cause: cause's cause` (what `anyhow` prints
 /// for `{:#}`), for reports that keep errors as text.

@@ -33,7 +33,7 @@ pub(crate) struct PilArgs {
     /// stuck=VALUE (bar, rpm, counts), drift=RATE (per s) or gain=FACTOR; from 20 s, or
     /// from the time after an @ (hp:drift=0.5@10).
     #[arg(long, value_name = "SENSOR:KIND")]
-    pub fault: Vec<pto_host::model::faults::Fault>,
+    pub fault: Vec<pto_host::validation::faults::Fault>,
     /// Machine-readable output.
     #[arg(long)]
     pub json: bool,
@@ -370,7 +370,7 @@ pub(crate) fn twin_cmd(a: &TwinArgs) -> Result<bool> {
     use pto_host::hil::build::Build;
     use pto_host::hil::pil;
     use pto_host::hil::qemu::Qemu;
-    use pto_host::model::sensors::SensorSpec;
+    use pto_host::validation::sensors::SensorSpec;
     let plant = super::load_bench_with(bench, set)?;
     let campaign = campaign
         .map(|p| {

@@ -164,7 +164,7 @@ pub(crate) fn synth_logs_cmd(a: &SynthLogsArgs) -> Result<bool> {
                         &b,
                         s,
                         *hz,
-                        pto_host::model::sensors::SensorSpec::default(),
+                        pto_host::validation::sensors::SensorSpec::default(),
                         seed,
                         &staged,
                     )
@@ -328,7 +328,7 @@ pub(crate) fn fit_cmd(a: &FitArgs) -> Result<bool> {
         let bench_name = format!("{stem}.fitted.toml");
         std::fs::write(stage.path().join(&bench_name), text.as_bytes())?;
         // The reduced model has a constant Cd: it takes the fitted Cd at 50 bar Δp.
-        let model = pto_host::model::model_config(&fitted)?;
+        let model = pto_host::validation::model_config(&fitted)?;
         model.validate().context("fitted model configuration")?;
         let model_name = format!("{stem}.model.toml");
         let mut text = mark;

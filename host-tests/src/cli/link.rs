@@ -272,7 +272,7 @@ pub(crate) fn status_cmd(t: &Target, json: bool) -> Result<bool> {
 }
 
 pub(crate) fn mode_cmd(t: &Target, kind: &str, value: f64) -> Result<bool> {
-    let mode = pto_host::model::closed_loop::parse_mode(kind, value)?;
+    let mode = pto_host::validation::closed_loop::parse_mode(kind, value)?;
     let (mut l, _) = connect(t)?;
     client::set_mode(&mut l, mode)?;
     println!("mode {kind} {value} set");
@@ -325,7 +325,7 @@ pub(crate) fn load_config(path: &Path) -> Result<ModelConfig> {
     };
     match pto_host::sim::bench::Bench::load(path) {
         Ok(b) => {
-            let cfg = pto_host::model::model_config(&b)?;
+            let cfg = pto_host::validation::model_config(&b)?;
             cfg.coefficients()
                 .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
             Ok(cfg)

@@ -35,7 +35,7 @@ pub(crate) struct ModelCostArgs {
 pub(crate) fn validate_cmd(a: &ValidateArgs) -> Result<bool> {
     let (bench_path, filter, with_loop, json) =
         (a.bench.as_ref(), a.filter.as_str(), !a.no_loop, a.json);
-    use pto_host::model::{target, validate};
+    use pto_host::validation::{target, validate};
     let bench = load_bench(bench_path)?;
     let sel: Vec<_> = scenario::every_builtin()
         .into_iter()
@@ -185,7 +185,7 @@ pub(crate) fn validate_cmd(a: &ValidateArgs) -> Result<bool> {
     if with_loop {
         println!(
             "sensor faults in closed loop with the firmware's controller (fault from {} s unless named):",
-            pto_host::model::faults::FAULT_FROM_S
+            pto_host::validation::faults::FAULT_FROM_S
         );
         println!(
             "  {:<48} {:>9} {:>8} {:<8} {:>8} {:>13} {:>7}  verdict",
@@ -218,7 +218,7 @@ pub(crate) fn validate_cmd(a: &ValidateArgs) -> Result<bool> {
             rep.rows.len(),
             rep.loop_false_alarms
         );
-        let most = |f: fn(&pto_host::model::validate::Row) -> f64| {
+        let most = |f: fn(&pto_host::validation::validate::Row) -> f64| {
             rep.rows.iter().map(f).fold(0.0, f64::max)
         };
         println!(
@@ -258,7 +258,7 @@ pub(crate) fn model_cost_cmd(a: &ModelCostArgs) -> Result<bool> {
     let json = a.json;
     a.src.apply();
     let workspace = pto_host::hil::build::workspace_root("pto model-cost (it builds pto-model)")?;
-    let cost = pto_host::model::cost::measure(&workspace)?;
+    let cost = pto_host::validation::cost::measure(&workspace)?;
     if json {
         println!("{}", serde_json::to_string_pretty(&cost)?);
     } else {
@@ -269,7 +269,7 @@ pub(crate) fn model_cost_cmd(a: &ModelCostArgs) -> Result<bool> {
         println!(
             "state: {} bytes (target ≤ {}); coefficients (tables, RAM): {} bytes",
             cost.state_bytes,
-            pto_host::model::cost::target::STATE_BYTES,
+            pto_host::validation::cost::target::STATE_BYTES,
             cost.coefficient_bytes
         );
         for c in &cost.code {
@@ -278,7 +278,7 @@ pub(crate) fn model_cost_cmd(a: &ModelCostArgs) -> Result<bool> {
                  rest constants; whole crate .text {:>6} B, .rodata {:>5} B",
                 c.target,
                 c.step_code_bytes,
-                pto_host::model::cost::target::FLASH_BYTES,
+                pto_host::validation::cost::target::FLASH_BYTES,
                 c.step_functions,
                 c.step_text_bytes,
                 c.text_bytes,

@@ -7,7 +7,6 @@
 //! p = lo + (hi − lo)(1 + tanh z)/2, so a step can never leave the range the bench file accepts.
 //! The valve's area table is fitted as factors on its increments (≥ 0), so it stays monotone.
 
-use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench, BenchError, BenchFile, Setter, Shortcut};
 use crate::sim::benchlog::BenchLog;
 use crate::sim::motion::Motion;
@@ -16,6 +15,7 @@ use crate::sim::scenario::{RunError, Scenario};
 use crate::sim::schedule::ValveSchedule;
 use crate::sim::solver::{self, Initial, Run, SimError, SolverOptions};
 use crate::sim::trace::{Truth, truth_at};
+use crate::validation::sensors::{Readings, SensorSpec, SensorSynth};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 use rayon::prelude::*;

@@ -86,10 +86,10 @@ pub fn estimate_noise<'a>(
     sigma.max(q_floor).max(floor)
 }
 
-/// The sensor model's noise ([`SensorSpec`](crate::model::sensors::SensorSpec)'s default: HP
+/// The sensor model's noise ([`SensorSpec`](crate::validation::sensors::SensorSpec)'s default: HP
 /// 0.5 bar, motor 2 rpm, LP 0.2 bar), as `pto plan` assumes it without `--noise-from`.
 pub fn sensor_noise() -> Noise {
-    let s = crate::model::sensors::SensorSpec::default();
+    let s = crate::validation::sensors::SensorSpec::default();
     noise_of(
         &[],
         Some(s.hp_noise_bar),

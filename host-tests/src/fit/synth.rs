@@ -61,7 +61,7 @@ pub fn synth_scenario_log(
         log.lp_bar.push(lp);
         log.rpm.push(motor);
         log.aperture_pct
-            .push(crate::model::commanded_aperture_pct(&s, &res, t));
+            .push(crate::validation::commanded_aperture_pct(&s, &res, t));
     }
     Ok(log)
 }

@@ -17,11 +17,11 @@
 use crate::hil::client::{self, ClientError, LogWriter, Sample, Units};
 use crate::hil::link::{Link, LinkError};
 use crate::hil::selftest::Operator;
-use crate::model::duty_mask;
 use crate::plan::{Campaign, CampaignError, Record, Segment, Status};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::motion::MotionSpec;
 use crate::sim::scenario::{Prepared, ValveSpec};
+use crate::validation::duty_mask;
 use pto_model::fx::{Aperture, Pressure};
 use pto_model::protocol::FromFirmware;
 use pto_model::scheduler::Mode;

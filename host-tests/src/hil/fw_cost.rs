@@ -4,7 +4,7 @@
 use crate::hil::build::{self, Build, BuildError};
 use crate::hil::pil::{self, PilError};
 use crate::hil::qemu::{LinkError, Qemu, QemuError};
-use crate::model::golden::{self, GoldenError};
+use crate::validation::golden::{self, GoldenError};
 use object::{Object, ObjectSection, SectionKind};
 use pto_model::ConfigError;
 use pto_model::estimator::Inputs;

@@ -7,13 +7,13 @@
 //! checks of each processor-in-the-loop run, which read its rows.
 
 use crate::hil::qemu::{LinkError, Qemu};
-use crate::model::closed_loop::LoopError;
-use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::Eval;
 use crate::sim::schedule::ValveController;
 use crate::sim::solver::SimResult;
 use crate::sim::trace::Truth;
+use crate::validation::closed_loop::LoopError;
+use crate::validation::sensors::{Readings, SensorSpec, SensorSynth};
 use pto_firmware::frontend::{SpecError, Transducer};
 use pto_model::estimator::{Estimate, Inputs};
 use pto_model::fx::{Aperture, Pressure, Rpm};
@@ -193,7 +193,7 @@ pub enum Injection {
     /// HP wire break and the motor speed sensor reading this, rpm.
     HpWireBreakMotorReads(f32),
     /// A sensor failing at plausible values (stuck, drifting, scaled: `model::faults`).
-    Sensor(crate::model::faults::Fault),
+    Sensor(crate::validation::faults::Fault),
 }
 
 impl Injection {
@@ -311,7 +311,7 @@ impl FirmwareController {
             Injection::HpNoise(a) => hp += if self.tick.is_multiple_of(2) { a } else { -a },
             Injection::MotorReads(r) | Injection::HpWireBreakMotorReads(r) => motor = f64::from(r),
             Injection::Sensor(f) => {
-                use crate::model::faults::Sensor;
+                use crate::validation::faults::Sensor;
                 let t = f64::from(self.tick) * self.period;
                 let mut v = [hp, lp, motor, f64::from(enc)];
                 let i = f.sensor as usize;
@@ -474,7 +474,7 @@ impl ValveController for FirmwareController {
 /// What a closed-loop run returns: the firmware (still running), the plant's trace, every step.
 pub type LoopRun = (Qemu, SimResult, Vec<PilRow>);
 
-/// A Test III-like closed-loop run ([`crate::model::closed_loop::test3_like_loop`]) with the firmware as
+/// A Test III-like closed-loop run ([`crate::validation::closed_loop::test3_like_loop`]) with the firmware as
 /// the controller, from P2 `p2_start` bar, for `duration` s, with the sensors of `spec` (4–20 mA
 /// loops quantised by the firmware's own front end).
 pub fn closed_loop(
@@ -488,15 +488,15 @@ pub fn closed_loop(
 ) -> Result<LoopRun, PilError> {
     let dt_log2 = pto_model::ModelConfig::reference().dt_log2;
     let (res, ctrl) =
-        crate::model::closed_loop::test3_like_loop(bench, p2_start, duration, |prep| {
+        crate::validation::closed_loop::test3_like_loop(bench, p2_start, duration, |prep| {
             prime(
                 &mut q,
                 p2_start as f32,
-                crate::model::closed_loop::LOOP_LP_START_BAR as f32,
+                crate::validation::closed_loop::LOOP_LP_START_BAR as f32,
                 mode,
             )?;
             q.link.send(&ToFirmware::SetDuty {
-                on_duty: crate::model::duty_mask(&prep.on_duty),
+                on_duty: crate::validation::duty_mask(&prep.on_duty),
                 config: prep.config as u8,
             })?;
             FirmwareController::new(q, dt_log2, spec, 11, inject)
@@ -667,7 +667,7 @@ pub fn check_trip(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
 /// into a hold of P2 at 100 bar from 60 bar (P2 rising; the checks judge from 9 s after a
 /// start). See [`check_fault`].
 pub fn check_sensor_fault(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilError> {
-    use crate::model::faults::{Fault, FaultKind, Sensor};
+    use crate::validation::faults::{Fault, FaultKind, Sensor};
     check_fault(
         q,
         bench,
@@ -686,14 +686,14 @@ pub fn check_sensor_fault(q: Qemu, bench: &Bench) -> Result<(Qemu, Check), PilEr
 /// and keep its valve at the sensor-fault aperture (or the dump open) from then to the end.
 /// The run lasts until 10 s past the bound (120 s at most for a stuck motor reading).
 ///
-/// [`Fault::mode`]: crate::model::faults::Fault::mode
-/// [`Fault::bound`]: crate::model::faults::Fault::bound
+/// [`Fault::mode`]: crate::validation::faults::Fault::mode
+/// [`Fault::bound`]: crate::validation::faults::Fault::bound
 pub fn check_fault(
     q: Qemu,
     bench: &Bench,
-    fault: crate::model::faults::Fault,
+    fault: crate::validation::faults::Fault,
 ) -> Result<(Qemu, Check), PilError> {
-    use crate::model::faults::{Bound, Sensor, sensor_bit};
+    use crate::validation::faults::{Bound, Sensor, sensor_bit};
     use pto_firmware::sensor_faults::{SensorFaults, names};
     let t0 = std::time::Instant::now();
     let from = fault.from_s;
@@ -743,7 +743,7 @@ pub fn check_fault(
         .map(|m| f64::from(m.to_f32()));
     let bound_s = fault.bound_s(bound, stuck, rows.iter().map(|r| (r.t, r.rpm, r.p2_bar)));
     let safe_op = f64::from(
-        crate::model::controller_config(bench)
+        crate::validation::controller_config(bench)
             .0
             .sensor_fault_aperture_pct,
     );
@@ -781,7 +781,7 @@ pub fn check_fault(
             ),
             steps: rows.len(),
             wall_s: t0.elapsed().as_secs_f64(),
-            pass: crate::model::faults::judge(
+            pass: crate::validation::faults::judge(
                 held_first,
                 want,
                 first.map(|_| after),

@@ -12,8 +12,6 @@
 
 use crate::hil::pil::{FirmwareController, Injection, PilError};
 use crate::hil::qemu::Qemu;
-use crate::model::duty_mask;
-use crate::model::sensors::SensorSpec;
 use crate::plan::{Campaign, Segment};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::motion::MotionSpec;
@@ -21,6 +19,8 @@ use crate::sim::plant::Plant;
 use crate::sim::scenario::{Prepared, ScenarioError};
 use crate::sim::schedule::ValveSchedule;
 use crate::sim::solver::{self, Initial, Run, SimError, SolverOptions};
+use crate::validation::duty_mask;
+use crate::validation::sensors::SensorSpec;
 use std::path::Path;
 
 /// Longest the twin waits, in simulated time, for the runner to energise a segment's cylinders
@@ -104,7 +104,7 @@ pub fn run_campaign(
     ctrl.keep_rows(false);
     let mut state = Initial {
         p2_pa: p2_start_bar * BAR,
-        lp_pa: crate::model::closed_loop::LOOP_LP_START_BAR * BAR,
+        lp_pa: crate::validation::closed_loop::LOOP_LP_START_BAR * BAR,
     };
     let mut phases = Vec::new();
     for (index, seg) in campaign.segment.iter().enumerate() {

@@ -189,7 +189,7 @@ pub fn synth_segment_log(
         truth,
         &segment.run,
         segment.rate_hz,
-        crate::model::sensors::SensorSpec::default(),
+        crate::validation::sensors::SensorSpec::default(),
         seed,
         dir,
     )?;
@@ -369,7 +369,7 @@ pub fn score(
 
 /// A segment's log without noise on `bench` (the sensors' quantisation kept).
 fn quiet_log(bench: &Bench, segment: &Segment) -> Result<BenchLog, FitError> {
-    let quiet = crate::model::sensors::SensorSpec {
+    let quiet = crate::validation::sensors::SensorSpec {
         hp_noise_bar: 0.0,
         lp_noise_bar: 0.0,
         motor_noise_rpm: 0.0,

@@ -3,12 +3,12 @@
 
 use super::key::RunKey;
 use super::spec::RunSpec;
-use crate::model::closed_loop::ModelController;
-use crate::model::{controller_config, duty_mask, model_config};
 use crate::sim::bench::{BAR, RPM};
 use crate::sim::scenario::Prepared;
 use crate::sim::schedule::ValveSchedule;
 use crate::sim::solver::{self, Run, SimResult};
+use crate::validation::closed_loop::ModelController;
+use crate::validation::{controller_config, duty_mask, model_config};
 use pto_model::scheduler::Mode;
 use serde::{Deserialize, Serialize};
 

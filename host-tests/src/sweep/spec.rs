@@ -2,10 +2,10 @@
 //! that makes its figures.
 
 use super::key::{RunKey, fnv1a};
-use crate::model::closed_loop::{MODES, parse_mode};
 use crate::sim::bench::Bench;
 use crate::sim::scenario::Scenario;
 use crate::sim::solver::SolverOptions;
+use crate::validation::closed_loop::{MODES, parse_mode};
 use pto_model::scheduler::Mode;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};

@@ -6,8 +6,8 @@
 
 use pto_host::hil::pil::{self, Injection, PilRow};
 use pto_host::hil::qemu::Qemu;
-use pto_host::model::sensors::SensorSpec;
 use pto_host::sim::bench::Bench;
+use pto_host::validation::sensors::SensorSpec;
 use std::path::PathBuf;
 use std::process::{Child, Command};
 

@@ -4,8 +4,8 @@
 //! outputs); review the diff before committing it. (The reference bench ↔ firmware
 //! configuration check is `tests/model/model_config.rs`.)
 
-use pto_host::model::golden;
 use pto_host::sim::bench::Bench;
+use pto_host::validation::golden;
 use pto_model::fx::Pressure;
 
 #[test]

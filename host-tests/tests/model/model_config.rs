@@ -1,12 +1,12 @@
 //! The one conversion from the bench file to the firmware's configuration
-//! (`pto_host::model::model_config` and `controller_config`: the model, the scheduler and the
+//! (`pto_host::validation::model_config` and `controller_config`: the model, the scheduler and the
 //! control settings), checked over every field: the reference bench gives
 //! `ModelConfig::reference()`, `SchedulerConfig::default()` and `ControlConfig::default()` to
 //! the bit in every field, and every numeric field of the bench file either changes the
 //! firmware's configuration or is named below with the reason it does not apply.
 
-use pto_host::model::{ModelError, controller_config, model_config};
 use pto_host::sim::bench::Bench;
+use pto_host::validation::{ModelError, controller_config, model_config};
 use std::collections::BTreeMap;
 
 /// Numeric leaves of a serialised value by dotted path (`a.b[2].c`): the value, and whether

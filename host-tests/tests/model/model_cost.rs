@@ -5,7 +5,7 @@
 //! `core::fmt`, behind the six table lookups, whose signed cell index the compiler could not
 //! bound), and the estimator + scheduler state its 1 KiB.
 
-use pto_host::model::cost::{self, target};
+use pto_host::validation::cost::{self, target};
 use std::path::Path;
 
 #[test]

@@ -16,8 +16,8 @@
 //! `pto validate` (see `docs/model.md`), and why two of them cannot meet it with these sensors is
 //! measured on the full simulation below.
 
-use pto_host::model::{target, validate};
 use pto_host::sim::bench::Bench;
+use pto_host::validation::{target, validate};
 
 /// `pto validate`'s rows for the named built-in scenarios (every one must exist and run).
 fn validate_named(names: &[&str]) -> Vec<validate::Row> {
@@ -190,7 +190,7 @@ fn model_tracks_p2_and_motor_speed_with_the_hp_accumulator_empty() {
 #[test]
 fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() {
     let bench = Bench::reference();
-    let sigma = pto_host::model::sensors::SensorSpec::default().motor_noise_rpm;
+    let sigma = pto_host::validation::sensors::SensorSpec::default().motor_noise_rpm;
     let p0 = bench.hp_acc.precharge_pa / pto_host::sim::bench::BAR;
     let dt = 1.0 / 1024.0;
     // (fastest 2 bar fall in ms, smallest d′, largest d′) over a run's emptying events.
@@ -297,7 +297,7 @@ fn where_the_hp_accumulator_runs_empty_the_motor_speed_sees_its_fall_too_late() 
 
 #[test]
 fn scheduler_holds_p2_and_motor_speed_in_closed_loop_with_the_full_simulation() {
-    for row in pto_host::model::closed_loop::closed_loop_rows(&Bench::reference()) {
+    for row in pto_host::validation::closed_loop::closed_loop_rows(&Bench::reference()) {
         let row = row.unwrap();
         println!(
             "{}: max deviation {:.4} (target {})",
@@ -322,11 +322,11 @@ fn scheduler_holds_p2_and_motor_speed_in_closed_loop_with_the_full_simulation() 
 /// cell), which this isolates from the arithmetic's own error.
 #[test]
 fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
-    use pto_host::model::reference::Reference;
-    use pto_host::model::sensors::{SensorSpec, SensorSynth};
-    use pto_host::model::{commanded_aperture_pct, duty_mask, model_config};
     use pto_host::sim::solver::SolverOptions;
     use pto_host::sim::trace::truth_at;
+    use pto_host::validation::reference::Reference;
+    use pto_host::validation::sensors::{SensorSpec, SensorSynth};
+    use pto_host::validation::{commanded_aperture_pct, duty_mask, model_config};
     use pto_model::estimator::{self, State};
     use pto_model::fx::Pressure;
     let bench = Bench::reference();
@@ -423,7 +423,7 @@ fn fixed_point_and_f64_agree_to_two_lsb_from_an_identical_state() {
 /// safe state from then on; the fault-free loops hold no sensor faulted.
 #[test]
 fn sensors_failing_at_plausible_values_are_caught_named_and_made_safe() {
-    use pto_host::model::faults::{self, Detection};
+    use pto_host::validation::faults::{self, Detection};
     use rayon::prelude::*;
     let bench = Bench::reference();
     // Each case from four onsets across the HP check's 4 s window (20 s starts one).

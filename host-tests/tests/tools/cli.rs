@@ -826,7 +826,7 @@ fn campaign_inputs_are_checked_and_named() {
         &bench,
         &short,
         16.0,
-        pto_host::model::sensors::SensorSpec::default(),
+        pto_host::validation::sensors::SensorSpec::default(),
         1,
         &dir,
     )

@@ -11,9 +11,9 @@ use pto_host::fit;
 use pto_host::hil::build::{self, Build};
 use pto_host::hil::qemu::Qemu;
 use pto_host::hil::twin;
-use pto_host::model::sensors::SensorSpec;
 use pto_host::plan::Campaign;
 use pto_host::sim::bench::{Bench, apply_override};
+use pto_host::validation::sensors::SensorSpec;
 use std::process::Stdio;
 use std::time::Instant;
 

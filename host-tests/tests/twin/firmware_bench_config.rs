@@ -6,8 +6,8 @@
 use pto_host::hil::build::{self, Build};
 use pto_host::hil::pil;
 use pto_host::hil::qemu::Qemu;
-use pto_host::model::{golden, model_config};
 use pto_host::sim::bench::{Bench, REFERENCE_BENCH_TOML};
+use pto_host::validation::{golden, model_config};
 use pto_model::fx::Pressure;
 use pto_model::protocol::{CONFIG_MAX_BYTES, config_fingerprint, encode_config};
 use pto_model::scheduler::Mode;
@@ -40,7 +40,7 @@ fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
     .unwrap();
     let bench = Bench::load(&path).unwrap();
     assert_eq!(
-        pto_host::model::controller_config(&bench)
+        pto_host::validation::controller_config(&bench)
             .0
             .sensor_fault_aperture_pct,
         15.0

@@ -5,8 +5,8 @@
 use pto_host::hil::build::{self, Build};
 use pto_host::hil::pil::{self, Injection, PilRow};
 use pto_host::hil::qemu::Qemu;
-use pto_host::model::sensors::SensorSpec;
 use pto_host::sim::bench::Bench;
+use pto_host::validation::sensors::SensorSpec;
 use pto_model::estimator::fault;
 use pto_model::fx::Pressure;
 use pto_model::protocol::ToFirmware;

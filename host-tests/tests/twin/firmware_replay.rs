@@ -6,8 +6,8 @@
 use pto_host::hil::build::{self, Build};
 use pto_host::hil::pil;
 use pto_host::hil::qemu::Qemu;
-use pto_host::model::golden;
 use pto_host::sim::bench::Bench;
+use pto_host::validation::golden;
 use pto_model::fx::Pressure;
 use pto_model::scheduler::Mode;
 use std::time::{Duration, Instant};

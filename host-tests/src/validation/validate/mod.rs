@@ -3,12 +3,12 @@
 
 use super::closed_loop::{LoopRow, closed_loop_rows};
 use super::{ModelError, commanded_aperture_pct, duty_mask, model_config};
-use crate::model::reference::Reference;
-use crate::model::sensors::{SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::scenario::{RunError, Scenario};
 use crate::sim::solver::SolverOptions;
 use crate::sim::trace::{Truth, truth_at, value_at};
+use crate::validation::reference::Reference;
+use crate::validation::sensors::{SensorSpec, SensorSynth};
 use pto_model::estimator::{self, Estimate, Inputs, State};
 use pto_model::fx::Pressure;
 use pto_model::table::Table1;
@@ -117,7 +117,7 @@ pub struct Report {
     pub closed_loop: Vec<LoopRow>,
     /// Sensor faults in closed loop with the firmware's controller (with the closed loop):
     /// each case's detection, the sensor named, the safe state.
-    pub sensor_faults: Vec<crate::model::faults::Detection>,
+    pub sensor_faults: Vec<crate::validation::faults::Detection>,
     /// Steps with a sensor fault held in the fault-free closed loops (with the closed loop).
     pub loop_false_alarms: usize,
     /// Failed runs, each error with its causes.
@@ -606,10 +606,10 @@ pub fn run(bench: &Bench, scenarios: &[Scenario], with_loop: bool) -> Report {
 fn sensor_fault_rows(
     bench: &Bench,
 ) -> (
-    Vec<Result<crate::model::faults::Detection, crate::model::faults::FaultRunError>>,
-    Vec<Result<usize, crate::model::faults::FaultRunError>>,
+    Vec<Result<crate::validation::faults::Detection, crate::validation::faults::FaultRunError>>,
+    Vec<Result<usize, crate::validation::faults::FaultRunError>>,
 ) {
-    use crate::model::faults;
+    use crate::validation::faults;
     let d = faults::cases()
         .par_iter()
         .map(|c| faults::detect(bench, c, 11))

@@ -6,7 +6,7 @@
 //! The one conversion from a bench to the controller's model, then the model's coefficients:
 //!
 //! ```
-//! use pto_host::model::model_config;
+//! use pto_host::validation::model_config;
 //! use pto_host::sim::bench::Bench;
 //!
 //! let mut file = Bench::reference().file;

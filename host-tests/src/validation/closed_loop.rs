@@ -3,13 +3,13 @@
 
 use super::target;
 use super::{ModelError, duty_mask, model_config};
-use crate::model::sensors::{SensorSpec, SensorSynth};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::Eval;
 use crate::sim::scenario::ScenarioError;
 use crate::sim::schedule::{ValveController, ValveSchedule};
 use crate::sim::solver::{self, Initial, Run, SimError, SolverOptions};
 use crate::sim::trace::Truth;
+use crate::validation::sensors::{SensorSpec, SensorSynth};
 use pto_model::estimator::{self, Estimate, State};
 use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::scheduler::{self, Mode, SchedulerCoeffs, SchedulerConfig, SchedulerState};

@@ -7,10 +7,10 @@
 //! (holding P2 at 100 bar) run from a known start.
 
 use super::{commanded_aperture_pct, duty_mask, inputs};
-use crate::model::sensors::{Readings, SensorSpec, SensorSynth};
 use crate::sim::bench::Bench;
 use crate::sim::scenario::RunError;
 use crate::sim::trace::truth_at;
+use crate::validation::sensors::{Readings, SensorSpec, SensorSynth};
 use pto_model::estimator::{self, Estimate, Inputs, State};
 use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::scheduler::{self, Command, Mode, Override, SchedulerConfig, SchedulerState};
