@@ -55,9 +55,9 @@ const VARIANTS: [Variant; 3] = [
     },
 ];
 
-/// One benchmarked run on one solver path.
+/// One timed run on one solver path (`pto perf`).
 #[derive(Debug, Clone, Serialize)]
-pub struct BenchRow {
+pub struct PerfRow {
     /// Scenario.
     pub scenario: String,
     /// `events` (the default: the rods' stops as located events, the default solver path),
@@ -95,9 +95,9 @@ pub struct Batch {
 
 /// The report.
 #[derive(Debug, Clone, Serialize)]
-pub struct BenchReport {
+pub struct PerfReport {
     /// Rows: each scenario in each variant (events, spring, events on the reference path).
-    pub rows: Vec<BenchRow>,
+    pub rows: Vec<PerfRow>,
     /// Per scenario: wall-time ratio spring / events (medians).
     pub events_speedups: Vec<(String, f64)>,
     /// Per scenario: wall-time ratio reference path / default path, both with events.
@@ -123,11 +123,11 @@ fn with_stops(bench: &Bench, stops: Stops) -> Bench {
     b
 }
 
-fn row(name: &str, variant: &str, walls: &mut [f64], r: &SimResult, err: f64) -> BenchRow {
+fn row(name: &str, variant: &str, walls: &mut [f64], r: &SimResult, err: f64) -> PerfRow {
     walls.sort_by(f64::total_cmp);
     let wall = walls[walls.len() / 2];
     let simulated = *r.trace.t_s.last().unwrap_or(&0.0);
-    BenchRow {
+    PerfRow {
         scenario: name.into(),
         variant: variant.into(),
         simulated_s: simulated,
@@ -158,7 +158,7 @@ fn side_by_side(
     bench: &Bench,
     name: &str,
     repeats: usize,
-) -> Result<([BenchRow; 3], f64), RunError> {
+) -> Result<([PerfRow; 3], f64), RunError> {
     let benches = VARIANTS.map(|v| with_stops(bench, v.stops));
     let solver = |v: &Variant| {
         let o = SolverOptions::default();
@@ -220,7 +220,7 @@ fn verdict(ok: bool) -> &'static str {
 /// default path's accuracy unchanged from the reference path's (floor 1e-4 bar), the stops as
 /// events no worse than the spring, each against its own tight run (floor 1e-5 bar, for a
 /// spring error near zero).
-fn within_10pct(row: &BenchRow, against: &BenchRow, floor_bar: f64) -> bool {
+fn within_10pct(row: &PerfRow, against: &PerfRow, floor_bar: f64) -> bool {
     let (a, b) = (row.p2_max_err_bar, against.p2_max_err_bar);
     a <= b + (0.1 * b).max(floor_bar)
 }
@@ -236,7 +236,7 @@ pub fn measure(
     bench: &Bench,
     repeats: usize,
     batch_runs: Option<usize>,
-) -> Result<BenchReport, RunError> {
+) -> Result<PerfReport, RunError> {
     let (t3, t3_diff) = side_by_side(bench, "test3-ap10", repeats)?;
     let (irr, irr_diff) = side_by_side(bench, "irregular-sea", repeats.min(3))?;
     let [ev, sp, _] = &t3;
@@ -329,7 +329,7 @@ pub fn measure(
     };
     let mut rows = Vec::from(t3);
     rows.extend(irr);
-    Ok(BenchReport {
+    Ok(PerfReport {
         rows,
         events_speedups,
         path_speedups,

@@ -308,7 +308,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
                 }
             }
             if i < crate_objs && sym.kind() == object::SymbolKind::Text {
-                let path = format!("{:#}", rustc_demangle::demangle(name));
+                let path = demangled(name);
                 for (r, root) in roots.iter_mut().zip(ROOTS) {
                     if r.is_none() && path == root {
                         *r = Some((i, sec));
@@ -344,7 +344,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
                         _ => {
                             let name = sym.name().unwrap_or("?");
                             let found = global.get(name).map(|(n, _)| *n);
-                            let path = format!("{:#}", rustc_demangle::demangle(name));
+                            let path = demangled(name);
                             let last = path.rsplit("::").next().unwrap_or("");
                             if found.is_none() && !LINK_TIME.contains(&last) {
                                 unresolved.push(path);
@@ -380,7 +380,7 @@ pub fn code_size(workspace: &Path, target: &str) -> Result<CodeSize, CostError> 
             .unwrap_or("?");
         let mangled = name.strip_prefix(".text.").unwrap_or(name);
         let mangled = mangled.strip_prefix("unlikely.").unwrap_or(mangled);
-        format!("{:#}", rustc_demangle::demangle(mangled))
+        demangled(mangled)
     };
     let (mut step, mut step_text, mut functions) = (0u64, 0u64, 0usize);
     let (mut external, mut panics, mut sizes) = (Vec::new(), Vec::new(), Vec::new());
@@ -490,4 +490,8 @@ pub fn measure(workspace: &Path) -> Result<Cost, CostError> {
         code,
         pass,
     })
+}
+/// A symbol's Rust path without its hash (`pto_model::estimator::step`).
+fn demangled(symbol: &str) -> String {
+    format!("{:#}", rustc_demangle::demangle(symbol))
 }
