@@ -146,6 +146,35 @@ impl<V: SetDutyCycle + DutyReadBack, P: OutputPin + ReadBack> Actuators<V, P> {
     }
 }
 
+/// A valve PWM channel in memory for the host tests: the duty it was set to, read back (4 199
+/// counts full scale, as the bench's timer).
+#[cfg(test)]
+#[derive(Default)]
+pub(crate) struct MemPwm(pub u16);
+
+#[cfg(test)]
+impl embedded_hal::pwm::ErrorType for MemPwm {
+    type Error = core::convert::Infallible;
+}
+
+#[cfg(test)]
+impl SetDutyCycle for MemPwm {
+    fn max_duty_cycle(&self) -> u16 {
+        4199
+    }
+    fn set_duty_cycle(&mut self, d: u16) -> Result<(), core::convert::Infallible> {
+        self.0 = d;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+impl DutyReadBack for MemPwm {
+    fn duty_read_back(&self) -> Option<u16> {
+        Some(self.0)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -174,25 +203,7 @@ mod tests {
             Some(self.high)
         }
     }
-    #[derive(Default)]
-    struct Pwm(u16);
-    impl embedded_hal::pwm::ErrorType for Pwm {
-        type Error = Infallible;
-    }
-    impl SetDutyCycle for Pwm {
-        fn max_duty_cycle(&self) -> u16 {
-            4199
-        }
-        fn set_duty_cycle(&mut self, d: u16) -> Result<(), Infallible> {
-            self.0 = d;
-            Ok(())
-        }
-    }
-    impl DutyReadBack for Pwm {
-        fn duty_read_back(&self) -> Option<u16> {
-            Some(self.0)
-        }
-    }
+    use crate::outputs::MemPwm as Pwm;
 
     fn actuators(at: Outputs) -> Actuators<Pwm, Pin> {
         Actuators::new(Pwm::default(), Pin::default(), Default::default(), at)

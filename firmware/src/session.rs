@@ -705,6 +705,7 @@ pub fn telemetry_fits(queued: usize, capacity: usize, reply_slots: usize) -> boo
 mod tests {
     use super::*;
     use crate::frontend::{LoopSpec, Transducer};
+    use crate::outputs::MemPwm as Pwm;
     use crate::store::{RamFlash, RamFlashError};
     use core::cell::{Cell, RefCell};
     use core::convert::Infallible;
@@ -742,25 +743,6 @@ mod tests {
             Some(self.high)
         }
     }
-    struct Pwm(u16);
-    impl embedded_hal::pwm::ErrorType for Pwm {
-        type Error = Infallible;
-    }
-    impl SetDutyCycle for Pwm {
-        fn max_duty_cycle(&self) -> u16 {
-            4199
-        }
-        fn set_duty_cycle(&mut self, d: u16) -> Result<(), Infallible> {
-            self.0 = d;
-            Ok(())
-        }
-    }
-    impl DutyReadBack for Pwm {
-        fn duty_read_back(&self) -> Option<u16> {
-            Some(self.0)
-        }
-    }
-
     struct Memory(Journal);
     impl ResetMemory for Memory {
         fn remember_trip(&mut self, _: bool) {
