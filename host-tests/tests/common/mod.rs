@@ -119,6 +119,19 @@ pub fn model_only_rms_bar(rows: &[PilRow], from_s: f64) -> f64 {
     (e.iter().map(|x| x * x).sum::<f64>() / e.len() as f64).sqrt()
 }
 
+/// The CSV's lines without its `wall_s` column (wall times differ between runs).
+pub fn without_wall(csv: &str) -> Vec<String> {
+    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
+    let wall = header.iter().position(|h| *h == "wall_s").unwrap();
+    csv.lines()
+        .map(|l| {
+            let mut cells: Vec<&str> = l.split(',').collect();
+            cells.remove(wall);
+            cells.join(",")
+        })
+        .collect()
+}
+
 /// A fresh, empty folder for one test's files, named for its module and `name` and unique to
 /// this run: `tmp!("bench")`.
 #[allow(unused_macros)]

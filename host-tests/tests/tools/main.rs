@@ -7,4 +7,5 @@ mod cli;
 mod fit_recovery;
 mod link_cli;
 mod plan;
+mod slurm;
 mod sweep;

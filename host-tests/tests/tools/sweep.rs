@@ -1,7 +1,7 @@
 //! `pto sweep`: the matrix's expansion and its refusals, shards, resuming, merging, the tables
 //! (Parquet read back equals the CSV), failure rows, Ctrl-C.
 
-use crate::common::pto;
+use crate::common::{pto, without_wall};
 use proptest::prelude::*;
 use pto_host::sweep::table::Table;
 use pto_host::sweep::{Matrix, Shard};
@@ -290,19 +290,6 @@ fn sweep(args: &[&str]) -> (serde_json::Value, Option<i32>, String) {
     let v = serde_json::from_slice(&out.stdout)
         .unwrap_or_else(|e| panic!("{e}: {}\n{stderr}", String::from_utf8_lossy(&out.stdout)));
     (v, out.status.code(), stderr)
-}
-
-/// The CSV's lines without its `wall_s` column (wall times differ between runs).
-fn without_wall(csv: &str) -> Vec<String> {
-    let header: Vec<&str> = csv.lines().next().unwrap().split(',').collect();
-    let wall = header.iter().position(|h| *h == "wall_s").unwrap();
-    csv.lines()
-        .map(|l| {
-            let mut cells: Vec<&str> = l.split(',').collect();
-            cells.remove(wall);
-            cells.join(",")
-        })
-        .collect()
 }
 
 #[test]
