@@ -21,16 +21,26 @@ impl Drop for Reaped {
     }
 }
 
-/// The twins against the other QEMU tests of a crate: a twin's pseudo-terminal and its plant run
-/// against the clock, and more QEMUs beside it on a 2-core machine starved it (42 of 100 frames
-/// read by a monitor; with the tests of several files in one crate, a campaign's twin reset
-/// mid-segment and a self-test went unanswered). A twin runs alone ([`one_twin`]); the lockstep
-/// tests, which wait for each step, run beside each other ([`beside_other_qemus`]).
+/// The twins against the other QEMU tests of a crate under `cargo test` (one process, its tests
+/// on threads): a twin's pseudo-terminal and its plant run against the clock, and more QEMUs
+/// beside it on a 2-core machine starved it (42 of 100 frames read by a monitor; with the tests
+/// of several files in one crate, a campaign's twin reset mid-segment and a self-test went
+/// unanswered). A twin runs alone ([`one_twin`]); the lockstep tests, which wait for each step,
+/// run beside each other ([`beside_other_qemus`]). Under cargo-nextest (`scripts/test`) each
+/// test is a process of its own: `.config/nextest.toml`'s `twins` group keeps the twins one at a
+/// time, each beside at most one other test (2 cores).
 static TWIN: std::sync::RwLock<()> = std::sync::RwLock::new(());
 
 /// Runs a twin alone for as long as the guard lives (a test that failed holding it passes it
-/// on).
+/// on). Under nextest, the test must be in `.config/nextest.toml`'s `twins` group (checked).
 pub fn one_twin() -> std::sync::RwLockWriteGuard<'static, ()> {
+    if std::env::var_os("NEXTEST").is_some() {
+        assert_eq!(
+            std::env::var("NEXTEST_TEST_GROUP").as_deref(),
+            Ok("twins"),
+            "a twin test runs in .config/nextest.toml's `twins` group: add it to the group's filter"
+        );
+    }
     TWIN.write().unwrap_or_else(|e| e.into_inner())
 }
 
