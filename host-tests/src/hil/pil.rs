@@ -14,7 +14,9 @@ use crate::sim::solver::SimResult;
 use crate::sim::trace::Truth;
 use crate::validation::closed_loop::LoopError;
 use crate::validation::sensors::{Readings, SensorSpec, SensorSynth};
+use pto_firmware::control::{Controller, NoClock};
 use pto_firmware::frontend::{SpecError, Transducer};
+use pto_model::ModelConfig;
 use pto_model::estimator::{Estimate, Inputs};
 use pto_model::fx::{Aperture, Pressure, Rpm};
 use pto_model::protocol::{FromFirmware, Refusal, SensorFrame, Status, ToFirmware};
@@ -69,11 +71,19 @@ pub enum PilError {
         /// Simulated time, s.
         t: f64,
         /// What failed.
-        source: LinkError,
+        source: Box<PilError>,
     },
     /// The overpressure check's firmware never tripped.
     #[error("the firmware never tripped")]
     NeverTripped,
+    /// The host copy of the firmware ([`HostFirmware`]) was set up with a configuration the
+    /// controller refuses.
+    #[error("the host copy of the firmware: {0:?}")]
+    HostSetup(pto_firmware::control::SetupError),
+    /// An injection on the link (a damaged frame, a burst, a reset) asked of the host copy of
+    /// the firmware, which has no link.
+    #[error("{0:?} needs the firmware's link: the host copy has none")]
+    NotOnHost(Injection),
 }
 
 /// Asks the firmware to restart its estimator from known pressures: `Ok(Err(refusal))` when
@@ -197,6 +207,18 @@ pub enum Injection {
 }
 
 impl Injection {
+    /// Acts on the link or the firmware's commands, not on the sensor frame.
+    fn on_the_link(self) -> bool {
+        matches!(
+            self,
+            Injection::Corrupt
+                | Injection::Truncate
+                | Injection::Burst(_)
+                | Injection::HpWireBreakAndReset(_)
+                | Injection::HostReset(_)
+        )
+    }
+
     fn wire_break(self) -> bool {
         matches!(
             self,
@@ -232,9 +254,79 @@ pub struct PilRow {
     pub frame: SensorFrame,
 }
 
-/// The firmware as the plant's valve controller.
-pub struct FirmwareController {
-    q: Qemu,
+/// What a closed loop's sensor frames go to: the firmware under QEMU over its link, or
+/// [`HostFirmware`], its controller built for the host.
+pub trait LoopTarget {
+    /// One step: the frame sent, with the link's injections; the output it answered (none for
+    /// a frame dropped on purpose).
+    fn exchange(
+        &mut self,
+        f: SensorFrame,
+        inj: Injection,
+    ) -> Result<Option<FromFirmware>, PilError>;
+    /// A reset asked after a step's output; `Ok(Err(refusal))` when refused.
+    fn reset(&mut self, p2: f32, lp: f32) -> Result<Result<(), Refusal>, PilError>;
+}
+
+/// The firmware's controller built for the host (`pto_firmware::control`: the code the QEMU
+/// build runs, with the scheduler and control settings it is built with): a closed loop without
+/// QEMU, the firmware's own bit for bit (`twin::firmware_pil`'s
+/// `the_host_copy_closes_the_loop_as_the_firmware_does`) at a small part of its cost. Frame-level
+/// injections only: the link's own (damaged frames, bursts) and resets need the firmware.
+pub struct HostFirmware(Box<Controller>);
+
+impl HostFirmware {
+    /// The QEMU build's controller on `model` (its built-in configuration, or one uploaded),
+    /// primed as [`closed_loop`] primes the firmware: reset to `p2` and `lp` bar, `mode`, the
+    /// solenoids of `on_duty` in lever geometry `config`.
+    pub fn new(
+        model: &ModelConfig,
+        (p2, lp): (f32, f32),
+        mode: Mode,
+        (on_duty, config): (u8, u8),
+    ) -> Result<Self, PilError> {
+        use pto_firmware::built_config::{CONTROL, SCHEDULER};
+        let mut c = Controller::new(model, &SCHEDULER, &CONTROL).map_err(PilError::HostSetup)?;
+        c.reset(Pressure::from_num(p2), Pressure::from_num(lp))
+            .map_err(|t| PilError::Refused(Refusal::TripHeld(t)))?;
+        c.set_mode(mode);
+        c.set_duty(on_duty, config);
+        Ok(HostFirmware(Box::new(c)))
+    }
+}
+
+impl LoopTarget for HostFirmware {
+    fn exchange(
+        &mut self,
+        f: SensorFrame,
+        inj: Injection,
+    ) -> Result<Option<FromFirmware>, PilError> {
+        if inj.on_the_link() {
+            return Err(PilError::NotOnHost(inj));
+        }
+        let c = &mut self.0;
+        if !c.fresh(f.tick) {
+            return Ok(None);
+        }
+        let o = c.sample(&f, &mut NoClock);
+        Ok(Some(FromFirmware::Output {
+            tick: f.tick,
+            estimate: o.estimate,
+            command: o.command,
+            applied: o.applied,
+            dump: o.dump,
+            on_duty: o.on_duty,
+        }))
+    }
+
+    fn reset(&mut self, p2: f32, _lp: f32) -> Result<Result<(), Refusal>, PilError> {
+        Err(PilError::NotOnHost(Injection::HostReset(p2)))
+    }
+}
+
+/// The firmware (under QEMU, or [`HostFirmware`]) as the plant's valve controller.
+pub struct FirmwareController<T: LoopTarget = Qemu> {
+    q: T,
     period: f64,
     synth: SensorSynth,
     hp: Transducer,
@@ -257,10 +349,10 @@ pub struct FirmwareController {
     pub error: Option<PilError>,
 }
 
-impl FirmwareController {
+impl<T: LoopTarget> FirmwareController<T> {
     /// A controller on the firmware in `q`, whose model steps are 2^−dt_log2 s.
     pub fn new(
-        q: Qemu,
+        q: T,
         dt_log2: u8,
         spec: SensorSpec,
         seed: u64,
@@ -295,7 +387,7 @@ impl FirmwareController {
     }
 
     /// Gives back the firmware.
-    pub fn into_qemu(self) -> Qemu {
+    pub fn into_target(self) -> T {
         self.q
     }
 
@@ -339,13 +431,15 @@ impl FirmwareController {
             supply_mv: Some(self.hp.vref_mv()),
         }
     }
+}
 
+impl LoopTarget for Qemu {
     fn exchange(
         &mut self,
         f: SensorFrame,
         inj: Injection,
     ) -> Result<Option<FromFirmware>, PilError> {
-        let link = &mut self.q.link;
+        let link = &mut self.link;
         let bytes = link.frame(&ToFirmware::Sensors(f));
         match inj {
             Injection::Corrupt | Injection::Truncate => {
@@ -403,9 +497,13 @@ impl FirmwareController {
             }
         }
     }
+
+    fn reset(&mut self, p2: f32, lp: f32) -> Result<Result<(), Refusal>, PilError> {
+        Ok(reset(self, p2, lp)?)
+    }
 }
 
-impl ValveController for FirmwareController {
+impl<T: LoopTarget> ValveController for FirmwareController<T> {
     fn period(&self) -> f64 {
         self.period
     }
@@ -427,7 +525,7 @@ impl ValveController for FirmwareController {
             frame: f,
         };
         if self.error.is_none() {
-            match self.exchange(f, inj) {
+            match self.q.exchange(f, inj) {
                 Ok(Some(FromFirmware::Output {
                     estimate,
                     command,
@@ -453,9 +551,14 @@ impl ValveController for FirmwareController {
                 }
             }
             if let Injection::HpWireBreakAndReset(p2) | Injection::HostReset(p2) = inj {
-                match reset(&mut self.q, p2, 8.0) {
+                match self.q.reset(p2, 8.0) {
                     Ok(r) => row.reset_reply = Some(r),
-                    Err(source) => self.error = Some(PilError::Reset { t, source }),
+                    Err(e) => {
+                        self.error = Some(PilError::Reset {
+                            t,
+                            source: Box::new(e),
+                        })
+                    }
                 }
             }
         }
@@ -505,6 +608,39 @@ pub fn closed_loop(
         return Err(e);
     }
     Ok((ctrl.q, res, ctrl.rows))
+}
+
+/// [`closed_loop`] on [`HostFirmware`] with `model` instead of the QEMU firmware: the plant's
+/// trace and every step, the same rows bit for bit, at a small part of the cost (no QEMU, no
+/// link). For the runs that compare a configuration with another and need only what the
+/// controller computes.
+pub fn host_closed_loop(
+    bench: &Bench,
+    model: &ModelConfig,
+    mode: Mode,
+    p2_start: f64,
+    duration: f64,
+    spec: SensorSpec,
+    inject: Box<dyn Fn(f64) -> Injection>,
+) -> Result<(SimResult, Vec<PilRow>), PilError> {
+    use crate::validation::closed_loop::{LOOP_LP_START_BAR, test3_like_loop};
+    let dt_log2 = ModelConfig::reference().dt_log2;
+    let (res, ctrl) = test3_like_loop(bench, p2_start, duration, |prep| {
+        let target = HostFirmware::new(
+            model,
+            (p2_start as f32, LOOP_LP_START_BAR as f32),
+            mode,
+            (
+                crate::validation::duty_mask(&prep.on_duty),
+                prep.config as u8,
+            ),
+        )?;
+        FirmwareController::new(target, dt_log2, spec, 11, inject)
+    })?;
+    if let Some(e) = ctrl.error {
+        return Err(e);
+    }
+    Ok((res, ctrl.rows))
 }
 
 /// The scheduler mode of a fixed aperture, %.

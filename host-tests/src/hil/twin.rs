@@ -179,7 +179,7 @@ pub fn run_campaign(
         ctrl.end_on_duty = None;
         (ctrl, _, _) = phase(ctrl, &held.plant, state, FINAL_HOLD_S, index, false)?;
     }
-    Ok((ctrl.into_qemu(), phases))
+    Ok((ctrl.into_target(), phases))
 }
 
 /// Segment `index`'s plant with the lever held (between segments) at 0°, where each segment's

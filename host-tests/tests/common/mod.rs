@@ -117,6 +117,35 @@ pub fn check_run(
     (q, rows)
 }
 
+/// [`check_run`] on the host copy of the firmware's controller with `model`
+/// ([`pil::host_closed_loop`]: the firmware's rows bit for bit, `firmware_pil` checks it), for
+/// a configuration's figure that needs no twin.
+pub fn host_check_run(
+    model: &pto_model::ModelConfig,
+    plant: &Bench,
+    p2_start: f64,
+    check_s: f64,
+    wire_break_s: f64,
+) -> Vec<PilRow> {
+    let (_, rows) = pil::host_closed_loop(
+        plant,
+        model,
+        pil::fixed(0.0),
+        p2_start,
+        check_s,
+        SensorSpec::default(),
+        Box::new(move |t| {
+            if t >= wire_break_s {
+                Injection::HpWireBreak
+            } else {
+                Injection::None
+            }
+        }),
+    )
+    .expect("check run on the host");
+    rows
+}
+
 /// RMS of the firmware's P2 estimate against the plant from `from_s` on (while the estimate
 /// runs on the model), bar.
 pub fn model_only_rms_bar(rows: &[PilRow], from_s: f64) -> f64 {

@@ -87,6 +87,37 @@ fn pil_names_a_stuck_hp_transducer_and_goes_safe() {
     run(pil::check_sensor_fault);
 }
 
+/// The host copy of the firmware's controller ([`pil::host_closed_loop`], on which the twins
+/// measure their built-in configuration's baseline) closes the loop as the firmware does under
+/// QEMU, bit for bit: every step's estimate, command, aperture and dump valve, and so the
+/// plant, over the twins' model-only check (a charge with the valve closed from 64.5 bar, the
+/// HP transducer's wire breaking at 3 s).
+#[test]
+fn the_host_copy_closes_the_loop_as_the_firmware_does() {
+    let _qemu = crate::common::beside_other_qemus();
+    let (p2_start, check_s, wire_break_s) = (64.5, 5.0, 3.0);
+    let plant = Bench::reference();
+    let (q, fw) = crate::common::check_run(boot(), &plant, p2_start, check_s, wire_break_s);
+    finish(q);
+    let builtin = pto_firmware::built_config::model().expect("built-in configuration");
+    let host = crate::common::host_check_run(&builtin, &plant, p2_start, check_s, wire_break_s);
+    let differ = |what: &str, f: &dyn Fn(&PilRow, &PilRow) -> bool| {
+        let n = fw.iter().zip(&host).filter(|(a, b)| !f(a, b)).count();
+        println!("{what}: {n} of {} steps differ", fw.len());
+        n
+    };
+    let n = differ("estimate", &|a, b| a.estimate == b.estimate)
+        + differ("command", &|a, b| a.command == b.command)
+        + differ("aperture", &|a, b| {
+            a.applied.to_bits() == b.applied.to_bits()
+        })
+        + differ("dump valve", &|a, b| a.dump == b.dump)
+        + differ("plant P2", &|a, b| a.p2_bar.to_bits() == b.p2_bar.to_bits());
+    assert_eq!(fw.len(), host.len());
+    assert!(fw.len() >= 5 * 1024 && fw.iter().all(|r| r.estimate.is_some()));
+    assert_eq!(n, 0, "the host copy and the firmware differ");
+}
+
 #[test]
 fn pil_survives_injected_faults() {
     let _qemu = crate::common::beside_other_qemus();
