@@ -438,18 +438,7 @@ async fn control_task(
                 };
                 let o = st.out;
                 if let Some(port) = from {
-                    send(
-                        port,
-                        FromFirmware::Output {
-                            tick: f.tick,
-                            estimate: o.estimate,
-                            command: o.command,
-                            applied: o.applied,
-                            dump: o.dump,
-                            on_duty: o.on_duty,
-                        },
-                    )
-                    .await;
+                    send(port, o.reply(f.tick)).await;
                 }
                 if let Some(t) = st.telemetry {
                     // Never wait for the link: telemetry leaves room in the queue for the

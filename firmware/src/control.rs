@@ -13,7 +13,9 @@ use crate::trip::{TripLatch, TripSample};
 use pto_model::estimator::{self, Estimate, Inputs, State, fault};
 use pto_model::fx::{Aperture, Fx, Pressure, ZERO, clamp, mul_dt};
 use pto_model::protocol::selftest::{InputReport, LoopReport, LoopState, TestDrive};
-use pto_model::protocol::{BoardInfo, SelfTestRefusal, SensorFrame, Status, TripHold};
+use pto_model::protocol::{
+    BoardInfo, FromFirmware, SelfTestRefusal, SensorFrame, Status, TripHold,
+};
 use pto_model::scheduler::{self, Command, Mode, Override, SchedulerCoeffs, SchedulerConfig};
 use pto_model::{Coefficients, ConfigError, ModelConfig, SchedulerState};
 
@@ -114,6 +116,19 @@ pub struct StepOut {
 }
 
 impl StepOut {
+    /// The step's answer to the host whose frame (`tick`) it stepped on.
+    #[inline(always)]
+    pub fn reply(self, tick: u32) -> FromFirmware {
+        FromFirmware::Output {
+            tick,
+            estimate: self.estimate,
+            command: self.command,
+            applied: self.applied,
+            dump: self.dump,
+            on_duty: self.on_duty,
+        }
+    }
+
     /// The outputs to drive.
     pub fn outputs(&self) -> Outputs {
         Outputs {

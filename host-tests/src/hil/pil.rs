@@ -308,15 +308,7 @@ impl LoopTarget for HostFirmware {
         if !c.fresh(f.tick) {
             return Ok(None);
         }
-        let o = c.sample(&f, &mut NoClock);
-        Ok(Some(FromFirmware::Output {
-            tick: f.tick,
-            estimate: o.estimate,
-            command: o.command,
-            applied: o.applied,
-            dump: o.dump,
-            on_duty: o.on_duty,
-        }))
+        Ok(Some(c.sample(&f, &mut NoClock).reply(f.tick)))
     }
 
     fn reset(&mut self, p2: f32, _lp: f32) -> Result<Result<(), Refusal>, PilError> {

@@ -89,6 +89,17 @@ pub fn upload_fitted(out: &str, pty: &std::path::Path) -> (std::path::PathBuf, S
     (model_file, up)
 }
 
+/// The HP transducer's wire broken from `t_s` on.
+fn wire_break_from(t_s: f64) -> Box<dyn Fn(f64) -> Injection> {
+    Box::new(move |t| {
+        if t >= t_s {
+            Injection::HpWireBreak
+        } else {
+            Injection::None
+        }
+    })
+}
+
 /// The model-only check: a charge with the valve closed from `p2_start` bar for `check_s`
 /// seconds, the HP transducer's wire breaking at `wire_break_s`.
 pub fn check_run(
@@ -105,13 +116,7 @@ pub fn check_run(
         p2_start,
         check_s,
         SensorSpec::default(),
-        Box::new(move |t| {
-            if t >= wire_break_s {
-                Injection::HpWireBreak
-            } else {
-                Injection::None
-            }
-        }),
+        wire_break_from(wire_break_s),
     )
     .expect("check run");
     (q, rows)
@@ -134,13 +139,7 @@ pub fn host_check_run(
         p2_start,
         check_s,
         SensorSpec::default(),
-        Box::new(move |t| {
-            if t >= wire_break_s {
-                Injection::HpWireBreak
-            } else {
-                Injection::None
-            }
-        }),
+        wire_break_from(wire_break_s),
     )
     .expect("check run on the host");
     rows
