@@ -27,8 +27,8 @@ impl Drop for Reaped {
 /// of several files in one crate, a campaign's twin reset mid-segment and a self-test went
 /// unanswered). A twin runs alone ([`one_twin`]); the lockstep tests, which wait for each step,
 /// run beside each other ([`beside_other_qemus`]). Under cargo-nextest (`scripts/test`) each
-/// test is a process of its own: `.config/nextest.toml`'s `twins` group keeps the twins one at a
-/// time, each beside at most one other test (2 cores).
+/// test is a process of its own: `.config/nextest.toml`'s `twins` group runs each twin alone
+/// (beside a fit on both cores, a campaign's runner went unanswered for 3 s).
 static TWIN: std::sync::RwLock<()> = std::sync::RwLock::new(());
 
 /// Runs a twin alone for as long as the guard lives (a test that failed holding it passes it
