@@ -616,7 +616,7 @@ pub fn host_closed_loop(
     inject: Box<dyn Fn(f64) -> Injection>,
 ) -> Result<(SimResult, Vec<PilRow>), PilError> {
     use crate::validation::closed_loop::{LOOP_LP_START_BAR, test3_like_loop};
-    let dt_log2 = ModelConfig::reference().dt_log2;
+    let dt_log2 = model.dt_log2;
     let (res, ctrl) = test3_like_loop(bench, p2_start, duration, |prep| {
         let target = HostFirmware::new(
             model,
