@@ -1,10 +1,11 @@
 //! Firmware sessions over the QEMU link: bit-exact replay of model inputs, and the
 //! processor-in-the-loop run where the full simulation is the plant and the firmware, in
 //! lockstep over USART1, is its valve controller (sensor frame out, command back, virtual time =
-//! the tick in the frame).
+//! the tick in the frame). The same closed loop also runs on [`HostFirmware`], the firmware's
+//! controller built for the host, for figures that need only what the controller computes.
 //!
-//! Over 600 lines: the firmware as a valve controller (frames, faults injected) and the
-//! checks of each processor-in-the-loop run, which read its rows.
+//! Over 1 000 lines, one job: the firmware as a valve controller (frames, faults injected, its
+//! QEMU or host target) and the checks of each processor-in-the-loop run, which read its rows.
 
 use crate::hil::qemu::{LinkError, Qemu};
 use crate::sim::bench::{BAR, Bench};
