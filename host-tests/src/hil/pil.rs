@@ -10,10 +10,11 @@
 use crate::hil::qemu::{LinkError, Qemu};
 use crate::sim::bench::{BAR, Bench};
 use crate::sim::plant::Eval;
+use crate::sim::scenario::Prepared;
 use crate::sim::schedule::ValveController;
 use crate::sim::solver::SimResult;
 use crate::sim::trace::Truth;
-use crate::validation::closed_loop::LoopError;
+use crate::validation::closed_loop::{LOOP_LP_START_BAR, LoopError, test3_like_loop};
 use crate::validation::sensors::{Readings, SensorSpec, SensorSynth};
 use pto_firmware::control::{Controller, NoClock};
 use pto_firmware::frontend::{SpecError, Transducer};
@@ -81,7 +82,7 @@ pub enum PilError {
     /// controller refuses.
     #[error("the host copy of the firmware: {0:?}")]
     HostSetup(pto_firmware::control::SetupError),
-    /// An injection on the link (a damaged frame, a burst, a reset) asked of the host copy of
+    /// An injection on the link's bytes (a damaged frame, a burst) asked of the host copy of
     /// the firmware, which has no link.
     #[error("{0:?} needs the firmware's link: the host copy has none")]
     NotOnHost(Injection),
@@ -208,15 +209,11 @@ pub enum Injection {
 }
 
 impl Injection {
-    /// Acts on the link or the firmware's commands, not on the sensor frame.
+    /// Acts on the link's bytes, not on the sensor frame or the firmware's commands.
     fn on_the_link(self) -> bool {
         matches!(
             self,
-            Injection::Corrupt
-                | Injection::Truncate
-                | Injection::Burst(_)
-                | Injection::HpWireBreakAndReset(_)
-                | Injection::HostReset(_)
+            Injection::Corrupt | Injection::Truncate | Injection::Burst(_)
         )
     }
 
@@ -273,7 +270,8 @@ pub trait LoopTarget {
 /// build runs, with the scheduler and control settings it is built with): a closed loop without
 /// QEMU, the firmware's own bit for bit (`twin::firmware_pil`'s
 /// `the_host_copy_closes_the_loop_as_the_firmware_does`) at a small part of its cost. Frame-level
-/// injections only: the link's own (damaged frames, bursts) and resets need the firmware.
+/// injections and resets (the controller's own, as the firmware's session makes them); the
+/// link's bytes (damaged frames, bursts) need the firmware.
 pub struct HostFirmware(Box<Controller>);
 
 impl HostFirmware {
@@ -312,8 +310,11 @@ impl LoopTarget for HostFirmware {
         Ok(Some(c.sample(&f, &mut NoClock).reply(f.tick)))
     }
 
-    fn reset(&mut self, p2: f32, _lp: f32) -> Result<Result<(), Refusal>, PilError> {
-        Err(PilError::NotOnHost(Injection::HostReset(p2)))
+    fn reset(&mut self, p2: f32, lp: f32) -> Result<Result<(), Refusal>, PilError> {
+        Ok(self
+            .0
+            .reset(Pressure::from_num(p2), Pressure::from_num(lp))
+            .map_err(Refusal::TripHeld))
     }
 }
 
@@ -583,24 +584,36 @@ pub fn closed_loop(
     inject: Box<dyn Fn(f64) -> Injection>,
 ) -> Result<LoopRun, PilError> {
     let dt_log2 = pto_model::ModelConfig::reference().dt_log2;
-    let (res, ctrl) =
-        crate::validation::closed_loop::test3_like_loop(bench, p2_start, duration, |prep| {
-            prime(
-                &mut q,
-                p2_start as f32,
-                crate::validation::closed_loop::LOOP_LP_START_BAR as f32,
-                mode,
-            )?;
-            q.link.send(&ToFirmware::SetDuty {
-                on_duty: crate::validation::duty_mask(&prep.on_duty),
-                config: prep.config as u8,
-            })?;
-            FirmwareController::new(q, dt_log2, spec, 11, inject)
+    let (res, ctrl) = loop_on(bench, p2_start, duration, dt_log2, spec, inject, |prep| {
+        prime(&mut q, p2_start as f32, LOOP_LP_START_BAR as f32, mode)?;
+        q.link.send(&ToFirmware::SetDuty {
+            on_duty: crate::validation::duty_mask(&prep.on_duty),
+            config: prep.config as u8,
         })?;
-    if let Some(e) = ctrl.error {
-        return Err(e);
-    }
+        Ok(q)
+    })?;
     Ok((ctrl.q, res, ctrl.rows))
+}
+
+/// The Test III-like closed loop on the target `make` gives for the run (primed: reset to
+/// `p2_start` and the loop's LP, its mode, the run's solenoids), steps of 2^−dt_log2 s; the first
+/// failed step is the error.
+fn loop_on<T: LoopTarget + 'static>(
+    bench: &Bench,
+    p2_start: f64,
+    duration: f64,
+    dt_log2: u8,
+    spec: SensorSpec,
+    inject: Box<dyn Fn(f64) -> Injection>,
+    make: impl FnOnce(&Prepared) -> Result<T, PilError>,
+) -> Result<(SimResult, FirmwareController<T>), PilError> {
+    let (res, mut ctrl) = test3_like_loop(bench, p2_start, duration, |prep| {
+        FirmwareController::new(make(prep)?, dt_log2, spec, 11, inject)
+    })?;
+    match ctrl.error.take() {
+        Some(e) => Err(e),
+        None => Ok((res, ctrl)),
+    }
 }
 
 /// [`closed_loop`] on [`HostFirmware`] with `model` instead of the QEMU firmware: the plant's
@@ -616,23 +629,25 @@ pub fn host_closed_loop(
     spec: SensorSpec,
     inject: Box<dyn Fn(f64) -> Injection>,
 ) -> Result<(SimResult, Vec<PilRow>), PilError> {
-    use crate::validation::closed_loop::{LOOP_LP_START_BAR, test3_like_loop};
-    let dt_log2 = model.dt_log2;
-    let (res, ctrl) = test3_like_loop(bench, p2_start, duration, |prep| {
-        let target = HostFirmware::new(
-            model,
-            (p2_start as f32, LOOP_LP_START_BAR as f32),
-            mode,
-            (
-                crate::validation::duty_mask(&prep.on_duty),
-                prep.config as u8,
-            ),
-        )?;
-        FirmwareController::new(target, dt_log2, spec, 11, inject)
-    })?;
-    if let Some(e) = ctrl.error {
-        return Err(e);
-    }
+    let (res, ctrl) = loop_on(
+        bench,
+        p2_start,
+        duration,
+        model.dt_log2,
+        spec,
+        inject,
+        |prep| {
+            HostFirmware::new(
+                model,
+                (p2_start as f32, LOOP_LP_START_BAR as f32),
+                mode,
+                (
+                    crate::validation::duty_mask(&prep.on_duty),
+                    prep.config as u8,
+                ),
+            )
+        },
+    )?;
     Ok((res, ctrl.rows))
 }
 
