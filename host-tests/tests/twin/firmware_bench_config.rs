@@ -50,7 +50,7 @@ fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
     let mut buf = [0u8; CONFIG_MAX_BYTES];
     let fingerprint = config_fingerprint(encode_config(&cfg, &mut buf).unwrap());
 
-    let elf = build::build_for_bench(Build::Qemu, &path, &dir.join("target")).unwrap();
+    let elf = build::build_for_bench(Build::Qemu, &path, &dir).unwrap();
     let mut q = Qemu::boot(&elf, false).unwrap();
     let k = cfg.coefficients().unwrap();
     let mode = Mode::HoldPressure(Pressure::from_num(golden::SETPOINT_BAR));
@@ -108,7 +108,7 @@ fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
         bench_with("trapped_air_fraction = 0.06", "trapped_air_fraction = 0.9"),
     )
     .unwrap();
-    let err = build::build_for_bench(Build::Qemu, &bad, &dir.join("target"))
+    let err = build::build_for_bench(Build::Qemu, &bad, &dir)
         .expect_err("an out-of-range bench does not build");
     let text = format!("{err:#}");
     println!("{text}");
@@ -116,7 +116,7 @@ fn firmware_built_for_a_bench_file_runs_that_bench_s_configuration() {
     assert!(text.contains("oil.trapped_air_fraction"), "{text}");
     // The same for the controller's settings.
     std::fs::write(&bad, bench_with("shunt_ohm = 150.0", "shunt_ohm = 1500.0")).unwrap();
-    let err = build::build_for_bench(Build::Qemu, &bad, &dir.join("target"))
+    let err = build::build_for_bench(Build::Qemu, &bad, &dir)
         .expect_err("an out-of-range controller section does not build");
     let text = format!("{err:#}");
     println!("{text}");

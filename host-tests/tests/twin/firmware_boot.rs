@@ -74,3 +74,31 @@ fn pto_qemu_runs_a_firmware_elf_it_is_given() {
     let hello = crate::common::field(&String::from_utf8_lossy(&out.stdout), "/hello/firmware");
     assert_eq!(hello.as_u64(), Some(u64::from(pto_firmware::VERSION)));
 }
+
+/// Both builds share one target directory (`target/fw`), where cargo leaves the last build's
+/// ELF at one path: asked for at once, from two threads, each caller still gets its own build
+/// (the QEMU one names its board; the bench one does not).
+#[test]
+fn the_two_builds_asked_for_at_once_each_get_their_own_elf() {
+    let bench = std::thread::spawn(|| build::build(Build::Bench).expect("the bench build"));
+    let qemu = build::build(Build::Qemu).expect("the QEMU build");
+    let bench = bench.join().expect("the bench build's thread");
+    let board = pto_firmware::QEMU_BOARD.as_bytes();
+    let names_board = |p: &std::path::Path| {
+        std::fs::read(p)
+            .unwrap()
+            .windows(board.len())
+            .any(|w| w == board)
+    };
+    assert_ne!(qemu, bench);
+    assert!(
+        names_board(&qemu),
+        "{} is not the QEMU build",
+        qemu.display()
+    );
+    assert!(
+        !names_board(&bench),
+        "{} is the QEMU build, not the bench's",
+        bench.display()
+    );
+}
