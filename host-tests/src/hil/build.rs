@@ -222,9 +222,9 @@ fn fw_dir(root: &Path) -> PathBuf {
 }
 
 /// Builds the firmware for the bench file `bench` (`PTO_BENCH`, see `pto_firmware::built_config`)
-/// and returns its ELF, `pto-firmware-<build>.elf` in `out_dir` (not cached: each call runs
-/// cargo, which rebuilds only what changed: the firmware crate, whose build script reads the
-/// file, and its link). A bench the model cannot take fails the build; the error's tail carries
+/// and returns its ELF, `pto-firmware-<build>.elf` in `out_dir` (removed first; not cached: each
+/// call runs cargo, which rebuilds only what changed: the firmware crate, whose build script
+/// reads the file, and its link; the next default build of the same variant rebuilds it back). A bench the model cannot take fails the build; the error's tail carries
 /// the build script's message (file, field, range).
 pub fn build_for_bench(which: Build, bench: &Path, out_dir: &Path) -> Result<PathBuf, BuildError> {
     std::fs::create_dir_all(out_dir).map_err(|e| BuildError::Output {
@@ -232,6 +232,15 @@ pub fn build_for_bench(which: Build, bench: &Path, out_dir: &Path) -> Result<Pat
         source: Arc::new(e),
     })?;
     let elf = out_dir.join(format!("pto-firmware-{}.elf", which.name()));
+    // An earlier bench's ELF is not left behind where this build fails.
+    if let Err(e) = std::fs::remove_file(&elf)
+        && e.kind() != std::io::ErrorKind::NotFound
+    {
+        return Err(BuildError::Output {
+            path: elf.display().to_string(),
+            source: Arc::new(e),
+        });
+    }
     build_into(which, Some(bench), &elf)
 }
 

@@ -80,6 +80,9 @@ fn pto_qemu_runs_a_firmware_elf_it_is_given() {
 /// (the QEMU one names its board; the bench one does not).
 #[test]
 fn the_two_builds_asked_for_at_once_each_get_their_own_elf() {
+    // Under `cargo test`, not beside a twin (a fat-LTO build beside one is what nextest's
+    // `twins` group keeps apart too).
+    let _qemu = crate::common::beside_other_qemus();
     let bench = std::thread::spawn(|| build::build(Build::Bench).expect("the bench build"));
     let qemu = build::build(Build::Qemu).expect("the QEMU build");
     let bench = bench.join().expect("the bench build's thread");
