@@ -2,8 +2,9 @@
 //! bench build, for the reference bench or for a bench file (`PTO_BENCH`).
 //!
 //! Every build shares one target directory, `target/fw` (the thumb dependencies and the host's
-//! proc macros compiled once for all of them: three target directories cost a fresh clone's
-//! tests ≈ 270 s of CPU, one ≈ 150 s), and runs under a lock of its own, `target/fw/build.lock`,
+//! proc macros compiled once for all of them: a fresh build of the QEMU and the bench variant,
+//! each in a directory of its own, cost 84 and 103 s of CPU), and runs under a lock of its own,
+//! `target/fw/build.lock`,
 //! held across processes (the tests run in several) until its ELF is copied out of cargo's
 //! output, where the next build of another kind would overwrite it: `target/fw/qemu.elf`,
 //! `target/fw/bench.elf`, or the folder a bench file's build is given.
@@ -171,14 +172,28 @@ fn given_elf(path: &Path) -> Result<PathBuf, BuildError> {
     if !bytes.starts_with(b"\x7fELF") {
         return Err(bad("not an ELF file".into()));
     }
-    let board = pto_firmware::QEMU_BOARD.as_bytes();
-    if !bytes.windows(board.len()).any(|w| w == board) {
+    if !is_qemu_build(&bytes) {
         return Err(bad(format!(
             "not the QEMU build (no `{}` in it: a bench build?)",
             pto_firmware::QEMU_BOARD
         )));
     }
     Ok(path.to_path_buf())
+}
+
+/// Whether a firmware image is the QEMU build: its board's name is in it (a bench build's is not).
+pub fn is_qemu_build(elf: &[u8]) -> bool {
+    let board = pto_firmware::QEMU_BOARD.as_bytes();
+    elf.windows(board.len()).any(|w| w == board)
+}
+
+/// The error of an I/O step of a build on `path` (its folder, lock or ELF).
+fn output_error(path: &Path) -> impl FnOnce(std::io::Error) -> BuildError {
+    let path = path.display().to_string();
+    move |e| BuildError::Output {
+        path,
+        source: Arc::new(e),
+    }
 }
 
 static BUILT: [OnceLock<Result<PathBuf, BuildError>>; 2] = [OnceLock::new(), OnceLock::new()];
@@ -224,22 +239,17 @@ fn fw_dir(root: &Path) -> PathBuf {
 /// Builds the firmware for the bench file `bench` (`PTO_BENCH`, see `pto_firmware::built_config`)
 /// and returns its ELF, `pto-firmware-<build>.elf` in `out_dir` (removed first; not cached: each
 /// call runs cargo, which rebuilds only what changed: the firmware crate, whose build script
-/// reads the file, and its link; the next default build of the same variant rebuilds it back). A bench the model cannot take fails the build; the error's tail carries
-/// the build script's message (file, field, range).
+/// reads the file, and its link; the next default build of the same variant rebuilds it back).
+/// A bench the model cannot take fails the build; the error's tail carries the build script's
+/// message (file, field, range).
 pub fn build_for_bench(which: Build, bench: &Path, out_dir: &Path) -> Result<PathBuf, BuildError> {
-    std::fs::create_dir_all(out_dir).map_err(|e| BuildError::Output {
-        path: out_dir.display().to_string(),
-        source: Arc::new(e),
-    })?;
+    std::fs::create_dir_all(out_dir).map_err(output_error(out_dir))?;
     let elf = out_dir.join(format!("pto-firmware-{}.elf", which.name()));
     // An earlier bench's ELF is not left behind where this build fails.
     if let Err(e) = std::fs::remove_file(&elf)
         && e.kind() != std::io::ErrorKind::NotFound
     {
-        return Err(BuildError::Output {
-            path: elf.display().to_string(),
-            source: Arc::new(e),
-        });
+        return Err(output_error(&elf)(e));
     }
     build_into(which, Some(bench), &elf)
 }
@@ -249,18 +259,11 @@ pub fn build_for_bench(which: Build, bench: &Path, out_dir: &Path) -> Result<Pat
 fn build_into(which: Build, bench: Option<&Path>, elf: &Path) -> Result<PathBuf, BuildError> {
     let root = workspace_root("building the firmware")?;
     let target_dir = fw_dir(&root);
-    let io = |path: &Path| {
-        let path = path.display().to_string();
-        move |e: std::io::Error| BuildError::Output {
-            path,
-            source: Arc::new(e),
-        }
-    };
-    std::fs::create_dir_all(&target_dir).map_err(io(&target_dir))?;
+    std::fs::create_dir_all(&target_dir).map_err(output_error(&target_dir))?;
     let lock_path = target_dir.join("build.lock");
-    let lock = std::fs::File::create(&lock_path).map_err(io(&lock_path))?;
+    let lock = std::fs::File::create(&lock_path).map_err(output_error(&lock_path))?;
     // Released when `lock` is dropped (and by the OS if this process dies).
-    lock.lock().map_err(io(&lock_path))?;
+    lock.lock().map_err(output_error(&lock_path))?;
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let mut cmd = Command::new(cargo);
     cmd.current_dir(&root).args([
@@ -297,8 +300,8 @@ fn build_into(which: Build, bench: Option<&Path>, elf: &Path) -> Result<PathBuf,
         .join("firmware")
         .join("pto-firmware");
     let part = elf.with_extension("elf.part");
-    std::fs::copy(&built, &part).map_err(io(&built))?;
-    std::fs::rename(&part, elf).map_err(io(elf))?;
+    std::fs::copy(&built, &part).map_err(output_error(&built))?;
+    std::fs::rename(&part, elf).map_err(output_error(elf))?;
     drop(lock);
     Ok(elf.to_path_buf())
 }

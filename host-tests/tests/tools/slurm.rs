@@ -220,8 +220,10 @@ impl Cluster {
     /// The tail of every daemon log and job output, for a failure's message.
     fn logs(&self) -> String {
         let mut all = String::new();
-        let folders = std::iter::once(self.dir.join("log")).chain(self.submitted_from.clone());
-        for d in folders {
+        // The daemons' folder (every file in it), then each submitting folder's job outputs.
+        let folders = std::iter::once((self.dir.join("log"), true))
+            .chain(self.submitted_from.iter().map(|d| (d.clone(), false)));
+        for (d, daemon_log) in folders {
             let Ok(entries) = std::fs::read_dir(&d) else {
                 continue;
             };
@@ -232,7 +234,6 @@ impl Cluster {
                     .unwrap_or_default()
                     .to_string_lossy()
                     .into_owned();
-                let daemon_log = d == self.dir.join("log");
                 if p.is_file() && (daemon_log || name.starts_with("slurm-")) {
                     let text = std::fs::read_to_string(&p).unwrap_or_default();
                     let tail: Vec<&str> = text.lines().rev().take(15).collect();

@@ -86,13 +86,7 @@ fn the_two_builds_asked_for_at_once_each_get_their_own_elf() {
     let bench = std::thread::spawn(|| build::build(Build::Bench).expect("the bench build"));
     let qemu = build::build(Build::Qemu).expect("the QEMU build");
     let bench = bench.join().expect("the bench build's thread");
-    let board = pto_firmware::QEMU_BOARD.as_bytes();
-    let names_board = |p: &std::path::Path| {
-        std::fs::read(p)
-            .unwrap()
-            .windows(board.len())
-            .any(|w| w == board)
-    };
+    let names_board = |p: &std::path::Path| build::is_qemu_build(&std::fs::read(p).unwrap());
     assert_ne!(qemu, bench);
     assert!(
         names_board(&qemu),
