@@ -47,7 +47,7 @@ const P_ATM_BAR: f32 = 1.01325;
 
 /// Everything the step functions read: the configuration turned into fixed-point constants
 /// and tables, one struct per stage of the step (`estimator::step`).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct Coefficients {
     /// dt = 2^−dt_log2 s.
     pub dt_log2: u8,
@@ -238,39 +238,49 @@ impl ModelConfig {
         steady_flow_k(self.valve_k(a), self.motor_bar_per_lpm(), dp)
     }
 
-    /// Turns the validated configuration into coefficients, stage by stage. Each stage's builder
-    /// (`TrackerCoeffs::of`, …) is out of line like this one: inlined here, the compiler kept
-    /// the generic table samplers out of line instead, and the bench image grew by 1.2 KB
-    /// (out of line, 0.3 KB, and the set-up 1 500 instructions shorter; `pto fw-cost`).
-    #[inline(never)]
+    /// Turns the validated configuration into coefficients ([`ModelConfig::coefficients_into`]
+    /// on a zeroed set).
     pub fn coefficients(&self) -> Result<Coefficients, ConfigError> {
+        let mut k = Coefficients::default();
+        self.coefficients_into(&mut k)?;
+        Ok(k)
+    }
+
+    /// Validates the configuration and builds its coefficients into `k`, stage by stage, each
+    /// stage's builder writing its part in place: the stack holds one stage's work at a time,
+    /// not a second set of tables (≈ 11 KB; a Cortex-M0 built the whole set by value in
+    /// 17.8 KB of stack, `pto model-cost`). A configuration that fails validation leaves `k`
+    /// as it was. Each stage's builder (`TrackerCoeffs::of`, …) is out of line like this one:
+    /// inlined here, the compiler kept the generic table samplers out of line instead, and the
+    /// bench image grew by 1.2 KB (out of line, 0.3 KB, and the set-up 1 500 instructions
+    /// shorter; `pto fw-cost`).
+    #[inline(never)]
+    pub fn coefficients_into(&self, k: &mut Coefficients) -> Result<(), ConfigError> {
         self.validate()?;
-        let k = self.dt_log2;
-        let dt = powf(2.0, -f32::from(k));
-        let autonomy = self.autonomy_table();
+        let dt_log2 = self.dt_log2;
+        let dt = powf(2.0, -f32::from(dt_log2));
         let inductance = self.motor_inductance();
-        Ok(Coefficients {
-            dt_log2: k,
-            tracker: TrackerCoeffs::of(self, k, dt),
-            pump: PumpCoeffs::of(self),
-            branch: BranchCoeffs::of(self, dt, inductance),
-            reading: ReadingCoeffs::of(self, dt, inductance),
-            observer: ObserverCoeffs::of(self, dt),
-            autonomy,
-            mean_gain: fx(dt / 10.0).max(Fx::DELTA),
-            motor_max_rpm: fx(self.motor_sensor_max_rpm),
-            trip_bar: fx(self.trip_bar),
-            hp_empty_below_bar: fx(self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar),
-            residual_p2_range: (
-                fx(self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar + 2.0),
-                fx(self.relief_setting_bar - 2.0),
-            ),
-            stuck_low_inflow: fx(60.0
-                * (acc_fluid(
-                    &self.hp_accumulator,
-                    self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar + 2.0,
-                ) + 0.01 * self.hp_accumulator.volume_l)),
-        })
+        k.dt_log2 = dt_log2;
+        k.tracker = TrackerCoeffs::of(self, dt_log2, dt);
+        k.pump.build(self);
+        k.branch.build(self, dt, inductance);
+        k.reading = ReadingCoeffs::of(self, dt, inductance);
+        k.observer = ObserverCoeffs::of(self, dt);
+        self.autonomy_table_into(&mut k.autonomy);
+        k.mean_gain = fx(dt / 10.0).max(Fx::DELTA);
+        k.motor_max_rpm = fx(self.motor_sensor_max_rpm);
+        k.trip_bar = fx(self.trip_bar);
+        k.hp_empty_below_bar = fx(self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar);
+        k.residual_p2_range = (
+            fx(self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar + 2.0),
+            fx(self.relief_setting_bar - 2.0),
+        );
+        k.stuck_low_inflow = fx(60.0
+            * (acc_fluid(
+                &self.hp_accumulator,
+                self.hp_accumulator.precharge_bar + self.hp_empty_margin_bar + 2.0,
+            ) + 0.01 * self.hp_accumulator.volume_l));
+        Ok(())
     }
 }
 

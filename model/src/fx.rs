@@ -147,6 +147,152 @@ pub fn shr64(x: i64, n: u32) -> i64 {
     (i64::from(hi.wrapping_shr(n)) << 32) | i64::from(lo)
 }
 
+/// The exact products of two 32-bit words, the forms the per-step path uses.
+///
+/// A Cortex-M4 forms a 32 × 32 → 64 product in one instruction (`smull`/`umull`); a Cortex-M0
+/// (ARMv6-M) has only `MULS`, 32 × 32 → 32, so the compiler calls the generic 64 × 64
+/// `__aeabi_lmul` (≈ 40 instructions) for every `i64` product. Where the target lacks the long
+/// multiply (`cfg(no_long_multiply)`, set by the build script) these take the product from four
+/// 16 × 16 → 32 partial products inline, and a Q16.16 product known to fit 32 bits in 32-bit
+/// arithmetic only; elsewhere they are the plain widening product. Both forms are exact, so
+/// every target gets the same bits: the partial-product forms (`*_halves`) are compiled on the
+/// host too and property-tested there against the exact product
+/// (`wide_products_are_the_exact_products`). Measured on the Cortex-M0 (docs/model.md): the
+/// worst step 7 262 → 5 153 instructions; two other forms (carries in 32-bit adds, ⌊ab/2¹⁶⌋
+/// without the 64-bit shift) compiled longer.
+pub mod wide {
+    /// A word's low half (unsigned) and its high half (signed).
+    #[inline(always)]
+    fn halves(a: i32) -> (u32, i32) {
+        ((a as u32) & 0xffff, a >> 16)
+    }
+
+    /// `a·b` from partial products: a = aₕ·2¹⁶ + aₗ, b likewise; each product of halves
+    /// fits 32 bits (|aₕ·bₗ| ≤ 2¹⁵·(2¹⁶ − 1) < 2³¹), the sum is the exact `i64`.
+    #[inline(always)]
+    pub fn mul_halves(a: i32, b: i32) -> i64 {
+        let ((al, ah), (bl, bh)) = (halves(a), halves(b));
+        let mid = i64::from(ah * bl as i32) + i64::from(al as i32 * bh);
+        ((i64::from(ah * bh) << 32) | i64::from(al * bl)) + (mid << 16)
+    }
+
+    /// `a·b` for an unsigned `b`, from partial products.
+    #[inline(always)]
+    pub fn mul_su_halves(a: i32, b: u32) -> i64 {
+        let (al, ah) = halves(a);
+        let (bl, bh) = (b & 0xffff, b >> 16);
+        let mid = i64::from(ah * bl as i32) + i64::from(al * bh);
+        ((i64::from(ah * bh as i32) << 32) | i64::from(al * bl)) + (mid << 16)
+    }
+
+    /// `a·b` for unsigned words, from partial products.
+    #[inline(always)]
+    pub fn mul_uu_halves(a: u32, b: u32) -> u64 {
+        let (al, ah, bl, bh) = (a & 0xffff, a >> 16, b & 0xffff, b >> 16);
+        let mid = u64::from(ah * bl) + u64::from(al * bh);
+        ((u64::from(ah * bh) << 32) | u64::from(al * bl)) + (mid << 16)
+    }
+
+    /// ⌊a·b / 2¹⁶⌋ from partial products (the exact product shifted: summing the partial
+    /// products at 2¹⁶ instead compiled ≈ 5 instructions longer a product on ARMv6-M).
+    #[inline(always)]
+    pub fn mul_q16_halves(a: i32, b: i32) -> i64 {
+        mul_halves(a, b) >> 16
+    }
+
+    /// The low 32 bits of ⌊a·b / 2¹⁶⌋ from partial products, in 32-bit arithmetic: the whole
+    /// result when it is known to fit an `i32`.
+    #[inline(always)]
+    pub fn mul_q16_low_halves(a: i32, b: i32) -> i32 {
+        let ((al, ah), (bl, bh)) = (halves(a), halves(b));
+        (ah * bh)
+            .wrapping_shl(16)
+            .wrapping_add(ah * bl as i32)
+            .wrapping_add(al as i32 * bh)
+            .wrapping_add(((al * bl) >> 16) as i32)
+    }
+
+    /// `p` held to the `i32` range.
+    #[inline(always)]
+    pub fn saturate(p: i64) -> i32 {
+        let r = p as i32;
+        if i64::from(r) == p {
+            r
+        } else {
+            ((p >> 63) as i32) ^ i32::MAX
+        }
+    }
+
+    /// `a·b`, exact.
+    #[inline(always)]
+    pub fn mul(a: i32, b: i32) -> i64 {
+        if cfg!(no_long_multiply) {
+            mul_halves(a, b)
+        } else {
+            i64::from(a) * i64::from(b)
+        }
+    }
+
+    /// `a·b` for an unsigned `b`, exact.
+    #[inline(always)]
+    pub fn mul_su(a: i32, b: u32) -> i64 {
+        if cfg!(no_long_multiply) {
+            mul_su_halves(a, b)
+        } else {
+            i64::from(a) * i64::from(b)
+        }
+    }
+
+    /// `a·b` for unsigned words, exact.
+    #[inline(always)]
+    pub fn mul_uu(a: u32, b: u32) -> u64 {
+        if cfg!(no_long_multiply) {
+            mul_uu_halves(a, b)
+        } else {
+            u64::from(a) * u64::from(b)
+        }
+    }
+
+    /// ⌊a·b / 2¹⁶⌋, exact.
+    #[inline(always)]
+    pub fn mul_q16(a: i32, b: i32) -> i64 {
+        if cfg!(no_long_multiply) {
+            mul_q16_halves(a, b)
+        } else {
+            (i64::from(a) * i64::from(b)) >> 16
+        }
+    }
+
+    /// ⌊a·b / 2¹⁶⌋ for a product known to fit an `i32` after the shift (else its low 32 bits).
+    #[inline(always)]
+    pub fn mul_q16_low(a: i32, b: i32) -> i32 {
+        if cfg!(no_long_multiply) {
+            mul_q16_low_halves(a, b)
+        } else {
+            ((i64::from(a) * i64::from(b)) >> 16) as i32
+        }
+    }
+
+    /// The low 64 bits of `x·c` (the whole product where it fits an `i64`), from two word
+    /// products: x = xₕ·2³² + xₗ.
+    #[inline(always)]
+    pub fn mul_i64_i32(x: i64, c: i32) -> i64 {
+        if cfg!(no_long_multiply) {
+            mul_i64_i32_halves(x, c)
+        } else {
+            x.wrapping_mul(i64::from(c))
+        }
+    }
+
+    /// [`mul_i64_i32`] from two word products: the low word's exact product and the high
+    /// word's low 32 bits.
+    #[inline(always)]
+    pub fn mul_i64_i32_halves(x: i64, c: i32) -> i64 {
+        let (xh, xl) = ((x >> 32) as i32, x as u32);
+        mul_su_halves(c, xl).wrapping_add(i64::from(xh.wrapping_mul(c)) << 32)
+    }
+}
+
 /// The saturating Q16.16 product used in the per-step path.
 ///
 /// `fixed`'s `saturating_mul` widens both operands to `i64` and runs a generic overflow-checked
@@ -164,6 +310,13 @@ pub trait QMul {
 impl QMul for Fx {
     #[inline(always)]
     fn qmul(self, rhs: Fx) -> Fx {
+        if cfg!(no_long_multiply) {
+            // ⌊p / 2¹⁶⌋ from partial products, then the plain range check.
+            return Fx::from_bits(wide::saturate(wide::mul_q16_halves(
+                self.to_bits(),
+                rhs.to_bits(),
+            )));
+        }
         let p = i64::from(self.to_bits()) * i64::from(rhs.to_bits());
         let r = (p >> 16) as i32;
         // In range iff bits 63..31 of the shifted product all equal its sign bit, i.e. bits
@@ -182,6 +335,12 @@ impl QMul for Fx {
 /// line: called twice a step, and on a Cortex-M0 its 64-bit product is long.
 #[inline(never)]
 pub fn mul_q24(a: Fx, b_q24: i32) -> Fx {
+    if cfg!(no_long_multiply) {
+        // ⌊⌊p / 2¹⁶⌋ / 2⁸⌋ = ⌊p / 2²⁴⌋.
+        return Fx::from_bits(wide::saturate(
+            wide::mul_q16_halves(a.to_bits(), b_q24) >> 8,
+        ));
+    }
     let p = i64::from(a.to_bits()) * i64::from(b_q24);
     let r = (p >> 24) as i32;
     if (p >> 55) as i32 == r >> 31 {
@@ -197,7 +356,7 @@ pub fn mul_q24(a: Fx, b_q24: i32) -> Fx {
 /// [0, 1] by the configuration.
 #[inline(always)]
 pub fn mul_frac(f: Fx, x: Fx) -> Fx {
-    Fx::from_bits(((i64::from(f.to_bits()) * i64::from(x.to_bits())) >> 16) as i32)
+    Fx::from_bits(wide::mul_q16_low(f.to_bits(), x.to_bits()))
 }
 
 /// `a × b` floored to Q16.16, for operands whose product is known to lie well inside the
@@ -208,12 +367,14 @@ pub fn mul_frac(f: Fx, x: Fx) -> Fx {
 /// bound (`debug_assert`); the release code is the bare product.
 #[inline(always)]
 pub fn mul_bounded(a: Fx, b: Fx) -> Fx {
-    let p = (i64::from(a.to_bits()) * i64::from(b.to_bits())) >> 16;
     debug_assert!(
-        p == i64::from(p as i32),
+        {
+            let p = (i64::from(a.to_bits()) * i64::from(b.to_bits())) >> 16;
+            p == i64::from(p as i32)
+        },
         "mul_bounded out of range: {a} × {b}"
     );
-    Fx::from_bits(p as i32)
+    Fx::from_bits(wide::mul_q16_low(a.to_bits(), b.to_bits()))
 }
 
 /// Saturating clamp to [lo, hi].
@@ -243,7 +404,7 @@ pub fn recip(x: Fx) -> Fx {
     let n = 31 - bits.leading_zeros() as i32; // top bit index, 1..=30
     // Q2.30, in [2^30, 2^31): fits an i32, so every product below is one `smull`.
     let m = bits << (30 - n);
-    let mul30 = |a: i32, b: i32| ((i64::from(a) * i64::from(b)) >> 30) as i32;
+    let mul30 = |a: i32, b: i32| (wide::mul(a, b) >> 30) as i32;
     // 1/m ≈ 24/17 − 8/17·m on [1, 2) (the classic 48/17 − 32/17·d on d = m/2), in Q2.30: y in
     // (2^29, 2^30 + 2^26], m·y within 1/17 of 2^30, 2 − m·y below 2^31: all i32.
     let mut y = 1_515_870_810 - mul30(m, 505_290_270);
@@ -391,6 +552,61 @@ mod q24_tests {
             let exact = (i128::from(a) * i128::from(b)) >> 24;
             let want = exact.clamp(i128::from(i32::MIN), i128::from(i32::MAX)) as i32;
             prop_assert_eq!(mul_q24(Fx::from_bits(a), b).to_bits(), want);
+        }
+    }
+}
+
+#[cfg(test)]
+mod wide_tests {
+    use super::wide::*;
+    use super::*;
+    use proptest::prelude::*;
+
+    /// Words that reach every partial product's extremes, and random ones.
+    fn word() -> impl Strategy<Value = i32> {
+        prop_oneof![
+            prop::sample::select(vec![
+                i32::MIN,
+                i32::MIN + 1,
+                -65_537,
+                -65_536,
+                -32_768,
+                -1,
+                0,
+                1,
+                32_767,
+                65_535,
+                65_536,
+                i32::MAX
+            ]),
+            any::<i32>()
+        ]
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(20_000))]
+        /// The Cortex-M0 forms (partial products) are the exact products, and the Q16.16
+        /// product and `mul_q24` built from them saturate to the bits of the Cortex-M4's.
+        #[test]
+        fn wide_products_are_the_exact_products(a in word(), b in word(), w in any::<i64>()) {
+            let exact = i128::from(a) * i128::from(b);
+            prop_assert_eq!(i128::from(mul_halves(a, b)), exact);
+            prop_assert_eq!(i128::from(mul_su_halves(a, b as u32)), i128::from(a) * i128::from(b as u32));
+            prop_assert_eq!(
+                i128::from(mul_uu_halves(a as u32, b as u32)),
+                i128::from(a as u32) * i128::from(b as u32)
+            );
+            prop_assert_eq!(i128::from(mul_q16_halves(a, b)), exact >> 16);
+            prop_assert_eq!(mul_q16_low_halves(a, b), (exact >> 16) as i32);
+            let (x, y) = (Fx::from_bits(a), Fx::from_bits(b));
+            prop_assert_eq!(saturate(mul_q16_halves(a, b)), x.saturating_mul(y).to_bits());
+            prop_assert_eq!(saturate(mul_q16_halves(a, b) >> 8), mul_q24(x, b).to_bits());
+            prop_assert_eq!(mul_i64_i32(w, b), (i128::from(w) * i128::from(b)) as i64);
+            prop_assert_eq!(mul_i64_i32_halves(w, b), (i128::from(w) * i128::from(b)) as i64);
+            // Each dispatching form equals its exact value on this target too.
+            prop_assert_eq!(i128::from(mul(a, b)), exact);
+            prop_assert_eq!(i128::from(mul_q16(a, b)), exact >> 16);
+            prop_assert_eq!(mul_q16_low(a, b), (exact >> 16) as i32);
         }
     }
 }

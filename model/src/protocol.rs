@@ -60,6 +60,7 @@ mod config;
 mod frame;
 mod messages;
 pub mod selftest;
+pub mod vectors;
 
 pub use board::*;
 pub use config::*;

@@ -4,7 +4,7 @@
 //! subtraction, a multiplication and a truncation. Outside the grid the end segments are held
 //! (clamped), never extrapolated.
 
-use crate::fx::{Fx, ONE, QMul, ZERO, mul_frac, recip};
+use crate::fx::{Fx, ONE, QMul, ZERO, mul_frac, recip, wide};
 
 /// Locates `x` on a grid: (index of the lower node, fraction in [0, 1]).
 ///
@@ -21,7 +21,7 @@ fn locate(x: Fx, x0: Fx, inv_dx: Fx, n: usize) -> (usize, Fx) {
     // cold panic call had LLVM build it on that path only (a cold non-panicking call in its
     // place did not remove the checks).
     let dx = x.saturating_sub(x0).max(ZERO).to_bits() as u32;
-    let p = u64::from(dx) * u64::from(inv_dx.to_bits() as u32);
+    let p = wide::mul_uu(dx, inv_dx.to_bits() as u32);
     let i = (p >> 32) as u32;
     if i > (n - 2) as u32 {
         return (n - 2, ONE);
@@ -62,6 +62,17 @@ pub struct Table1<const N: usize> {
     pub y: [Fx; N],
 }
 
+/// All zeros: a table to build into ([`crate::ModelConfig::coefficients_into`]).
+impl<const N: usize> Default for Table1<N> {
+    fn default() -> Self {
+        Table1 {
+            x0: ZERO,
+            inv_dx: ZERO,
+            y: [ZERO; N],
+        }
+    }
+}
+
 impl<const N: usize> Table1<N> {
     /// Node spacing of a table over [x0, x1].
     pub fn spacing(x0: f32, x1: f32) -> f32 {
@@ -70,16 +81,19 @@ impl<const N: usize> Table1<N> {
 
     /// Builds a table by sampling `f` on [x0, x1] (configuration time).
     pub fn sample(x0: f32, x1: f32, f: impl Fn(f32) -> f32) -> Self {
+        let mut t = Self::default();
+        t.sample_into(x0, x1, f);
+        t
+    }
+
+    /// [`Table1::sample`] into this table, in place.
+    pub fn sample_into(&mut self, x0: f32, x1: f32, f: impl Fn(f32) -> f32) {
         let dx = Self::spacing(x0, x1);
-        let mut y = [ZERO; N];
-        for (i, v) in y.iter_mut().enumerate() {
+        for (i, v) in self.y.iter_mut().enumerate() {
             *v = Fx::saturating_from_num(f(x0 + dx * i as f32));
         }
-        Table1 {
-            x0: Fx::saturating_from_num(x0),
-            inv_dx: Fx::saturating_from_num(1.0 / dx),
-            y,
-        }
+        self.x0 = Fx::saturating_from_num(x0);
+        self.inv_dx = Fx::saturating_from_num(1.0 / dx);
     }
 
     /// Interpolated value at `x`. Out of line: it is called from ~20 places per step, and
@@ -97,8 +111,7 @@ impl<const N: usize> Table1<N> {
     pub fn at_ext(&self, x: Fx) -> i64 {
         let (i, f) = locate(x, self.x0, self.inv_dx, N);
         let (a, b) = (self.y[i], self.y[i + 1]);
-        (i64::from(a.to_bits()) << 16)
-            + i64::from(f.to_bits()) * i64::from(b.saturating_sub(a).to_bits())
+        (i64::from(a.to_bits()) << 16) + wide::mul(f.to_bits(), b.saturating_sub(a).to_bits())
     }
 
     /// Interpolated value at `x` given to 2^−32 (its Q16.16 value and the 16 bits below, as
@@ -114,11 +127,11 @@ impl<const N: usize> Table1<N> {
     pub fn at_q32(&self, x: Fx, lo: u16) -> i64 {
         let dx = x.saturating_sub(self.x0);
         // Unsigned, as in `locate`: the position is ≥ 0, so the index is known to be in range.
-        let inv = u64::from(self.inv_dx.to_bits() as u32);
+        let inv = self.inv_dx.to_bits() as u32;
         let p = if dx < ZERO {
             0
         } else {
-            u64::from(dx.to_bits() as u32) * inv + ((u64::from(lo) * inv) >> 16)
+            wide::mul_uu(dx.to_bits() as u32, inv) + (wide::mul_uu(u32::from(lo), inv) >> 16)
         };
         if (p >> 32) > (N - 2) as u64 {
             return i64::from(self.y[N - 1].to_bits()) << 16;
@@ -126,7 +139,7 @@ impl<const N: usize> Table1<N> {
         let i = (p >> 32) as usize;
         let (a, b) = (self.y[i], self.y[i + 1]);
         (i64::from(a.to_bits()) << 16)
-            + ((i64::from(p as u32) * i64::from(b.saturating_sub(a).to_bits())) >> 16)
+            + (wide::mul_su(b.saturating_sub(a).to_bits(), p as u32) >> 16)
     }
 
     /// The same table interpolated in f64 (exact fraction and products; see [`locate_f64`]).
@@ -152,11 +165,32 @@ pub struct Table2<const R: usize, const C: usize> {
     pub y: [[Fx; C]; R],
 }
 
+/// All zeros: a table to build into ([`crate::ModelConfig::coefficients_into`]).
+impl<const R: usize, const C: usize> Default for Table2<R, C> {
+    fn default() -> Self {
+        Table2 {
+            r0: ZERO,
+            dr: ZERO,
+            inv_dr: ZERO,
+            c0: ZERO,
+            inv_dc: ZERO,
+            y: [[ZERO; C]; R],
+        }
+    }
+}
+
 impl<const R: usize, const C: usize> Table2<R, C> {
     /// Builds a table by sampling `f(r, c)` on [r0, r1] × [c0, c1] (configuration time).
     pub fn sample(r: (f32, f32), c: (f32, f32), f: impl Fn(f32, f32) -> f32) -> Self {
+        let mut t = Self::default();
+        t.sample_into(r, c, f);
+        t
+    }
+
+    /// [`Table2::sample`] into this table, in place.
+    pub fn sample_into(&mut self, r: (f32, f32), c: (f32, f32), f: impl Fn(f32, f32) -> f32) {
         let dc = (c.1 - c.0) / (C - 1) as f32;
-        Self::sample_rows(r, c, |x, row| {
+        self.sample_rows_into(r, c, |x, row| {
             for (j, v) in row.iter_mut().enumerate() {
                 *v = f(x, c.0 + dc * j as f32);
             }
@@ -166,29 +200,33 @@ impl<const R: usize, const C: usize> Table2<R, C> {
     /// Builds a table a row at a time: `row(r, values)` fills the row at `r` (values start at
     /// 0), for a function whose values along a row are best worked out together (configuration
     /// time).
-    pub fn sample_rows(
+    pub fn sample_rows(r: (f32, f32), c: (f32, f32), row: impl FnMut(f32, &mut [f32; C])) -> Self {
+        let mut t = Self::default();
+        t.sample_rows_into(r, c, row);
+        t
+    }
+
+    /// [`Table2::sample_rows`] into this table, in place (one row's values on the stack).
+    pub fn sample_rows_into(
+        &mut self,
         r: (f32, f32),
         c: (f32, f32),
         mut row: impl FnMut(f32, &mut [f32; C]),
-    ) -> Self {
+    ) {
         let dr = (r.1 - r.0) / (R - 1) as f32;
         let dc = (c.1 - c.0) / (C - 1) as f32;
-        let mut y = [[ZERO; C]; R];
-        for (i, out) in y.iter_mut().enumerate() {
+        for (i, out) in self.y.iter_mut().enumerate() {
             let mut values = [0.0f32; C];
             row(r.0 + dr * i as f32, &mut values);
             for (o, v) in out.iter_mut().zip(values) {
                 *o = Fx::saturating_from_num(v);
             }
         }
-        Table2 {
-            r0: Fx::saturating_from_num(r.0),
-            dr: Fx::saturating_from_num(dr),
-            inv_dr: Fx::saturating_from_num(1.0 / dr),
-            c0: Fx::saturating_from_num(c.0),
-            inv_dc: Fx::saturating_from_num(1.0 / dc),
-            y,
-        }
+        self.r0 = Fx::saturating_from_num(r.0);
+        self.dr = Fx::saturating_from_num(dr);
+        self.inv_dr = Fx::saturating_from_num(1.0 / dr);
+        self.c0 = Fx::saturating_from_num(c.0);
+        self.inv_dc = Fx::saturating_from_num(1.0 / dc);
     }
 
     /// Bilinear interpolation at (r, c) (out of line, like [`Table1::at`]).

@@ -273,12 +273,19 @@ pub(crate) fn model_cost_cmd(a: &ModelCostArgs) -> Result<bool> {
             cost.coefficient_bytes
         );
         for c in &cost.code {
+            let budget = if c.target.starts_with("thumbv7em") {
+                format!(
+                    "target ≤ {} B",
+                    pto_host::validation::cost::target::FLASH_BYTES
+                )
+            } else {
+                "no target: reported".to_string()
+            };
             println!(
-                "{:<24} per-step code {:>6} B (target ≤ {} B): {} functions, {} B of code, the \
+                "{:<24} per-step code {:>6} B ({budget}): {} functions, {} B of code, the \
                  rest constants; whole crate .text {:>6} B, .rodata {:>5} B",
                 c.target,
                 c.step_code_bytes,
-                pto_host::validation::cost::target::FLASH_BYTES,
                 c.step_functions,
                 c.step_text_bytes,
                 c.text_bytes,
@@ -298,6 +305,42 @@ pub(crate) fn model_cost_cmd(a: &ModelCostArgs) -> Result<bool> {
                 println!("  MISSED: the step can panic: {}", c.step_panics.join(", "));
             }
         }
+        use pto_host::validation::cost::target as t;
+        let m = &cost.m0;
+        let verdict = |ok: bool| if ok { "met" } else { "MISSED" };
+        println!(
+            "Cortex-M0 (QEMU microbit), every step bit for bit the host's; coefficients {} B built \
+             on it in {:.1} M instructions with {} B of stack (target ≤ {} B): {}",
+            m.coefficient_bytes,
+            m.build_instructions as f64 / 1e6,
+            m.build_stack_bytes,
+            t::M0_BUILD_STACK_BYTES,
+            verdict(m.build_stack_met)
+        );
+        for r in &m.runs {
+            println!(
+                "  {:<34} {:>5} steps: instructions mean {:>5.0} max {:>5}; cycles mean {:>5.0} \
+                 max {:>5} ({:.2} % of a {:.0} Hz loop at {:.0} MHz)",
+                r.label,
+                r.steps,
+                r.instructions_mean,
+                r.instructions_max,
+                r.cycles_mean,
+                r.cycles_max,
+                r.core_percent_max,
+                t::M0_LOOP_HZ,
+                t::M0_CLOCK_HZ / 1e6
+            );
+        }
+        println!(
+            "  worst step {} instructions (target ≤ {}): {}; {:.2} % of the core (target ≤ {} %): {}",
+            m.step_instructions_max,
+            t::M0_STEP_INSTRUCTIONS,
+            verdict(m.instructions_met),
+            m.core_percent_max,
+            t::M0_CORE_PERCENT,
+            verdict(m.core_met)
+        );
     }
     Ok(cost.pass)
 }

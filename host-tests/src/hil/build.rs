@@ -1,5 +1,6 @@
 //! Building the firmware from the host (inside `cargo test` too): the QEMU build and the
-//! bench build, for the reference bench or for a bench file (`PTO_BENCH`).
+//! bench build, for the reference bench or for a bench file (`PTO_BENCH`), and the model's
+//! Cortex-M0 replay binary (`pto-m0`, `thumbv6m-none-eabi`).
 //!
 //! Every build shares one target directory, `target/fw` (the thumb dependencies and the host's
 //! proc macros compiled once for all of them: a fresh build of the QEMU and the bench variant,
@@ -7,7 +8,7 @@
 //! `target/fw/build.lock`,
 //! held across processes (the tests run in several) until its ELF is copied out of cargo's
 //! output, where the next build of another kind would overwrite it: `target/fw/qemu.elf`,
-//! `target/fw/bench.elf`, or the folder a bench file's build is given.
+//! `target/fw/bench.elf`, `target/fw/m0.elf`, or the folder a bench file's build is given.
 //!
 //! The sources are the workspace `pto` was compiled in, unless the command line says otherwise
 //! ([`use_sources`]): a `pto` installed with `cargo install --path host-tests` runs the QEMU
@@ -70,12 +71,14 @@ pub enum BuildError {
     /// The build failed (the last 30 lines of its output kept).
     #[error(
         "firmware build ({build}) failed (is the target installed? `rustup target add \
-         thumbv7em-none-eabihf`; for a bench file, the build script's `error:` line says which \
+         {target}`; for a bench file, the build script's `error:` line says which \
          field):\n{tail}"
     )]
     Failed {
         /// Which build.
         build: &'static str,
+        /// Its target triple.
+        target: &'static str,
         /// The end of cargo's error output.
         tail: String,
     },
@@ -88,6 +91,8 @@ pub enum Build {
     Qemu,
     /// Real bench board (`--no-default-features --features bench`); built, never run here.
     Bench,
+    /// The model alone on a Cortex-M0 (`pto-m0`, QEMU `microbit`).
+    M0,
 }
 
 impl Build {
@@ -96,6 +101,15 @@ impl Build {
         match self {
             Build::Qemu => "qemu",
             Build::Bench => "bench",
+            Build::M0 => "m0",
+        }
+    }
+
+    /// Its manifest (from the workspace root), package (= binary) and target triple.
+    fn package(self) -> (&'static str, &'static str, &'static str) {
+        match self {
+            Build::Qemu | Build::Bench => ("Cargo.toml", "pto-firmware", "thumbv7em-none-eabihf"),
+            Build::M0 => ("firmware/m0/Cargo.toml", "pto-m0", "thumbv6m-none-eabi"),
         }
     }
 }
@@ -196,11 +210,12 @@ fn output_error(path: &Path) -> impl FnOnce(std::io::Error) -> BuildError {
     }
 }
 
-static BUILT: [OnceLock<Result<PathBuf, BuildError>>; 2] = [OnceLock::new(), OnceLock::new()];
+static BUILT: [OnceLock<Result<PathBuf, BuildError>>; 3] =
+    [OnceLock::new(), OnceLock::new(), OnceLock::new()];
 
 /// The firmware's ELF: for the QEMU build, the `--elf` file when one was given; otherwise
-/// built (profile `firmware`, `thumbv7em-none-eabihf`, in `target/fw` so that it can run
-/// inside `cargo test`) once per process.
+/// built (profile `firmware`, `thumbv7em-none-eabihf` or for the M0 `thumbv6m-none-eabi`, in
+/// `target/fw` so that it can run inside `cargo test`) once per process.
 pub fn build(which: Build) -> Result<PathBuf, BuildError> {
     if let (Build::Qemu, Some(elf)) = (which, &sources().elf) {
         return given_elf(elf);
@@ -214,6 +229,7 @@ fn build_uncached(which: Build) -> Result<PathBuf, BuildError> {
     let root = workspace_root(match which {
         Build::Qemu => "the QEMU firmware",
         Build::Bench => "the bench firmware",
+        Build::M0 => "the Cortex-M0 replay",
     })
     .map_err(|e| match e {
         BuildError::NoWorkspace { what, compiled, .. } if which == Build::Qemu => {
@@ -266,14 +282,17 @@ fn build_into(which: Build, bench: Option<&Path>, elf: &Path) -> Result<PathBuf,
     lock.lock().map_err(output_error(&lock_path))?;
     let cargo = std::env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     let mut cmd = Command::new(cargo);
+    let (manifest, package, target) = which.package();
     cmd.current_dir(&root).args([
         "build",
+        "--manifest-path",
+        manifest,
         "--profile",
         "firmware",
         "-p",
-        "pto-firmware",
+        package,
         "--target",
-        "thumbv7em-none-eabihf",
+        target,
         "--target-dir",
     ]);
     cmd.arg(&target_dir);
@@ -292,13 +311,11 @@ fn build_into(which: Build, bench: Option<&Path>, elf: &Path) -> Result<PathBuf,
         let tail: Vec<&str> = err.lines().rev().take(30).collect();
         return Err(BuildError::Failed {
             build: which.name(),
+            target,
             tail: tail.into_iter().rev().collect::<Vec<_>>().join("\n"),
         });
     }
-    let built = target_dir
-        .join("thumbv7em-none-eabihf")
-        .join("firmware")
-        .join("pto-firmware");
+    let built = target_dir.join(target).join("firmware").join(package);
     let part = elf.with_extension("elf.part");
     std::fs::copy(&built, &part).map_err(output_error(&built))?;
     std::fs::rename(&part, elf).map_err(output_error(elf))?;

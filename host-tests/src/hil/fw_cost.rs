@@ -80,8 +80,9 @@ pub mod target {
     pub const SETUP_INSTRUCTIONS: u32 = pto_model::protocol::TABLE_BUILD_MAX_INSTRUCTIONS;
 }
 
-/// Start of the four-cylinder window in the torque run, s.
-const FOUR_CYLINDER_START_S: f64 = 20.0;
+/// The four-cylinder window: the torque run of Config 1, 6 s from 20 s (it reverses every
+/// 5 s), in steps of 2^−10 s. Its scenario, start and steps.
+pub const FOUR_CYLINDER_WINDOW: (&str, f64, usize) = ("torque-cfg1-c1234", 20.0, 6 * 1024);
 
 /// Step cost in one scheduler mode.
 #[derive(Debug, Clone, Serialize)]
@@ -254,11 +255,12 @@ fn hold_p2() -> Mode {
 
 /// The four-cylinder window of the torque run (Config 1) and its start pressures.
 fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
+    let (name, start, steps) = FOUR_CYLINDER_WINDOW;
     golden::clean_inputs(
         &crate::sim::bench::Bench::reference(),
-        "torque-cfg1-c1234",
-        Some(FOUR_CYLINDER_START_S),
-        6 * 1024,
+        name,
+        Some(start),
+        steps,
     )
 }
 

@@ -382,9 +382,17 @@ impl Qemu {
     }
 }
 
+/// Puts a QEMU child started elsewhere (in its own process group) on the interrupt handler's
+/// list; [`forget`] takes it off once reaped.
+pub(crate) fn track(pid: u32) {
+    if let Ok(mut r) = RUNNING.lock() {
+        r.push((pid, PathBuf::new()));
+    }
+}
+
 /// Takes a child off the interrupt handler's list (it has been or is being reaped: its pid may
 /// be reused).
-fn forget(pid: u32) {
+pub(crate) fn forget(pid: u32) {
     if let Ok(mut r) = RUNNING.lock() {
         r.retain(|(p, _)| *p != pid);
     }

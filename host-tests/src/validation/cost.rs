@@ -1,6 +1,8 @@
-//! Cost of the fixed-point model: host nanoseconds per estimator + scheduler step, and code size
-//! of `pto-model` for both thumb targets: the `.text` of its release rlib, and the per-step
-//! code as the call graph of the step's entry points over the ELF objects' relocations.
+//! Cost of the fixed-point model: host nanoseconds per estimator + scheduler step, code size
+//! of `pto-model` for both thumb targets (the `.text` of its release rlib, and the per-step
+//! code as the call graph of the step's entry points over the ELF objects' relocations), and
+//! the model run on a Cortex-M0 under QEMU (`hil::m0`): its instructions and cycles per step,
+//! the coefficients' build.
 
 use super::{inputs, model_config};
 use crate::sim::bench::Bench;
@@ -70,6 +72,9 @@ pub enum CostError {
     /// The reference configuration has no coefficients.
     #[error(transparent)]
     Config(#[from] ConfigError),
+    /// The Cortex-M0 replay could not run.
+    #[error("the Cortex-M0 replay (QEMU microbit)")]
+    M0(#[from] crate::hil::m0::M0Error),
 }
 
 /// Targets of the model-crate issue, the code's raised to 9 KiB for the sensor-fault checks and
@@ -79,6 +84,138 @@ pub mod target {
     pub const FLASH_BYTES: u64 = 9 * 1024;
     /// Estimator + scheduler state, bytes.
     pub const STATE_BYTES: usize = 1024;
+    /// Instructions of the worst step on a Cortex-M0 (the Cortex-M0 issue).
+    pub const M0_STEP_INSTRUCTIONS: u32 = 4000;
+    /// The Cortex-M0+ clock the core share is worked out at, Hz.
+    pub const M0_CLOCK_HZ: f64 = 48e6;
+    /// The control loop's rate, Hz.
+    pub const M0_LOOP_HZ: f64 = 1000.0;
+    /// Share of that core the worst step may take, %.
+    pub const M0_CORE_PERCENT: f64 = 15.0;
+    /// Stack the coefficients' build may take on the M0, bytes.
+    pub const M0_BUILD_STACK_BYTES: u32 = 8 * 1024;
+}
+
+/// One run of the model on the Cortex-M0.
+#[derive(Debug, Clone, Serialize)]
+pub struct M0Run {
+    /// The run.
+    pub label: String,
+    /// Steps, every one bit for bit the host's.
+    pub steps: u32,
+    /// Instructions per step of the step's code (entry to return), mean.
+    pub instructions_mean: f64,
+    /// Their maximum.
+    pub instructions_max: u32,
+    /// Cortex-M0+ cycles per step, mean (`hil::thumb`'s table).
+    pub cycles_mean: f64,
+    /// Their maximum.
+    pub cycles_max: u32,
+    /// The worst step's share of the core at [`target::M0_CLOCK_HZ`] and
+    /// [`target::M0_LOOP_HZ`], %.
+    pub core_percent_max: f64,
+    /// The timer's count around the call in the replay loop, mean and maximum (the step plus
+    /// the call's set-up; a cross-check of the trace).
+    pub timer_instructions: (f64, u32),
+}
+
+/// The model on a Cortex-M0 (`pto-m0` under QEMU `microbit`).
+#[derive(Debug, Clone, Serialize)]
+pub struct M0Cost {
+    /// How it is measured.
+    pub method: &'static str,
+    /// The golden vectors and the four-cylinder window, with and without the HP transducer.
+    pub runs: Vec<M0Run>,
+    /// Coefficient bytes (built on the M0 from the uploaded configuration's bytes).
+    pub coefficient_bytes: u32,
+    /// Instructions of that build (soft float).
+    pub build_instructions: u64,
+    /// Stack the build took, bytes.
+    pub build_stack_bytes: u32,
+    /// Worst step's instructions, over the runs.
+    pub step_instructions_max: u32,
+    /// Worst step's share of the core, %.
+    pub core_percent_max: f64,
+    /// Step instructions within [`target::M0_STEP_INSTRUCTIONS`].
+    pub instructions_met: bool,
+    /// Core share within [`target::M0_CORE_PERCENT`].
+    pub core_met: bool,
+    /// Build stack within [`target::M0_BUILD_STACK_BYTES`].
+    pub build_stack_met: bool,
+}
+
+/// How [`M0Cost`] is counted (also in the JSON).
+const M0_METHOD: &str = "pto-m0 (firmware/m0) replays the vectors under QEMU -M microbit \
+    (Cortex-M0) and checks every output against the host model's; instructions and Cortex-M0+ \
+    cycles per step from QEMU's log of the step's code (-d exec,nochain, filtered to the step's \
+    call graph, each block decoded from the ELF; cycles by the Cortex-M0+ TRM's table, single-cycle \
+    multiplier, no wait states); the timer count (-icount shift=10, TIMER0) cross-checks it";
+
+/// Replays the golden vectors and the four-cylinder window (with and without the HP transducer)
+/// on the Cortex-M0 and measures them.
+pub fn m0_cost() -> Result<M0Cost, CostError> {
+    use crate::hil::m0;
+    let workspace = crate::hil::build::workspace_root("the Cortex-M0 replay")
+        .map_err(crate::hil::m0::M0Error::from)?;
+    let mut runs = vec![m0::golden_run(&workspace)?];
+    runs.extend(m0::four_cylinder_runs()?);
+    let dir = std::env::temp_dir().join(format!("pto-model-cost-m0-{}", std::process::id()));
+    let result = (|| {
+        let r = m0::replay(&runs, &dir)?;
+        if r.exit != 0 || r.runs.len() != runs.len() {
+            return Err(m0::M0Error::Failed {
+                exit: r.exit,
+                why: r
+                    .failure
+                    .clone()
+                    .unwrap_or_else(|| "a run did not report".into()),
+                output: r.output,
+            });
+        }
+        let elf = crate::hil::build::build(crate::hil::build::Build::M0)?;
+        let v = m0::vectors(&pto_model::ModelConfig::reference(), &runs)?;
+        let cycles = m0::cycles(&elf, &v, &runs, &dir, m0::Trace::Blocks)?;
+        Ok((r, cycles))
+    })();
+    let _ = std::fs::remove_dir_all(&dir);
+    let (r, cycles) = result?;
+    let per_loop = target::M0_CLOCK_HZ / target::M0_LOOP_HZ;
+    let runs: Vec<M0Run> = r
+        .runs
+        .iter()
+        .zip(&cycles)
+        .map(|(t, c)| M0Run {
+            label: c.label.clone(),
+            steps: c.steps,
+            instructions_mean: c.instructions_mean,
+            instructions_max: c.instructions_max,
+            cycles_mean: c.cycles_mean,
+            cycles_max: c.cycles_max,
+            core_percent_max: 100.0 * f64::from(c.cycles_max) / per_loop,
+            timer_instructions: (t.mean, t.max),
+        })
+        .collect();
+    let missing = |what| crate::hil::m0::M0Error::Report {
+        what,
+        output: r.output.clone(),
+    };
+    let step_instructions_max = runs.iter().map(|r| r.instructions_max).max().unwrap_or(0);
+    let core_percent_max = runs.iter().map(|r| r.core_percent_max).fold(0.0, f64::max);
+    let build_stack_bytes = r.build_stack_bytes.ok_or_else(|| missing("coefficients"))?;
+    Ok(M0Cost {
+        method: M0_METHOD,
+        coefficient_bytes: r.coefficient_bytes.ok_or_else(|| missing("coefficients"))?,
+        build_instructions: r
+            .build_instructions
+            .ok_or_else(|| missing("coefficients"))?,
+        build_stack_bytes,
+        step_instructions_max,
+        core_percent_max,
+        instructions_met: step_instructions_max <= target::M0_STEP_INSTRUCTIONS,
+        core_met: core_percent_max <= target::M0_CORE_PERCENT,
+        build_stack_met: build_stack_bytes <= target::M0_BUILD_STACK_BYTES,
+        runs,
+    })
 }
 
 /// One target's code size.
@@ -123,6 +260,8 @@ pub struct Cost {
     pub coefficient_bytes: usize,
     /// Code sizes.
     pub code: Vec<CodeSize>,
+    /// The model on a Cortex-M0.
+    pub m0: M0Cost,
     /// Targets met.
     pub pass: bool,
 }
@@ -475,9 +614,14 @@ pub fn measure(workspace: &Path) -> Result<Cost, CostError> {
         code.push(code_size(workspace, t)?);
     }
     let state_bytes = std::mem::size_of::<State>() + std::mem::size_of::<SchedulerState>();
-    // The flash target is the bench MCU's (Cortex-M4F); thumbv6m is reported for the record.
-    // No target's step may reach a panic.
+    let m0 = m0_cost()?;
+    // The flash target is the bench MCU's (Cortex-M4F); thumbv6m's is reported for the record.
+    // No target's step may reach a panic. The M0's step, core share and build stack have
+    // targets of their own.
     let pass = state_bytes <= target::STATE_BYTES
+        && m0.instructions_met
+        && m0.core_met
+        && m0.build_stack_met
         && code.iter().all(|c| c.step_panics.is_empty())
         && code
             .iter()
@@ -488,6 +632,7 @@ pub fn measure(workspace: &Path) -> Result<Cost, CostError> {
         state_bytes,
         coefficient_bytes: std::mem::size_of_val(&k),
         code,
+        m0,
         pass,
     })
 }

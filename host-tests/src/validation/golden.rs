@@ -13,7 +13,8 @@ use crate::sim::trace::truth_at;
 use crate::validation::sensors::{Readings, SensorSpec, SensorSynth};
 use pto_model::estimator::{self, Estimate, Inputs, State};
 use pto_model::fx::{Aperture, Pressure, Rpm};
-use pto_model::scheduler::{self, Command, Mode, Override, SchedulerConfig, SchedulerState};
+use pto_model::protocol::vectors::checked_words;
+use pto_model::scheduler::{self, Command, Mode, SchedulerConfig, SchedulerState};
 use pto_model::{Coefficients, ConfigError, ModelConfig};
 use std::fmt::Write as _;
 use std::path::Path;
@@ -196,9 +197,11 @@ pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) 
         Pressure::from_num(lp).to_bits()
     );
     for (i, (inp, (e, c))) in inputs.iter().zip(out).enumerate() {
+        // The outputs as the Cortex-M0 replay checks them (the same words, in this order).
+        let outputs: Vec<String> = checked_words(e, c).iter().map(i32::to_string).collect();
         let _ = writeln!(
             s,
-            "{i},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{i},{},{},{},{},{},{},{},{}",
             opt(inp.encoder),
             opt(inp.hp.map(|p| p.to_bits())),
             opt(inp.lp.map(|p| p.to_bits())),
@@ -206,25 +209,7 @@ pub fn to_csv(inputs: &[Inputs], out: &[(Estimate, Command)], p2: f32, lp: f32) 
             inp.aperture_cmd.to_bits(),
             inp.on_duty,
             inp.config,
-            e.p2.to_bits(),
-            e.p2_var.to_bits(),
-            e.lp.to_bits(),
-            e.q_pump.to_bits(),
-            e.q_valve.to_bits(),
-            e.q_relief.to_bits(),
-            e.hydraulic_power().to_bits(),
-            e.torque.to_bits(),
-            e.motor_rpm.to_bits(),
-            e.autonomy.to_bits(),
-            e.aperture.to_bits(),
-            e.faults,
-            u8::from(e.hp_empty),
-            c.aperture.to_bits(),
-            match c.safety {
-                Override::None => 0,
-                Override::Overpressure => 1,
-                Override::SensorFault => 2,
-            }
+            outputs.join(",")
         );
     }
     s
@@ -284,4 +269,18 @@ pub fn parse(text: &str) -> Result<(i32, i32, Vec<Inputs>), GoldenError> {
 /// (a test keeps it equal to `model::model_config` of the reference bench).
 pub fn coefficients() -> Result<Coefficients, GoldenError> {
     Ok(ModelConfig::reference().coefficients()?)
+}
+
+#[cfg(test)]
+mod tests {
+    /// The file's output columns are the words the Cortex-M0 replay checks, in their order.
+    #[test]
+    fn the_output_columns_are_the_checked_words() {
+        let names = pto_model::protocol::vectors::CHECKED.join(",");
+        assert!(
+            super::HEADER.ends_with(&format!(",{names}")),
+            "{}",
+            super::HEADER
+        );
+    }
 }

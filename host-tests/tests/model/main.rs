@@ -4,6 +4,7 @@
 #[path = "../common/mod.rs"]
 mod common;
 mod golden_vectors;
+mod m0;
 mod model_config;
 mod model_cost;
 mod model_validation;

@@ -37,7 +37,8 @@ impl ModelConfig {
     /// was up to 1.2 % off; this takes one evaluation of Q per Gauss node and row.
     /// Hand-written rather than a quadrature crate's: `no_std`, no heap, f32, and a fixed
     /// cost the firmware's boot budget can count on.
-    pub(super) fn autonomy_table(&self) -> Table2<N_APERTURE, N_PRESSURE> {
+    #[inline(never)]
+    pub(super) fn autonomy_table_into(&self, table: &mut Table2<N_APERTURE, N_PRESSURE>) {
         let lp = self.nominal_lp_bar;
         let pc = self.hp_accumulator.precharge_bar;
         let dc = Table1::<N_PRESSURE>::spacing(0.0, P_MAX_BAR);
@@ -53,7 +54,7 @@ impl ModelConfig {
         }
         let beta = self.motor_bar_per_lpm();
         let q_min = self.autonomy_min_rpm / self.rpm_per_lpm();
-        Table2::sample_rows((0.0, 100.0), (0.0, P_MAX_BAR), |a, row| {
+        table.sample_rows_into((0.0, 100.0), (0.0, P_MAX_BAR), |a, row| {
             let k = self.valve_k(a);
             if k <= 0.0 {
                 return;

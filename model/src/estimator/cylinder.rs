@@ -6,7 +6,7 @@ use crate::coeffs::{ARM_RANGE_RAD, N_NODE, P_MAX_BAR, arm_m, ext_mm, fx, modulus
 use crate::config::ModelConfig;
 
 /// Per-cylinder constants.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct CylinderCoeffs {
     /// ±1.
     pub side: Fx,
@@ -32,7 +32,7 @@ pub struct CylinderCoeffs {
 
 /// The cylinders stage's coefficients (`estimator::cylinder`): per cylinder, the lever
 /// geometry's tables and the oil's strain law in the chambers.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct PumpCoeffs {
     /// Cylinders.
     pub cyl: [CylinderCoeffs; 4],
@@ -55,11 +55,11 @@ pub struct PumpCoeffs {
 }
 
 impl PumpCoeffs {
-    /// The cylinders' coefficients for `cfg`: their areas and volumes, the lever's arm and
-    /// extension tables per geometry, the oil's strain tables.
+    /// The cylinders' coefficients for `cfg`, built into `self` in place: their areas and
+    /// volumes, the lever's arm and extension tables per geometry, the oil's strain tables.
     #[inline(never)]
-    pub(crate) fn of(cfg: &ModelConfig) -> PumpCoeffs {
-        let cyl = core::array::from_fn(|i| {
+    pub(crate) fn build(&mut self, cfg: &ModelConfig) {
+        self.cyl = core::array::from_fn(|i| {
             let c = &cfg.cylinders[i];
             let a_cap = core::f32::consts::PI / 4.0 * c.bore_mm * c.bore_mm * 1e-6;
             let a_ann = a_cap - core::f32::consts::PI / 4.0 * c.rod_mm * c.rod_mm * 1e-6;
@@ -77,18 +77,15 @@ impl PumpCoeffs {
             }
         });
         let stroke = cfg.cylinders[0].stroke_mm;
-        let arm = core::array::from_fn(|g| {
+        for (g, (arm, ext)) in self.arm.iter_mut().zip(&mut self.ext).enumerate() {
             let geo = cfg.geometries[g];
-            Table1::sample(-ARM_RANGE_RAD, ARM_RANGE_RAD, move |th| {
+            arm.sample_into(-ARM_RANGE_RAD, ARM_RANGE_RAD, move |th| {
                 1e3 * arm_m(&geo, stroke, th)
-            })
-        });
-        let ext = core::array::from_fn(|g| {
-            let geo = cfg.geometries[g];
-            Table1::sample(-ARM_RANGE_RAD, ARM_RANGE_RAD, move |th| {
+            });
+            ext.sample_into(-ARM_RANGE_RAD, ARM_RANGE_RAD, move |th| {
                 ext_mm(&geo, stroke, th)
-            })
-        });
+            });
+        }
         // Milli-strain on a fine pressure grid (0.25 bar, accumulated once), then both tables
         // by linear interpolation of it: the strain law is monotone, so its inverse is too.
         const FINE: usize = 641;
@@ -108,18 +105,11 @@ impl PumpCoeffs {
             let (a, b) = (fine[i - 1], fine[i]);
             step * ((i - 1) as f32 + ((ms - a) / (b - a)).clamp(0.0, 1.0))
         };
-        let ms_of_p = Table1::sample(0.0, P_MAX_BAR, ms_at);
-        let p_of_ms = Table1::sample(0.0, fine[FINE - 1], p_at);
-        PumpCoeffs {
-            cyl,
-            arm,
-            ext,
-            ms_of_p,
-            p_of_ms,
-            play_mm: fx(cfg.free_play_mm),
-            seal_kn_per_mm_s: fx(cfg.seal_friction_n_s_per_m * 1e-6),
-            check_drop_bar: fx(cfg.check_valve_drop_bar),
-        }
+        self.ms_of_p.sample_into(0.0, P_MAX_BAR, ms_at);
+        self.p_of_ms.sample_into(0.0, fine[FINE - 1], p_at);
+        self.play_mm = fx(cfg.free_play_mm);
+        self.seal_kn_per_mm_s = fx(cfg.seal_friction_n_s_per_m * 1e-6);
+        self.check_drop_bar = fx(cfg.check_valve_drop_bar);
     }
 }
 
@@ -145,9 +135,9 @@ pub(super) fn p_at_strain(k: &PumpCoeffs, ms: Fx, lo: Fx, hi: Fx) -> Fx {
 /// division: the Q32.32 product times 2^32/1000 (relative error 7e-8), saturated.
 #[inline]
 pub(super) fn ms_times_mm(a: Fx, b: Fx) -> Fx {
-    let p = (i64::from(a.to_bits()) * i64::from(b.to_bits())) >> 16; // Q16.16, |p| < 2^47
+    let p = wide::mul_q16(a.to_bits(), b.to_bits()); // Q16.16, |p| < 2^47
     let p = p.clamp(-(1i64 << 31), 1i64 << 31);
-    Fx::from_bits(((p * 4_294_967 + (1i64 << 31)) >> 32) as i32)
+    Fx::from_bits(((wide::mul_i64_i32(p, 4_294_967) + (1i64 << 31)) >> 32) as i32)
 }
 
 /// The lever on one side of the shaft this step.

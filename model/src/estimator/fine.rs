@@ -30,7 +30,7 @@ pub(super) fn split(e: i64) -> (Fx, u16) {
 pub(super) fn node_step(p: &mut Fx, lo: &mut u16, net_inflow: Fx, dp_per_flow: Fx, dtl: u8) {
     let q = clamp(net_inflow, -FLOW_LIM, FLOW_LIM);
     let d = shr64(
-        i64::from(q.to_bits()) * i64::from(dp_per_flow.to_bits()),
+        wide::mul(q.to_bits(), dp_per_flow.to_bits()),
         u32::from(dtl),
     );
     (*p, *lo) = split((ext(*p, *lo) + d).clamp(ext(P_MIN, 0), ext(P_MAX, 0)));
@@ -43,7 +43,7 @@ pub(super) fn node_step(p: &mut Fx, lo: &mut u16, net_inflow: Fx, dp_per_flow: F
 #[inline]
 pub(super) fn relax(x: &mut Fx, lo: &mut u16, g: Fx, target: Fx) {
     let d = target - *x;
-    (*x, *lo) = split(ext(*x, *lo) + i64::from(g.to_bits()) * i64::from(d.to_bits()));
+    (*x, *lo) = split(ext(*x, *lo) + wide::mul(g.to_bits(), d.to_bits()));
 }
 
 /// An observer correction p += g·(z − p) with g ∈ [0, 1] ([`relax`]). The reading is first held

@@ -24,7 +24,7 @@ use crate::coeffs::{Coefficients, N_ARM};
 use crate::fx::{
     Angle, AngularSpeed, Aperture, Flow, Fx, HydraulicPower, ONE, Pressure, PressureVariance, QMul,
     Rpm, Seconds, Torque, W_PER_BAR_LPM, ZERO, clamp, mul_bounded, mul_dt, mul_frac, mul_q24,
-    recip, shr64, sqrt0,
+    recip, shr64, sqrt0, wide,
 };
 use crate::table::Table1;
 

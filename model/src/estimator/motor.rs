@@ -8,7 +8,7 @@ use crate::table::Table2;
 
 /// The valve/motor branch's coefficients (`estimator::motor`): the spool, the rotor's flow
 /// and the relief.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct BranchCoeffs {
     /// Valve (= motor) flow, L/min, vs (aperture %, P2 − LP bar), motor on its load line.
     pub valve_flow: Table2<N_APERTURE, N_PRESSURE>,
@@ -40,44 +40,42 @@ pub struct BranchCoeffs {
 
 impl BranchCoeffs {
     /// The branch's coefficients for `cfg` at the step `dt` s, the rotor's inductance
-    /// `inductance` ([`ModelConfig::motor_inductance`]).
+    /// `inductance` ([`ModelConfig::motor_inductance`]), built into `self` in place.
     #[inline(never)]
-    pub(crate) fn of(cfg: &ModelConfig, dt: f32, inductance: f32) -> BranchCoeffs {
-        let valve_flow = Table2::sample((0.0, 100.0), (0.0, P_MAX_BAR), |a, dp| {
-            cfg.steady_flow(a, dp)
-        });
+    pub(crate) fn build(&mut self, cfg: &ModelConfig, dt: f32, inductance: f32) {
+        self.valve_flow
+            .sample_into((0.0, 100.0), (0.0, P_MAX_BAR), |a, dp| {
+                cfg.steady_flow(a, dp)
+            });
         let spool_gain = if cfg.spool_time_constant_ms <= 0.0 {
             1.0
         } else {
             (dt / (cfg.spool_time_constant_ms * 1e-3)).min(1.0)
         };
-        BranchCoeffs {
-            valve_flow,
-            spool_gain: fx(spool_gain),
-            motor_gain0: fx(dt * cfg.motor_bar_per_lpm() / inductance),
-            // Sampled on the valve table's aperture rows (0..100 %, N_APERTURE nodes).
-            motor_gain_valve: Table1::<N_APERTURE>::sample(0.0, 100.0, |a| {
-                let kv = cfg.valve_k(a);
-                if kv <= 0.0 {
-                    MOTOR_GAIN_VALVE_CAP
-                } else {
-                    (dt / (inductance * kv * kv)).min(MOTOR_GAIN_VALVE_CAP)
-                }
-            })
-            .y,
-            rpm_per_lpm: fx(cfg.rpm_per_lpm()),
-            // Float-to-integer casts saturate; ≥ 1/10 000 rpm per L/min by validation.
-            lpm_per_rpm_q24: (16_777_216.0 / cfg.rpm_per_lpm()) as i32,
-            relief_setting_bar: fx(cfg.relief_setting_bar),
-            relief_gain_lpm_per_bar: fx(cfg.relief_gain_lpm_per_bar),
-            spin_down_steps: (5.0 * cfg.rotor_time_constant_s() / dt).clamp(1.0, 60_000.0) as u16,
-        }
+        self.spool_gain = fx(spool_gain);
+        self.motor_gain0 = fx(dt * cfg.motor_bar_per_lpm() / inductance);
+        // Sampled on the valve table's aperture rows (0..100 %, N_APERTURE nodes).
+        self.motor_gain_valve = Table1::<N_APERTURE>::sample(0.0, 100.0, |a| {
+            let kv = cfg.valve_k(a);
+            if kv <= 0.0 {
+                MOTOR_GAIN_VALVE_CAP
+            } else {
+                (dt / (inductance * kv * kv)).min(MOTOR_GAIN_VALVE_CAP)
+            }
+        })
+        .y;
+        self.rpm_per_lpm = fx(cfg.rpm_per_lpm());
+        // Float-to-integer casts saturate; ≥ 1/10 000 rpm per L/min by validation.
+        self.lpm_per_rpm_q24 = (16_777_216.0 / cfg.rpm_per_lpm()) as i32;
+        self.relief_setting_bar = fx(cfg.relief_setting_bar);
+        self.relief_gain_lpm_per_bar = fx(cfg.relief_gain_lpm_per_bar);
+        self.spin_down_steps = (5.0 * cfg.rotor_time_constant_s() / dt).clamp(1.0, 60_000.0) as u16;
     }
 }
 
 /// The motor reading's coefficients (`estimator::motor_reading`), used without the HP
 /// transducer.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct ReadingCoeffs {
     /// Low-pass gain of the motor reading's filters (`estimator::motor_reading`), per second
     /// step: 2·dt/τ.
@@ -237,7 +235,7 @@ pub(super) fn motor_reading(
     // 0 ≤ rpm ≤ 10 000 (< 2^30 bits; the caller range-checks it) × L/min per rpm (< 2^31
     // bits): < 2^61; held to the flow range like every flow the nodes take.
     let q_m = Fx::from_bits(
-        ((i64::from(rpm.to_bits()) * i64::from(kb.lpm_per_rpm_q24) + (1 << 23)) >> 24)
+        ((wide::mul(rpm.to_bits(), kb.lpm_per_rpm_q24) + (1 << 23)) >> 24)
             .min(i64::from(FLOW_LIM.to_bits())) as i32,
     );
     if !r.live {
@@ -305,7 +303,7 @@ pub(super) fn motor_reading(
         // to 2^−32 like the node's prediction (rounded to the LSB it was half an LSB a step
         // from its f64 form), held to the pressure range.
         (n.p2, n.p2_lo) = split(
-            (ext(n.p2, n.p2_lo) + i64::from(k.gain.to_bits()) * i64::from(e.to_bits()))
+            (ext(n.p2, n.p2_lo) + wide::mul(k.gain.to_bits(), e.to_bits()))
                 .clamp(ext(P_MIN, 0), ext(P_MAX, 0)),
         );
         // The reading brings P2's variance toward its own (never up to it).
@@ -335,7 +333,7 @@ pub(super) fn lp_plus_f(lp_dp: Fx, q_ss: Fx, q_m: Fx, slope: Fx) -> Fx {
 /// are kept). Both values lie in a physical range well inside ±2^15, a ∈ [0, 1].
 #[inline(always)]
 pub(super) fn filter(x: Fx, a: Fx, target: Fx) -> Fx {
-    let d = (i64::from(a.to_bits()) * i64::from((target - x).to_bits()) + (1 << 15)) >> 16;
+    let d = (wide::mul(a.to_bits(), (target - x).to_bits()) + (1 << 15)) >> 16;
     x + Fx::from_bits(d as i32)
 }
 

@@ -10,7 +10,7 @@ use libm::sqrtf;
 
 /// The observer's coefficients (`estimator::observer`): the nodes' prediction, the Kalman
 /// update of P2 with the HP transducer and the fixed-gain correction of LP.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct ObserverCoeffs {
     /// dP2/dt per net HP inflow, bar/s per L/min, vs P2.
     pub inv_c_hp: Table1<N_NODE>,
@@ -183,14 +183,14 @@ pub(super) fn kalman(k: &ObserverCoeffs, n: &mut NodeState, z: Fx, faults: &mut 
         // var ← (1 − g)·var kept to 2^−32 (see `NodeState::var_lo`). Bit budget: g ≤ 2^32
         // times a Q16.16 value (< 2^31 in magnitude) is < 2^63; P2's bits below the LSB
         // are left out of the innovation (≤ g·2^−16 bar, 0.01 LSB at the steady gain).
-        let g = i64::from(k.gain_q32(n.var, n.var_lo));
+        let g = k.gain_q32(n.var, n.var_lo);
         let d = clamp(z, P_MIN, P_MAX) - n.p2;
         (n.p2, n.p2_lo) = split(
-            (ext(n.p2, n.p2_lo) + ((g * i64::from(d.to_bits())) >> 16))
+            (ext(n.p2, n.p2_lo) + (wide::mul_su(d.to_bits(), g) >> 16))
                 .clamp(ext(P_MIN, 0), ext(P_MAX, 0)),
         );
         let dv =
-            ((g * i64::from(n.var.to_bits())) >> 16) + ((g * i64::from(i32::from(n.var_lo))) >> 32);
+            (wide::mul_su(n.var.to_bits(), g) >> 16) + (wide::mul_su(i32::from(n.var_lo), g) >> 32);
         (n.var, n.var_lo) = split(ext(n.var, n.var_lo) - dv);
         n.rejected = 0;
     } else {

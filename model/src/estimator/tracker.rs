@@ -50,15 +50,14 @@ pub fn expanding_memory_gains(n: u32) -> (f64, f64) {
 pub fn tracker_startup_gains(n: usize, d_q32: u32) -> (u32, u32) {
     // α_n·2^31 = (2n + 1)·D_n·2^32 and β_n·2^31 = 3·D_n·2^32. n ≤ 2^8 and D_n < 2^32: < 2^42;
     // held to 2^31 (n = 1, where the rounded D_1 makes them one LSB over).
-    let d = u64::from(d_q32);
     (
-        ((2 * n as u64 + 1) * d).min(1 << 31) as u32,
-        (3 * d).min(1 << 31) as u32,
+        wide::mul_uu(2 * (n as u32) + 1, d_q32).min(1 << 31) as u32,
+        wide::mul_uu(3, d_q32).min(1 << 31) as u32,
     )
 }
 
 /// The shaft tracker's coefficients (`estimator::tracker`).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Default)]
 pub struct TrackerCoeffs {
     /// Encoder count → rad, as the fraction bits of Q32.32 so a 16 384-count encoder keeps full
     /// precision (< 2^29: ≥ 64 counts per revolution).
@@ -157,8 +156,8 @@ pub struct TrackerState {
 /// The tracker's residual, measured less predicted angle (Q32.32), held to ±0.5 rad so that it
 /// fits an i32.
 #[inline(always)]
-pub(super) fn residual(theta_meas: i64, pred_theta: i64) -> i64 {
-    i64::from((theta_meas - pred_theta).clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32)
+pub(super) fn residual(theta_meas: i64, pred_theta: i64) -> i32 {
+    (theta_meas - pred_theta).clamp(i64::from(i32::MIN), i64::from(i32::MAX)) as i32
 }
 
 /// The shaft tracker's first reading: it starts there, at rest, and takes the expanding-memory
@@ -226,7 +225,7 @@ pub(super) fn track(
     let pred_omega = t.omega_q32 + shr64(t.accel_q32 + half, n);
     match inp.encoder {
         Some(count) => {
-            let theta_meas = i64::from(count) * i64::from(c.rad_per_count_q32);
+            let theta_meas = wide::mul(count, c.rad_per_count_q32);
             if t.phase == ENC_UNSEEN {
                 tracker_start(t, c, theta_meas, p2);
                 t.last_count = count;
@@ -241,11 +240,11 @@ pub(super) fn track(
                 // The residual held to ±0.5 rad fits an i32, so each gain product is one
                 // 32 × 32 → 64 multiply (α unsigned: it reaches 1 at the first update).
                 let r = residual(theta_meas, pred_theta);
-                t.theta_q32 = (pred_theta + ((r * i64::from(a) + (1 << 30)) >> 31))
+                t.theta_q32 = (pred_theta + ((wide::mul_su(r, a) + (1 << 30)) >> 31))
                     .clamp(-THETA_LIM_Q32, THETA_LIM_Q32);
-                t.omega_q32 = (pred_omega + ((r * i64::from(b) + (1 << 15)) >> 16))
+                t.omega_q32 = (pred_omega + ((wide::mul(r, b) + (1 << 15)) >> 16))
                     .clamp(-OMEGA_LIM_Q32, OMEGA_LIM_Q32);
-                t.accel_q32 = (t.accel_q32 + ((r * i64::from(g) + (1 << 15)) >> 16))
+                t.accel_q32 = (t.accel_q32 + ((wide::mul(r, g) + (1 << 15)) >> 16))
                     .clamp(-ACCEL_LIM_Q32, ACCEL_LIM_Q32);
             }
             if count != t.last_count {
