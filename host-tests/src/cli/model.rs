@@ -321,12 +321,12 @@ pub(crate) fn model_cost_cmd(a: &ModelCostArgs) -> Result<bool> {
             println!(
                 "  {:<34} {:>5} steps: instructions mean {:>5.0} max {:>5}; cycles mean {:>5.0} \
                  max {:>5} ({:.2} % of a {:.0} Hz loop at {:.0} MHz)",
-                r.label,
-                r.steps,
-                r.instructions_mean,
-                r.instructions_max,
-                r.cycles_mean,
-                r.cycles_max,
+                r.trace.label,
+                r.trace.steps,
+                r.trace.instructions_mean,
+                r.trace.instructions_max,
+                r.trace.cycles_mean,
+                r.trace.cycles_max,
                 r.core_percent_max,
                 t::M0_LOOP_HZ,
                 t::M0_CLOCK_HZ / 1e6

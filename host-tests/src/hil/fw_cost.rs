@@ -82,7 +82,7 @@ pub mod target {
 
 /// The four-cylinder window: the torque run of Config 1, 6 s from 20 s (it reverses every
 /// 5 s), in steps of 2^−10 s. Its scenario, start and steps.
-pub const FOUR_CYLINDER_WINDOW: (&str, f64, usize) = ("torque-cfg1-c1234", 20.0, 6 * 1024);
+const FOUR_CYLINDER_WINDOW: (&str, f64, usize) = ("torque-cfg1-c1234", 20.0, 6 * 1024);
 
 /// Step cost in one scheduler mode.
 #[derive(Debug, Clone, Serialize)]
@@ -204,7 +204,7 @@ pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, FwCostError> {
     let qemu_elf = build::build(Build::Qemu)?;
     let (four, p2, lp) = four_cylinder_inputs()?;
     let mut q = Qemu::boot(&qemu_elf, false)?;
-    pil::prime(&mut q, p2, lp, hold_p2())?;
+    pil::prime(&mut q, p2, lp, golden::hold_p2())?;
     let k = pto_model::config::ModelConfig::reference().coefficients()?;
     // As the firmware's `Reset`: P2 known to 1 bar.
     let mut st = State::new(
@@ -248,13 +248,8 @@ pub fn trace_four_cylinders() -> Result<Vec<StepTrace>, FwCostError> {
     Ok(out)
 }
 
-/// The hold-P2 mode of the measured runs (100 bar).
-fn hold_p2() -> Mode {
-    Mode::HoldPressure(Pressure::from_num(100.0))
-}
-
 /// The four-cylinder window of the torque run (Config 1) and its start pressures.
-fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
+pub(crate) fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
     let (name, start, steps) = FOUR_CYLINDER_WINDOW;
     golden::clean_inputs(
         &crate::sim::bench::Bench::reference(),
@@ -262,6 +257,12 @@ fn four_cylinder_inputs() -> Result<(Vec<Inputs>, f32, f32), GoldenError> {
         Some(start),
         steps,
     )
+}
+
+/// The same inputs without the HP reading (the sensor model's other readings do not depend on
+/// it: `golden::scenario_inputs` applies its faults after reading).
+pub(crate) fn without_hp(inputs: &[Inputs]) -> Vec<Inputs> {
+    inputs.iter().map(|i| Inputs { hp: None, ..*i }).collect()
 }
 
 /// Builds both firmwares, measures.
@@ -292,23 +293,23 @@ pub fn measure() -> Result<Report, FwCostError> {
     // case first.
     for (label, mode) in [
         ("fixed aperture", Mode::Fixed(Aperture::from_num(10.0))),
-        ("hold P2", hold_p2()),
+        ("hold P2", golden::hold_p2()),
     ] {
         step.push(step_cost(&mut q, start, mode, label)?);
     }
     step.push(step_cost(
         &mut q,
         (four.as_slice(), p2_four, lp_four),
-        hold_p2(),
+        golden::hold_p2(),
         "hold P2, 4 cylinders",
     )?);
     // The same without the HP reading: the motor speed corrects P2 instead (its filters and
     // reading in place of the Kalman update).
-    let no_hp: Vec<Inputs> = four.iter().map(|i| Inputs { hp: None, ..*i }).collect();
+    let no_hp = without_hp(&four);
     step.push(step_cost(
         &mut q,
         (no_hp.as_slice(), p2_four, lp_four),
-        hold_p2(),
+        golden::hold_p2(),
         "hold P2, 4 cylinders, no HP",
     )?);
     // The boot log has long arrived by now.

@@ -8,7 +8,7 @@
 //! counts (QEMU `-icount shift=10`: an instruction is 16.384 ticks of the nRF51's 16 MHz
 //! TIMER0, so the counts are exact).
 
-use super::build::{self, Build, BuildError};
+use super::build::BuildError;
 use super::qemu;
 use crate::validation::golden::{self, GoldenError};
 use pto_model::estimator::{self, Inputs, State};
@@ -118,11 +118,6 @@ pub struct Run {
     pub inputs: Vec<Inputs>,
 }
 
-/// The hold-P2 mode the golden vectors and the cost runs use (100 bar).
-pub fn hold_p2() -> Mode {
-    Mode::HoldPressure(Pressure::from_num(golden::SETPOINT_BAR))
-}
-
 impl Run {
     /// A run from start pressures in bar (P2 known to 1 bar, as the firmware's `Reset`).
     pub fn new(label: &str, mode: Mode, inputs: Vec<Inputs>, p2: f32, lp: f32) -> Run {
@@ -146,7 +141,7 @@ pub fn golden_run(workspace: &Path) -> Result<Run, M0Error> {
     let (p2, lp, inputs) = golden::parse(&text)?;
     Ok(Run {
         label: "golden vectors".into(),
-        mode: hold_p2(),
+        mode: golden::hold_p2(),
         start: [
             Pressure::from_bits(p2),
             Pressure::from_bits(lp),
@@ -159,18 +154,17 @@ pub fn golden_run(workspace: &Path) -> Result<Run, M0Error> {
 /// The four-cylinder cost window (6 s of the Config 1 torque run through stroke reversals:
 /// `pto fw-cost`'s), with the HP transducer and without it.
 pub fn four_cylinder_runs() -> Result<[Run; 2], M0Error> {
-    let bench = crate::sim::bench::Bench::reference();
-    let (name, t0, n) = crate::hil::fw_cost::FOUR_CYLINDER_WINDOW;
-    let (with, p2, lp) = golden::clean_inputs(&bench, name, Some(t0), n)?;
-    let (without, p2b, lpb) = golden::scenario_inputs(&bench, name, Some(t0), n, golden::no_hp)?;
+    use crate::hil::fw_cost::{four_cylinder_inputs, without_hp};
+    let (with, p2, lp) = four_cylinder_inputs()?;
+    let without = without_hp(&with);
     Ok([
-        Run::new("four cylinders", hold_p2(), with, p2, lp),
+        Run::new("four cylinders", golden::hold_p2(), with, p2, lp),
         Run::new(
             "four cylinders, no HP transducer",
-            hold_p2(),
+            golden::hold_p2(),
             without,
-            p2b,
-            lpb,
+            p2,
+            lp,
         ),
     ])
 }
@@ -415,14 +409,6 @@ fn parse_report(exit: i32, output: String) -> Report {
     }
     r.output = output;
     r
-}
-
-/// Builds `pto-m0` (once per process) and replays `runs` under the reference configuration in
-/// a fresh folder under `dir`.
-pub fn replay(runs: &[Run], dir: &Path) -> Result<Report, M0Error> {
-    let elf = build::build(Build::M0)?;
-    let v = vectors(&ModelConfig::reference(), runs)?;
-    replay_in(&elf, &v, dir)
 }
 
 /// Instructions and Cortex-M0+ cycles of one run's steps, from QEMU's trace of the step's

@@ -99,18 +99,10 @@ pub mod target {
 /// One run of the model on the Cortex-M0.
 #[derive(Debug, Clone, Serialize)]
 pub struct M0Run {
-    /// The run.
-    pub label: String,
-    /// Steps, every one bit for bit the host's.
-    pub steps: u32,
-    /// Instructions per step of the step's code (entry to return), mean.
-    pub instructions_mean: f64,
-    /// Their maximum.
-    pub instructions_max: u32,
-    /// Cortex-M0+ cycles per step, mean (`hil::thumb`'s table).
-    pub cycles_mean: f64,
-    /// Their maximum.
-    pub cycles_max: u32,
+    /// Its instructions and cycles per step, from the trace of the step's code (every step bit
+    /// for bit the host's).
+    #[serde(flatten)]
+    pub trace: crate::hil::m0::RunCycles,
     /// The worst step's share of the core at [`target::M0_CLOCK_HZ`] and
     /// [`target::M0_LOOP_HZ`], %.
     pub core_percent_max: f64,
@@ -161,7 +153,9 @@ pub fn m0_cost() -> Result<M0Cost, CostError> {
     runs.extend(m0::four_cylinder_runs()?);
     let dir = std::env::temp_dir().join(format!("pto-model-cost-m0-{}", std::process::id()));
     let result = (|| {
-        let r = m0::replay(&runs, &dir)?;
+        let elf = crate::hil::build::build(crate::hil::build::Build::M0)?;
+        let v = m0::vectors(&pto_model::ModelConfig::reference(), &runs)?;
+        let r = m0::replay_in(&elf, &v, &dir)?;
         if r.exit != 0 || r.runs.len() != runs.len() {
             return Err(m0::M0Error::Failed {
                 exit: r.exit,
@@ -172,8 +166,6 @@ pub fn m0_cost() -> Result<M0Cost, CostError> {
                 output: r.output,
             });
         }
-        let elf = crate::hil::build::build(crate::hil::build::Build::M0)?;
-        let v = m0::vectors(&pto_model::ModelConfig::reference(), &runs)?;
         let cycles = m0::cycles(&elf, &v, &runs, &dir, m0::Trace::Blocks)?;
         Ok((r, cycles))
     })();
@@ -183,23 +175,22 @@ pub fn m0_cost() -> Result<M0Cost, CostError> {
     let runs: Vec<M0Run> = r
         .runs
         .iter()
-        .zip(&cycles)
+        .zip(cycles)
         .map(|(t, c)| M0Run {
-            label: c.label.clone(),
-            steps: c.steps,
-            instructions_mean: c.instructions_mean,
-            instructions_max: c.instructions_max,
-            cycles_mean: c.cycles_mean,
-            cycles_max: c.cycles_max,
             core_percent_max: 100.0 * f64::from(c.cycles_max) / per_loop,
             timer_instructions: (t.mean, t.max),
+            trace: c,
         })
         .collect();
     let missing = |what| crate::hil::m0::M0Error::Report {
         what,
         output: r.output.clone(),
     };
-    let step_instructions_max = runs.iter().map(|r| r.instructions_max).max().unwrap_or(0);
+    let step_instructions_max = runs
+        .iter()
+        .map(|r| r.trace.instructions_max)
+        .max()
+        .unwrap_or(0);
     let core_percent_max = runs.iter().map(|r| r.core_percent_max).fold(0.0, f64::max);
     let build_stack_bytes = r.build_stack_bytes.ok_or_else(|| missing("coefficients"))?;
     Ok(M0Cost {

@@ -154,6 +154,12 @@ pub fn clean_inputs(
     scenario_inputs(bench, name, t_start, steps, no_faults)
 }
 
+/// The mode the vectors hold P2 in ([`SETPOINT_BAR`]); `pto fw-cost` and the Cortex-M0 replay
+/// measure in it too.
+pub fn hold_p2() -> Mode {
+    Mode::HoldPressure(Pressure::from_num(SETPOINT_BAR))
+}
+
 /// Runs the model over the inputs from the known start.
 pub fn run(
     k: &Coefficients,
@@ -172,14 +178,7 @@ pub fn run(
         .iter()
         .map(|inp| {
             let e = estimator::step(k, &mut s, inp);
-            let c = scheduler::step(
-                k,
-                &sc,
-                &mut st,
-                Mode::HoldPressure(Pressure::from_num(SETPOINT_BAR)),
-                &e,
-                inp.motor,
-            );
+            let c = scheduler::step(k, &sc, &mut st, hold_p2(), &e, inp.motor);
             (e, c)
         })
         .collect())

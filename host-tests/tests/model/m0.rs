@@ -21,7 +21,9 @@ fn golden_vectors_and_four_cylinder_runs_replay_bit_for_bit_on_a_cortex_m0() {
     let mut runs = vec![golden(usize::MAX)];
     runs.extend(m0::four_cylinder_runs().unwrap());
     let dir = common::fresh_dir("m0", "replay");
-    let r = m0::replay(&runs, &dir).unwrap();
+    let elf = build::build(Build::M0).unwrap();
+    let v = m0::vectors(&ModelConfig::reference(), &runs).unwrap();
+    let r = m0::replay_in(&elf, &v, &dir).unwrap();
     println!("{}", r.output);
     assert_eq!(r.exit, 0, "{:?}", r.failure);
     assert_eq!(r.runs.len(), runs.len());
@@ -42,8 +44,6 @@ fn golden_vectors_and_four_cylinder_runs_replay_bit_for_bit_on_a_cortex_m0() {
     // The cycle trace counts the same steps: its instructions are the timer's less a fixed
     // number, the replay loop's code the compiler placed between the timer's two reads (the
     // call's set-up, ≈ 80), the same for the mean and the worst step.
-    let elf = build::build(Build::M0).unwrap();
-    let v = m0::vectors(&ModelConfig::reference(), &runs).unwrap();
     let c = m0::cycles(&elf, &v, &runs, &dir, Trace::Blocks).unwrap();
     for (t, k) in r.runs.iter().zip(&c) {
         let gap = t.mean - k.instructions_mean;
