@@ -587,12 +587,51 @@ pub fn sensor_bit(s: Sensor) -> u8 {
     }
 }
 
-/// Runs a case (noise seed `seed`) and judges it.
-pub fn detect(bench: &Bench, c: &Case, seed: u64) -> Result<Detection, FaultRunError> {
+/// Runs the cases (noise seed `seed`) and judges each, in parallel; the first run that could
+/// not be made ends it.
+///
+/// Each case is judged against the same run without its fault (same noise): what the fault did
+/// to the plant. That run depends only on the mode held and the start, so the cases share one
+/// per pair (the sensor-fault test's 60 cases, 15 of `pto validate`, four pairs): it was made
+/// again for each case, half of the test's 128 s.
+pub fn detect_all(
+    bench: &Bench,
+    cases: &[Case],
+    seed: u64,
+) -> Result<Vec<Detection>, FaultRunError> {
+    use rayon::prelude::*;
+    let mut starts: Vec<(Mode, f64)> = Vec::new();
+    let start_of: Vec<usize> = cases
+        .iter()
+        .map(|c| {
+            let s = (c.mode, c.start_bar);
+            starts.iter().position(|x| *x == s).unwrap_or_else(|| {
+                starts.push(s);
+                starts.len() - 1
+            })
+        })
+        .collect();
+    let free: Vec<FaultLoop> = starts
+        .par_iter()
+        .map(|&(mode, p2)| fault_run(bench, mode, p2, RUN_S, None, seed))
+        .collect::<Result<_, _>>()?;
+    cases
+        .par_iter()
+        .zip(start_of)
+        .map(|(c, i)| detect_against(bench, c, seed, &free[i]))
+        .collect()
+}
+
+/// Runs a case (noise seed `seed`) and judges it against `free`, the same run without the
+/// fault.
+fn detect_against(
+    bench: &Bench,
+    c: &Case,
+    seed: u64,
+    free: &FaultLoop,
+) -> Result<Detection, FaultRunError> {
     let (sched, _) = controller_config(bench);
     let l = fault_run(bench, c.mode, c.start_bar, RUN_S, Some(c.fault), seed)?;
-    // The same run without the fault (same noise): what the fault did to the plant.
-    let free = fault_run(bench, c.mode, c.start_bar, RUN_S, None, seed)?;
     let from = c.fault.from_s;
     let first = l.rows.iter().find(|r| r.sensor_faults != 0);
     let bound_s = c.fault.bound_s(

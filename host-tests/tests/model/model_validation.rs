@@ -437,10 +437,7 @@ fn sensors_failing_at_plausible_values_are_caught_named_and_made_safe() {
             })
         })
         .collect();
-    let rows: Vec<Detection> = runs
-        .par_iter()
-        .map(|c| faults::detect(&bench, c, 11).unwrap())
-        .collect();
+    let rows: Vec<Detection> = faults::detect_all(&bench, &runs, 11).unwrap();
     println!(
         "{:<48} {:>6} {:>9} {:>9} {:<8} {:>9} {:>15} {:>7} safe",
         "case", "from", "after s", "bound s", "held", "P2 then", "P2 after", "silent"

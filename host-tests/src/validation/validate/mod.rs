@@ -610,10 +610,10 @@ fn sensor_fault_rows(
     Vec<Result<usize, crate::validation::faults::FaultRunError>>,
 ) {
     use crate::validation::faults;
-    let d = faults::cases()
-        .par_iter()
-        .map(|c| faults::detect(bench, c, 11))
-        .collect();
+    let d = match faults::detect_all(bench, &faults::cases(), 11) {
+        Ok(v) => v.into_iter().map(Ok).collect(),
+        Err(e) => vec![Err(e)],
+    };
     let fa = faults::fault_free_loops()
         .par_iter()
         .map(|(m, p0)| faults::false_alarms(bench, *m, *p0, 12))
