@@ -592,8 +592,8 @@ pub fn sensor_bit(s: Sensor) -> u8 {
 ///
 /// Each case is judged against the same run without its fault (same noise): what the fault did
 /// to the plant. That run depends only on the mode held and the start, so the cases share one
-/// per pair (the sensor-fault test's 60 cases, 15 of `pto validate`, four pairs): it was made
-/// again for each case, half of the test's 128 s.
+/// per pair (five pairs for the sensor-fault test's 64 cases and `pto validate`'s 16): made
+/// again for each case, it was half of the test's 128 s.
 pub fn detect_all(
     bench: &Bench,
     cases: &[Case],
