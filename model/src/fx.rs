@@ -256,11 +256,7 @@ pub mod wide {
     /// ⌊a·b / 2¹⁶⌋, exact.
     #[inline(always)]
     pub fn mul_q16(a: i32, b: i32) -> i64 {
-        if cfg!(no_long_multiply) {
-            mul_q16_halves(a, b)
-        } else {
-            (i64::from(a) * i64::from(b)) >> 16
-        }
+        mul(a, b) >> 16
     }
 
     /// ⌊a·b / 2¹⁶⌋ for a product known to fit an `i32` after the shift (else its low 32 bits).
